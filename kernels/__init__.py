@@ -1,0 +1,12 @@
+"""Hand-written NVIDIA Warp kernels of warpavatar, grouped by family.
+
+Installed as ``warpavatar.kernels``. Each family module holds its ``@wp.func`` helpers, its kernels and one
+launcher per kernel; the launchers take and return ``warp.array`` objects and never touch torch. The
+torch-facing, differentiable API is :mod:`warpavatar.ops`.
+
+Families:
+    splat: projection, tile binning and compositing of 3D Gaussians (forward and hand-written backward).
+    knn: exact k-nearest-neighbour graph on a hash grid.
+    springs: explicit-Euler mass-spring-damper step and its regularizers.
+    skinning: trilinear sampling of a voxel field and linear blend skinning.
+"""

@@ -1,0 +1,61 @@
+"""Kernel micro-benchmarks of warpavatar: ``python tools/bench_kernels.py MODE [options]``.
+
+Modes: ``splat`` (rasterizer, against gsplat when importable), ``knn``, ``springs``, ``skinning``
+(sample_grid and lbs), ``all``. Each mode lives in ``tools/bench_<mode>.py`` and returns table rows;
+this script prints them as a markdown table with the device and date, and appends them to ``--record``
+(default ``BENCHMARKS.md``) when asked, so runs can be compared over time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import importlib
+import os
+import platform
+import sys
+
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+from bench_common import markdown_table  # noqa: E402
+
+MODES = ("splat", "knn", "springs", "skinning")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("mode", choices=MODES + ("all",), help="which kernel family to benchmark")
+    parser.add_argument("--device", default="cuda:0" if torch.cuda.is_available() else "cpu",
+                        help="torch device to run on (default: cuda:0 when available, else cpu)")
+    parser.add_argument("--quick", action="store_true",
+                        help="small sizes and few repetitions: checks that the benchmark runs, numbers mean little")
+    parser.add_argument("--record", metavar="FILE", default=None,
+                        help="append the tables, with device, date and command, to this markdown file")
+    args = parser.parse_args(argv)
+
+    modes = MODES if args.mode == "all" else (args.mode,)
+    if args.device.startswith("cuda"):
+        device_name = torch.cuda.get_device_name(torch.device(args.device))
+    else:
+        device_name = platform.processor() or platform.machine()
+    header = (f"## {', '.join(modes)} on {device_name} ({args.device}), "
+              f"{datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}\n\n"
+              f"Command: `python tools/bench_kernels.py {' '.join(argv if argv is not None else sys.argv[1:])}`; "
+              f"torch {torch.__version__}\n")
+    out = [header]
+    for mode in modes:
+        module = importlib.import_module(f"bench_{mode}")
+        rows = module.run(device=args.device, quick=args.quick)
+        out.append(f"### {mode}\n\n{markdown_table(rows)}\n")
+        print(out[-1], flush=True)
+    text = "\n".join(out)
+    if args.record:
+        with open(args.record, "a", encoding="utf-8") as f:
+            f.write(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

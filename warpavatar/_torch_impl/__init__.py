@@ -1,0 +1,20 @@
+"""Plain-torch reference implementations of :mod:`warpavatar.ops`, same signatures, no Warp.
+
+They are slow and simple on purpose: the tests compare the Warp kernels' values and gradients against them.
+"""
+
+from warpavatar._torch_impl.knn import knn_graph
+from warpavatar._torch_impl.skinning import inverse_lbs, lbs, sample_grid
+from warpavatar._torch_impl.splat import rasterize_gaussians
+from warpavatar._torch_impl.springs import damping_loss, isometry_loss, spring_step
+
+__all__ = [
+    "rasterize_gaussians",
+    "knn_graph",
+    "spring_step",
+    "isometry_loss",
+    "damping_loss",
+    "sample_grid",
+    "lbs",
+    "inverse_lbs",
+]

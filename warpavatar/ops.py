@@ -1,0 +1,25 @@
+"""The torch-facing API of warpavatar's Warp kernels.
+
+Every function here takes and returns torch tensors on CPU or CUDA, runs hand-written Warp kernels on
+torch's current stream and is differentiable through ``torch.autograd`` (backward passes are explicit
+kernels). A plain-torch reference of each, with the same signature, is in :mod:`warpavatar._torch_impl`.
+Conventions: quaternions are (w, x, y, z); cameras follow OpenCV (x right, y down, z forward,
+``world_to_camera`` 4x4, intrinsics ``K`` 3x3 with pixel centres at integer coordinates as
+``docs/conventions.md`` states); lengths are in world units (metres in the supplied data).
+"""
+
+from warpavatar._src.knn import knn_graph
+from warpavatar._src.skinning import inverse_lbs, lbs, sample_grid
+from warpavatar._src.splat import rasterize_gaussians
+from warpavatar._src.springs import damping_loss, isometry_loss, spring_step
+
+__all__ = [
+    "rasterize_gaussians",
+    "knn_graph",
+    "spring_step",
+    "isometry_loss",
+    "damping_loss",
+    "sample_grid",
+    "lbs",
+    "inverse_lbs",
+]
