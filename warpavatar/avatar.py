@@ -1,0 +1,163 @@
+"""The animatable avatar: canonical Gaussians + voxel skinning field + skeleton, posed by linear blend skinning.
+
+Data flows one way: a pose (bone transforms [J,4,4], rest -> posed world, as poses.npz stores them) goes
+through :meth:`Avatar.pose_bones` (where grown joints would extend it), the skinning field gives each canonical
+Gaussian its weights, :func:`warpavatar.ops.lbs` moves positions and rotations, and each deformer in
+``Avatar.deformers`` may then add per-frame non-rigid offsets (secondary motion) before rendering.
+
+An avatar file (``avatar.pt``) holds everything needed to render it: the skeleton, the Gaussians, the field's
+weights and box, and the config it was fitted with.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Protocol
+
+import torch
+
+from warpavatar import ops
+from warpavatar.gaussians import GaussianModel
+from warpavatar.skinning_field import VoxelSkinningField
+
+__all__ = ["Deformer", "PosedGaussians", "Avatar", "AVATAR_FORMAT"]
+
+AVATAR_FORMAT = "warpavatar-avatar/1"
+
+
+class PosedGaussians(dict):
+    """Posed Gaussians ready for :func:`warpavatar.ops.rasterize_gaussians`.
+
+    Keys: ``means`` [N,3], ``quats`` [N,4] (w,x,y,z), ``scales`` [N,3], ``opacities`` [N],
+    ``colors`` [N,(d+1)^2,3] SH coefficients, ``sh_degree`` (int), ``weights`` [N,J] skinning weights.
+    """
+
+
+class Deformer(Protocol):
+    """A per-frame non-rigid correction applied after skinning (e.g. a secondary-motion model)."""
+
+    def __call__(self, posed: PosedGaussians, *, frame_index: int | None) -> PosedGaussians: ...
+
+
+class Avatar(torch.nn.Module):
+    """Canonical Gaussians driven by a skeleton through a voxel skinning field.
+
+    Args:
+        skeleton: the rest-pose skeleton (:class:`warpavatar.data.Skeleton`).
+        gaussians: canonical Gaussians (rest pose, world units).
+        field: the voxel skinning field over the canonical box.
+    """
+
+    def __init__(self, skeleton, gaussians: GaussianModel, field: VoxelSkinningField):
+        super().__init__()
+        self.skeleton = skeleton
+        self.gaussians = gaussians
+        self.field = field
+        self.deformers: list[Deformer] = []
+
+    @property
+    def joint_count(self) -> int:
+        return len(self.skeleton.names)
+
+    def pose_bones(self, bone_transforms: torch.Tensor) -> torch.Tensor:
+        """Full set of skinning transforms [J',4,4] for the skeleton's [J,4,4] (J' = J until joints are grown)."""
+        if bone_transforms.shape != (self.joint_count, 4, 4):
+            raise ValueError(f"bone_transforms must have shape [{self.joint_count}, 4, 4] for this avatar's "
+                             f"skeleton, got {list(bone_transforms.shape)}")
+        return bone_transforms
+
+    def pose(self, bone_transforms: torch.Tensor, *, sh_degree: int | None = None, frame_index: int | None = None,
+             grid: torch.Tensor | None = None) -> PosedGaussians:
+        """Pose the canonical Gaussians.
+
+        Args:
+            bone_transforms: [J,4,4] rest-to-posed transforms of this frame (float32, the avatar's device).
+            sh_degree: SH degree to render with (default: all the avatar has).
+            frame_index: index of the frame in its sequence, passed to deformers that keep state over time.
+            grid: precomputed skinning grid (:meth:`VoxelSkinningField.grid_weights`), to share across calls.
+        """
+        gaussians = self.gaussians
+        degree = gaussians.sh_degree if sh_degree is None else min(sh_degree, gaussians.sh_degree)
+        weights = self.field.weights(gaussians.means, grid)
+        means, quats = ops.lbs(gaussians.means, weights, self.pose_bones(bone_transforms),
+                               quats=gaussians.normalized_quats)
+        posed = PosedGaussians(means=means, quats=quats, scales=gaussians.scales, opacities=gaussians.opacities,
+                               colors=gaussians.sh_coefficients(degree), sh_degree=degree, weights=weights)
+        for deformer in self.deformers:
+            posed = deformer(posed, frame_index=frame_index)
+        return posed
+
+    def render(self, camera, bone_transforms: torch.Tensor, *, background: torch.Tensor | None = None,
+               sh_degree: int | None = None, frame_index: int | None = None, grid: torch.Tensor | None = None,
+               densify_grad_out: torch.Tensor | None = None, return_info: bool = False):
+        """Render the avatar in a pose through a camera.
+
+        Args:
+            camera: object with ``K`` [3,3], ``world_to_camera`` [4,4] (numpy or torch), ``width``, ``height``.
+            bone_transforms: [J,4,4] pose.
+            background: [3] colour in 0..1 (default black).
+
+        Returns:
+            ``(image [H,W,3], alpha [H,W], depth [H,W])``, plus the rasterizer's info dict when ``return_info``.
+        """
+        device = self.gaussians.means.device
+        posed = self.pose(bone_transforms, sh_degree=sh_degree, frame_index=frame_index, grid=grid)
+        K = torch.as_tensor(camera.K, dtype=torch.float32, device=device)
+        world_to_camera = torch.as_tensor(camera.world_to_camera, dtype=torch.float32, device=device)
+        return ops.rasterize_gaussians(
+            posed["means"], posed["quats"], posed["scales"], posed["opacities"], posed["colors"], K, world_to_camera,
+            int(camera.width), int(camera.height), background=background, sh_degree=posed["sh_degree"],
+            densify_grad_out=densify_grad_out, return_info=return_info)
+
+    # ------------------------------------------------------------------------------------------------ files
+    def state_for_file(self, config: dict | None = None) -> dict:
+        return {
+            "format": AVATAR_FORMAT,
+            "skeleton": self.skeleton.to_json_dict(),
+            "gaussians": self.gaussians.state_for_checkpoint(),
+            "field": {
+                "state_dict": {k: v.detach().cpu() for k, v in self.field.state_dict().items()},
+                "joint_count": self.field.joint_count,
+                "grid_shape": list(self.field.grid_shape),
+                "hyper": dict(self.field.hyper),
+            },
+            "config": config or {},
+        }
+
+    def save(self, path: str | os.PathLike, *, config: dict | None = None) -> Path:
+        """Write the avatar file atomically (temporary name, then rename)."""
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save(self.state_for_file(config), tmp)
+        os.replace(tmp, path)
+        return path
+
+    @classmethod
+    def from_state(cls, state: dict, *, device="cpu") -> "Avatar":
+        from warpavatar.data import Skeleton
+
+        if state.get("format") != AVATAR_FORMAT:
+            raise ValueError(f"not a warpavatar avatar (format {state.get('format')!r}, expected {AVATAR_FORMAT!r})")
+        skeleton = Skeleton.from_json_dict(state["skeleton"], source="avatar file")
+        gaussians = GaussianModel.from_checkpoint(state["gaussians"], device=device)
+        field_state = state["field"]
+        hyper = field_state["hyper"]
+        field = VoxelSkinningField(field_state["state_dict"]["bbox_min"], field_state["state_dict"]["bbox_max"],
+                                   field_state["joint_count"], **hyper)
+        field.load_state_dict(field_state["state_dict"])
+        return cls(skeleton, gaussians, field.to(device))
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, *, device="cpu") -> "Avatar":
+        """Load an avatar file written by :meth:`save` (or an output folder containing ``avatar.pt``)."""
+        path = Path(path)
+        if path.is_dir():
+            path = path / "avatar.pt"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no avatar file here (run warpavatar-fit first)")
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=False)
+        except Exception as error:  # noqa: BLE001 - any unreadable file gets the same clear message
+            raise ValueError(f"{path}: cannot read the avatar file ({error})") from error
+        return cls.from_state(state, device=device)

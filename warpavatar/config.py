@@ -1,0 +1,138 @@
+"""Fitting configuration: one dataclass whose field docstrings are the ``--help`` of ``warpavatar-fit``.
+
+Presets are named configurations (:data:`PRESETS`); command-line flags override single fields.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from dataclasses import dataclass, field, fields
+
+__all__ = ["FitConfig", "PRESETS", "preset", "add_config_arguments", "config_from_arguments"]
+
+
+def _opt(default, help_text: str):
+    return field(default=default, metadata={"help": help_text})
+
+
+@dataclass
+class FitConfig:
+    """Every knob of a fit. Iteration counts are optimizer steps (one training frame each)."""
+
+    iterations: int = _opt(15000, "total optimizer steps (one training frame per step)")
+    seed: int = _opt(0, "random seed: the fit is deterministic for a given seed on a given device")
+    image_scale: float = _opt(1.0, "resize training frames by this factor (K is scaled to match)")
+    max_train_frames: int = _opt(0, "use at most this many training frames, evenly spaced (0 = all)")
+    # Initialization (TAGA Sec. 3.1, no body template)
+    init_points_per_bone: int = _opt(400, "Gaussians sampled around each bone's midpoint at start")
+    init_carve: bool = _opt(True, "also seed Gaussians by carving the canonical box with the training masks")
+    init_carve_candidates: int = _opt(200000, "random canonical points tested against the masks when carving")
+    init_carve_points: int = _opt(20000, "at most this many carved points are kept")
+    sh_degree: int = _opt(3, "spherical-harmonics degree of the colours (0 = view-independent)")
+    sh_increase_every: int = _opt(1000, "raise the active SH degree by one every this many steps")
+    # Skinning field (TAGA Sec. 3.1, appendix C)
+    grid_cells: int = _opt(64, "voxel skinning grid cells along the longest canonical axis (TAGA: 64x64x16)")
+    grid_min_cells: int = _opt(16, "fewest voxel cells along any axis")
+    field_hidden: int = _opt(128, "hidden width of the skinning-field MLP")
+    field_layers: int = _opt(4, "hidden layers of the skinning-field MLP")
+    field_frequencies: int = _opt(6, "positional-encoding frequencies of the skinning-field MLP input")
+    field_warmup_steps: int = _opt(600, "warm-up steps that distil a rigid bone-distance prior into the field")
+    gaussian_only_steps: int = _opt(1500, "steps after warm-up where only the Gaussians train (field frozen)")
+    field_lr: float = _opt(1e-3, "Adam learning rate of the skinning-field MLP")
+    lambda_bone: float = _opt(0.5, "weight of the bone regularization (one-hot weights at bone midpoints)")
+    # Losses
+    lambda_ssim: float = _opt(0.2, "weight of (1 - SSIM) in the photometric loss")
+    lambda_mask: float = _opt(0.1, "weight of the L1 loss between rendered alpha and the foreground mask")
+    lambda_scale: float = _opt(0.0, "weight of a penalty on Gaussian scales above scale_limit")
+    # Optimizer (3DGS rates; positions scaled by the canonical extent)
+    lr_position: float = _opt(1.6e-4, "initial position learning rate, times the canonical extent")
+    lr_position_final: float = _opt(1.6e-6, "final position learning rate, times the canonical extent")
+    lr_scale: float = _opt(5e-3, "learning rate of log-scales")
+    lr_rotation: float = _opt(1e-3, "learning rate of quaternions")
+    lr_opacity: float = _opt(2.5e-2, "learning rate of opacity logits")
+    lr_color: float = _opt(2.5e-3, "learning rate of SH DC coefficients (higher orders use 1/20 of it)")
+    # Adaptive density control
+    densify_from: int = _opt(500, "first step of densification (after the warm-up)")
+    densify_until: int = _opt(10000, "last step of densification")
+    densify_every: int = _opt(100, "steps between densification rounds")
+    densify_grad_threshold: float = _opt(2e-4, "mean screen-space gradient (NDC) above which a Gaussian is cloned or split")
+    densify_percent_dense: float = _opt(0.01, "relative size (of the canonical extent) separating clone from split")
+    max_gaussians: int = _opt(200000, "Gaussian budget: the densification threshold rises as the count nears it")
+    prune_opacity: float = _opt(0.005, "Gaussians whose opacity falls below this are pruned")
+    prune_max_scale: float = _opt(0.1, "Gaussians larger than this fraction of the canonical extent are pruned")
+    opacity_reset_every: int = _opt(3000, "steps between opacity resets (0 = never)")
+    # Book-keeping
+    log_every: int = _opt(50, "steps between training-log lines (JSON lines)")
+    checkpoint_every: int = _opt(1000, "steps between checkpoints (written atomically)")
+    preview_frames: int = _opt(3, "training frames rendered as previews at the end")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "FitConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(f"unknown config fields: {sorted(unknown)}")
+        return cls(**values)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2)
+
+
+PRESETS: dict[str, dict] = {
+    # Quality preset, for a GPU.
+    "default": {},
+    # Small and fast: CPU fits in minutes, and the test suite.
+    "quick": dict(
+        iterations=2500,
+        image_scale=0.5,
+        init_points_per_bone=150,
+        init_carve_candidates=60000,
+        init_carve_points=6000,
+        sh_degree=1,
+        sh_increase_every=800,
+        grid_cells=32,
+        grid_min_cells=8,
+        field_hidden=64,
+        field_layers=3,
+        field_warmup_steps=300,
+        gaussian_only_steps=600,
+        densify_from=200,
+        densify_until=1800,
+        densify_every=100,
+        max_gaussians=20000,
+        opacity_reset_every=0,
+        checkpoint_every=500,
+    ),
+}
+
+
+def preset(name: str, **overrides) -> FitConfig:
+    """The named preset (``"default"`` or ``"quick"``) with some fields overridden."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+    return FitConfig(**{**PRESETS[name], **overrides})
+
+
+def add_config_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add one kebab-case flag per config field (``--lambda-ssim``), defaulting to "take the preset's"."""
+    group = parser.add_argument_group("fit configuration (each overrides the preset's value)")
+    for f in fields(FitConfig):
+        flag = "--" + f.name.replace("_", "-")
+        help_text = f"{f.metadata['help']} (default preset: {f.default})"
+        if f.type in ("bool", bool):
+            group.add_argument(flag, dest=f.name, default=None, action=argparse.BooleanOptionalAction, help=help_text)
+        else:
+            kind = {"int": int, "float": float}.get(f.type if isinstance(f.type, str) else f.type.__name__, str)
+            group.add_argument(flag, dest=f.name, type=kind, default=None, metavar=kind.__name__.upper(),
+                               help=help_text)
+
+
+def config_from_arguments(args: argparse.Namespace, preset_name: str) -> FitConfig:
+    """The preset with every flag the user gave applied."""
+    overrides = {f.name: getattr(args, f.name) for f in fields(FitConfig) if getattr(args, f.name, None) is not None}
+    return preset(preset_name, **overrides)

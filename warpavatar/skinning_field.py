@@ -1,0 +1,137 @@
+"""TAGA's voxel skinning field: an MLP evaluated on a fixed coarse grid, read by trilinear interpolation.
+
+The MLP maps a canonical grid point to bone logits; their softmax over bones is the grid of skinning weights
+[D,H,W,J] (D along z, H along y, W along x, as :func:`warpavatar.ops.sample_grid` indexes). Gaussians read
+their weights from the grid by trilinear interpolation, so the weights of any point are a convex combination
+of softmax outputs: non-negative and summing to one. The MLP only ever sees the grid points, which keeps the
+field smooth and stable while Gaussians move, split and die (TAGA Sec. 3.1).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from warpavatar import ops
+
+__all__ = ["bone_distance_prior", "bone_sample_points", "grid_shape_for_box", "VoxelSkinningField"]
+
+
+def _segment_distance(points: torch.Tensor, heads: torch.Tensor, tails: torch.Tensor) -> torch.Tensor:
+    """Distance [N,J] from each point to each bone segment head->tail."""
+    axis = tails - heads  # [J,3]
+    length_sq = (axis * axis).sum(-1).clamp_min(1e-12)
+    rel = points[:, None, :] - heads[None]  # [N,J,3]
+    t = ((rel * axis[None]).sum(-1) / length_sq).clamp(0.0, 1.0)
+    closest = heads[None] + t[..., None] * axis[None]
+    return (points[:, None, :] - closest).norm(dim=-1)
+
+
+def bone_distance_prior(points: torch.Tensor, heads: torch.Tensor, tails: torch.Tensor, *, temperature: float
+                        ) -> torch.Tensor:
+    """Rigid skinning prior [N,J]: softmax over bones of -(distance to the bone segment) / temperature.
+
+    Uses the skeleton alone (no body template). With a small temperature it assigns each point to its nearest
+    bone; it is what the field's warm-up distils and what carving poses candidate points with.
+    """
+    return torch.softmax(-_segment_distance(points, heads, tails) / temperature, dim=-1)
+
+
+def bone_sample_points(heads: torch.Tensor, tails: torch.Tensor, parents: torch.Tensor
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+    """TAGA's bone-regularization samples: bone midpoints, plus a virtual point beyond each leaf joint.
+
+    Returns:
+        (points [S,3], bone index [S] of the one-hot weight expected there).
+    """
+    joint_count = heads.shape[0]
+    points = [(heads + tails) * 0.5]
+    index = [torch.arange(joint_count, device=heads.device)]
+    has_child = torch.zeros(joint_count, dtype=torch.bool, device=heads.device)
+    valid_parents = parents[parents >= 0].long()
+    has_child[valid_parents] = True
+    leaves = torch.nonzero(~has_child).squeeze(1)
+    if leaves.numel():
+        # the virtual joint continues the leaf bone beyond its tail by half its length
+        points.append(tails[leaves] + 0.5 * (tails[leaves] - heads[leaves]))
+        index.append(leaves)
+    return torch.cat(points), torch.cat(index)
+
+
+def grid_shape_for_box(extent: torch.Tensor, *, cells: int, min_cells: int) -> tuple[int, int, int]:
+    """Grid (D, H, W) for a box of ``extent`` (x, y, z): ``cells`` along the longest axis, proportional elsewhere."""
+    longest = float(extent.max())
+    per_axis = [max(min_cells, min(cells, int(math.ceil(cells * float(e) / longest)))) for e in extent]
+    return per_axis[2], per_axis[1], per_axis[0]
+
+
+class VoxelSkinningField(torch.nn.Module):
+    """Skinning weights of canonical points from an MLP distilled onto a fixed voxel grid.
+
+    Args:
+        bbox_min: [3] canonical box corner (world units); grid corners sit on the box corners.
+        bbox_max: [3] opposite corner.
+        joint_count: number of bones J (weights per point).
+        cells: grid cells along the box's longest axis (TAGA uses 64x64x16).
+        min_cells: fewest cells along any axis.
+        hidden: MLP width.
+        layers: MLP hidden layers.
+        frequencies: positional-encoding octaves of the grid coordinates.
+    """
+
+    def __init__(self, bbox_min: torch.Tensor, bbox_max: torch.Tensor, joint_count: int, *, cells: int = 64,
+                 min_cells: int = 16, hidden: int = 128, layers: int = 4, frequencies: int = 6):
+        super().__init__()
+        self.register_buffer("bbox_min", bbox_min.float().clone())
+        self.register_buffer("bbox_max", bbox_max.float().clone())
+        self.joint_count = joint_count
+        self.frequencies = frequencies
+        self.hyper = dict(cells=cells, min_cells=min_cells, hidden=hidden, layers=layers, frequencies=frequencies)
+        self.grid_shape = grid_shape_for_box(bbox_max - bbox_min, cells=cells, min_cells=min_cells)
+        depth, height, width = self.grid_shape
+        axes = [torch.linspace(0.0, 1.0, count) for count in (depth, height, width)]
+        gz, gy, gx = torch.meshgrid(*axes, indexing="ij")
+        unit = torch.stack([gx, gy, gz], dim=-1)  # [D,H,W,3] in 0..1, x first
+        self.register_buffer("grid_points", (bbox_min.cpu() + unit * (bbox_max - bbox_min).cpu()).to(bbox_min))
+        in_features = 3 + 3 * 2 * frequencies
+        modules: list[torch.nn.Module] = []
+        width_in = in_features
+        for _ in range(layers):
+            modules += [torch.nn.Linear(width_in, hidden), torch.nn.Softplus(beta=10.0)]
+            width_in = hidden
+        modules.append(torch.nn.Linear(width_in, joint_count))
+        self.mlp = torch.nn.Sequential(*modules)
+
+    def _encode(self, points: torch.Tensor) -> torch.Tensor:
+        unit = (points - self.bbox_min) / (self.bbox_max - self.bbox_min) * 2.0 - 1.0
+        bands = [unit]
+        for octave in range(self.frequencies):
+            scaled = unit * (math.pi * 2.0**octave)
+            bands += [torch.sin(scaled), torch.cos(scaled)]
+        return torch.cat(bands, dim=-1)
+
+    def grid_weights(self) -> torch.Tensor:
+        """The voxel grid of skinning weights [D,H,W,J] (softmax of the MLP at the grid points)."""
+        logits = self.mlp(self._encode(self.grid_points.reshape(-1, 3)))
+        return torch.softmax(logits, dim=-1).reshape(*self.grid_shape, self.joint_count)
+
+    def weights(self, points: torch.Tensor, grid: torch.Tensor | None = None) -> torch.Tensor:
+        """Skinning weights [N,J] of canonical points [N,3] by trilinear interpolation of the grid.
+
+        Points outside the box take the weights of the nearest box face (border clamping).
+        """
+        grid = self.grid_weights() if grid is None else grid
+        return ops.sample_grid(grid, points, self.bbox_min, self.bbox_max)
+
+    def distillation_loss(self, prior: torch.Tensor) -> torch.Tensor:
+        """Cross-entropy of the grid's weights against a prior [D*H*W, J] (the warm-up objective)."""
+        logits = self.mlp(self._encode(self.grid_points.reshape(-1, 3)))
+        return -(prior * torch.log_softmax(logits, dim=-1)).sum(-1).mean()
+
+    def bone_loss(self, sample_points: torch.Tensor, sample_bones: torch.Tensor, grid: torch.Tensor | None = None
+                  ) -> torch.Tensor:
+        """TAGA's bone regularization: squared distance of the weights at bone samples from one-hot vectors."""
+        weights = self.weights(sample_points, grid)
+        target = torch.nn.functional.one_hot(sample_bones, self.joint_count).to(weights)
+        return ((weights - target) ** 2).sum(-1).mean()

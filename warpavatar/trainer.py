@@ -1,0 +1,423 @@
+"""Fitting an avatar to a video folder (TAGA's forward path): initialization, staged training, checkpoints.
+
+Stages (TAGA appendix C): (1) warm-up: the skinning field alone distils a rigid bone-distance prior;
+(2) Gaussian-only: the Gaussians train under that frozen field; (3) joint: the field trains too, with the bone
+regularization. Adaptive density control (3DGS) runs with a Gaussian budget (ToMiE appendix A.4).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import tqdm
+
+from warpavatar import ops
+from warpavatar.avatar import Avatar
+from warpavatar.config import FitConfig
+from warpavatar.gaussians import GaussianModel
+from warpavatar.metrics import psnr, ssim_map
+from warpavatar.skinning_field import VoxelSkinningField, bone_distance_prior, bone_sample_points
+
+__all__ = ["Trainer", "initial_gaussians", "CHECKPOINT_NAME"]
+
+CHECKPOINT_NAME = "checkpoint.pt"
+
+
+def _project(points: torch.Tensor, K: torch.Tensor, world_to_camera: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    camera = points @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
+    z = camera[:, 2]
+    pixels = camera[:, :2] / z.clamp_min(1e-6)[:, None] * torch.stack([K[0, 0], K[1, 1]]) + torch.stack([K[0, 2], K[1, 2]])
+    return pixels, z
+
+
+def initial_gaussians(skeleton, video, config: FitConfig, *, generator: torch.Generator, device
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Template-free initialization: points around bone midpoints, refined by carving with the masks.
+
+    Returns:
+        (positions [N,3], colours [N,3], bbox_min [3], bbox_max [3]) in the canonical (rest) world frame.
+    """
+    heads = torch.as_tensor(skeleton.heads, dtype=torch.float32)
+    tails = torch.as_tensor(skeleton.tails, dtype=torch.float32)
+    lengths = (tails - heads).norm(dim=-1)
+    skeleton_min = torch.minimum(heads.min(0).values, tails.min(0).values)
+    skeleton_max = torch.maximum(heads.max(0).values, tails.max(0).values)
+    height = float((skeleton_max - skeleton_min).max())
+    # Bone-length-aware spread: long bones get elongated clouds along themselves; short (distal) ones small.
+    midpoints = (heads + tails) * 0.5
+    spread = (0.25 * lengths).clamp(0.02 * height, 0.12 * height)
+    per_bone = config.init_points_per_bone
+    samples = (midpoints[:, None, :] + torch.randn(len(heads), per_bone, 3, generator=generator)
+               * spread[:, None, None])
+    points = [samples.reshape(-1, 3)]
+
+    margin = 0.25 * height
+    box_min, box_max = skeleton_min - margin, skeleton_max + margin
+    temperature = 0.02 * height
+    if config.init_carve and video.masks is not None:
+        candidates = box_min + torch.rand(config.init_carve_candidates, 3, generator=generator) * (box_max - box_min)
+        carved = _carve(candidates, heads, tails, video, temperature=temperature)
+        if carved.shape[0] > config.init_carve_points:
+            pick = torch.randperm(carved.shape[0], generator=generator)[: config.init_carve_points]
+            carved = carved[pick]
+        if carved.shape[0]:
+            points.append(carved)
+    positions = torch.cat(points)
+    # The canonical box: skeleton and carved body, with a margin for Gaussians that move outwards.
+    lo = torch.minimum(skeleton_min, positions.min(0).values)
+    hi = torch.maximum(skeleton_max, positions.max(0).values)
+    pad = 0.08 * float((hi - lo).max())
+    bbox_min, bbox_max = lo - pad, hi + pad
+    positions = torch.maximum(torch.minimum(positions, bbox_max), bbox_min)
+    colours = _initial_colours(positions, heads, tails, video, temperature=temperature)
+    return positions.to(device), colours.to(device), bbox_min.to(device), bbox_max.to(device)
+
+
+def _frames_for_init(video, count: int = 24) -> np.ndarray:
+    return np.unique(np.linspace(0, video.frame_count - 1, min(count, video.frame_count)).round().astype(int))
+
+
+def _carve(candidates: torch.Tensor, heads, tails, video, *, temperature: float) -> torch.Tensor:
+    """Keep canonical points that, posed rigidly by the bone prior, fall inside the mask in nearly every frame."""
+    weights = bone_distance_prior(candidates, heads, tails, temperature=temperature)
+    inside_votes = torch.zeros(candidates.shape[0])
+    seen_votes = torch.zeros(candidates.shape[0])
+    for t in _frames_for_init(video):
+        transforms = torch.as_tensor(video.bone_transforms[t], dtype=torch.float32)
+        blended = torch.einsum("nj,jab->nab", weights, transforms[:, :3, :])
+        posed = torch.einsum("nab,nb->na", blended[:, :, :3], candidates) + blended[:, :, 3]
+        camera = video.cameras[t]
+        pixels, z = _project(posed, torch.as_tensor(camera.K, dtype=torch.float32),
+                             torch.as_tensor(camera.world_to_camera, dtype=torch.float32))
+        column, row = pixels[:, 0].round().long(), pixels[:, 1].round().long()
+        valid = (z > 0) & (column >= 0) & (column < camera.width) & (row >= 0) & (row < camera.height)
+        mask = torch.as_tensor(video.masks[t] > 127)
+        hit = torch.zeros_like(valid)
+        hit[valid] = mask[row[valid], column[valid]]
+        seen_votes += valid.float()
+        inside_votes += hit.float()
+    keep = (seen_votes >= 3) & (inside_votes >= 0.9 * seen_votes)
+    return candidates[keep]
+
+
+def _initial_colours(positions, heads, tails, video, *, temperature: float) -> torch.Tensor:
+    """Mean colour each point sees where it projects inside the mask (grey where never seen)."""
+    weights = bone_distance_prior(positions, heads, tails, temperature=temperature)
+    total = torch.zeros(positions.shape[0], 3)
+    count = torch.zeros(positions.shape[0])
+    for t in _frames_for_init(video, 12):
+        transforms = torch.as_tensor(video.bone_transforms[t], dtype=torch.float32)
+        blended = torch.einsum("nj,jab->nab", weights, transforms[:, :3, :])
+        posed = torch.einsum("nab,nb->na", blended[:, :, :3], positions) + blended[:, :, 3]
+        camera = video.cameras[t]
+        pixels, z = _project(posed, torch.as_tensor(camera.K, dtype=torch.float32),
+                             torch.as_tensor(camera.world_to_camera, dtype=torch.float32))
+        column, row = pixels[:, 0].round().long(), pixels[:, 1].round().long()
+        valid = (z > 0) & (column >= 0) & (column < camera.width) & (row >= 0) & (row < camera.height)
+        if video.masks is not None:
+            inside = torch.zeros_like(valid)
+            inside[valid] = torch.as_tensor(video.masks[t] > 127)[row[valid], column[valid]]
+            valid = inside
+        image = torch.as_tensor(video.images[t], dtype=torch.float32) / 255.0
+        total[valid] += image[row[valid], column[valid]]
+        count[valid] += 1
+    return torch.where(count[:, None] > 0, total / count.clamp_min(1)[:, None], torch.full_like(total, 0.5))
+
+
+class Trainer:
+    """Fits an :class:`~warpavatar.avatar.Avatar` to one video folder.
+
+    Args:
+        video: the training :class:`~warpavatar.data.VideoFolder` (already loaded, possibly rescaled).
+        config: the fit configuration.
+        output_dir: where checkpoints, the avatar file, the log and previews go.
+        device: torch device to train on.
+    """
+
+    def __init__(self, video, config: FitConfig, output_dir: str | os.PathLike, *, device="cpu"):
+        self.video = video
+        self.config = config
+        self.output_dir = Path(output_dir)
+        self.device = torch.device(device)
+        self.output_dir.mkdir(parents=True, exist_ok=True)
+        torch.manual_seed(config.seed)
+        self.generator = torch.Generator().manual_seed(config.seed)
+
+        frame_count = video.frame_count
+        self.train_indices = np.arange(frame_count)
+        if config.max_train_frames and config.max_train_frames < frame_count:
+            self.train_indices = np.unique(
+                np.linspace(0, frame_count - 1, config.max_train_frames).round().astype(int))
+        self.images = torch.as_tensor(video.images[self.train_indices], device=self.device)  # uint8 [T,H,W,3]
+        self.masks = (torch.as_tensor(video.masks[self.train_indices], device=self.device)
+                      if video.masks is not None else None)
+        self.bone_transforms = torch.as_tensor(video.bone_transforms[self.train_indices], dtype=torch.float32,
+                                               device=self.device)
+        self.cameras = [video.cameras[i] for i in self.train_indices]
+        self.camera_tensors = [
+            (torch.as_tensor(c.K, dtype=torch.float32, device=self.device),
+             torch.as_tensor(c.world_to_camera, dtype=torch.float32, device=self.device)) for c in self.cameras]
+        self.background = torch.as_tensor(video.background, dtype=torch.float32, device=self.device)
+
+        skeleton = video.skeleton
+        positions, colours, bbox_min, bbox_max = initial_gaussians(skeleton, video, config, generator=self.generator,
+                                                                   device=self.device)
+        self.extent = float((bbox_max - bbox_min).norm()) * 0.5
+        typical = torch.full_like(positions, 0.01 * self.extent)
+        gaussians = GaussianModel(positions, colours, typical, sh_degree=config.sh_degree)
+        field = VoxelSkinningField(bbox_min, bbox_max, skeleton.joint_count, cells=config.grid_cells,
+                                   min_cells=config.grid_min_cells, hidden=config.field_hidden,
+                                   layers=config.field_layers, frequencies=config.field_frequencies).to(self.device)
+        self.avatar = Avatar(skeleton, gaussians, field)
+        self.gaussians = gaussians
+        self.field = field
+        gaussians.make_optimizer(lr_position=config.lr_position * self.extent, lr_scale=config.lr_scale,
+                                 lr_rotation=config.lr_rotation, lr_opacity=config.lr_opacity, lr_color=config.lr_color)
+        self.field_optimizer = torch.optim.Adam(field.parameters(), lr=config.field_lr)
+        heads = torch.as_tensor(skeleton.heads, dtype=torch.float32, device=self.device)
+        tails = torch.as_tensor(skeleton.tails, dtype=torch.float32, device=self.device)
+        parents = torch.as_tensor(skeleton.parents, device=self.device)
+        self.bone_samples, self.bone_sample_index = bone_sample_points(heads, tails, parents)
+        self.field_prior = bone_distance_prior(field.grid_points.reshape(-1, 3), heads, tails,
+                                               temperature=0.02 * self.extent)
+        self.step = 0
+        self.frame_order: list[int] = []
+        self._reset_densify_stats()
+        self.log_path = self.output_dir / "train_log.jsonl"
+
+    # ---------------------------------------------------------------------------------------------- helpers
+    def _reset_densify_stats(self) -> None:
+        count = self.gaussians.count
+        self.grad_accum = torch.zeros(count, 2, device=self.device)
+        self.visible_count = torch.zeros(count, device=self.device)
+
+    def _next_frame(self) -> int:
+        if not self.frame_order:
+            self.frame_order = torch.randperm(len(self.train_indices), generator=self.generator).tolist()
+        return self.frame_order.pop()
+
+    def _position_lr(self, step: int) -> float:
+        config = self.config
+        fraction = min(1.0, step / max(1, config.iterations))
+        start = config.lr_position * self.extent
+        end = config.lr_position_final * self.extent
+        return math.exp(math.log(start) * (1 - fraction) + math.log(end) * fraction)
+
+    def _active_sh_degree(self, step: int) -> int:
+        return min(self.config.sh_degree, step // max(1, self.config.sh_increase_every))
+
+    def target(self, index: int) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Ground truth of training frame ``index``: foreground over the frame's background colour, and mask."""
+        image = self.images[index].float() / 255.0
+        if self.masks is None:
+            return image, None
+        mask = (self.masks[index].float() / 255.0)
+        return image * mask[..., None] + self.background * (1 - mask[..., None]), mask
+
+    # -------------------------------------------------------------------------------------------- the stages
+    def warmup_field(self) -> float:
+        """Stage 1: distil the rigid bone-distance prior into the field (and the bone regularization)."""
+        loss = torch.zeros(())
+        for _ in range(self.config.field_warmup_steps):
+            self.field_optimizer.zero_grad(set_to_none=True)
+            loss = self.field.distillation_loss(self.field_prior)
+            loss.backward()
+            self.field_optimizer.step()
+        return float(loss)
+
+    def train_step(self) -> dict:
+        """One optimizer step on one training frame."""
+        config = self.config
+        step = self.step
+        train_field = step >= config.gaussian_only_steps
+        index = self._next_frame()
+        gt, mask = self.target(index)
+        camera = self.cameras[index]
+        K, world_to_camera = self.camera_tensors[index]
+        self.gaussians.set_position_lr(self._position_lr(step))
+
+        grid = self.field.grid_weights() if train_field else self.field.grid_weights().detach()
+        posed = self.avatar.pose(self.bone_transforms[index], sh_degree=self._active_sh_degree(step), grid=grid)
+        grad_out = torch.zeros(self.gaussians.count, 2, device=self.device)
+        image, alpha, _, info = ops.rasterize_gaussians(
+            posed["means"], posed["quats"], posed["scales"], posed["opacities"], posed["colors"], K, world_to_camera,
+            camera.width, camera.height, background=self.background, sh_degree=posed["sh_degree"],
+            densify_grad_out=grad_out, return_info=True)
+        l1 = (image - gt).abs().mean()
+        ssim_value = ssim_map(image, gt).mean()
+        loss = (1.0 - config.lambda_ssim) * l1 + config.lambda_ssim * (1.0 - ssim_value)
+        if mask is not None and config.lambda_mask > 0:
+            loss = loss + config.lambda_mask * (alpha - mask).abs().mean()
+        if config.lambda_scale > 0:
+            loss = loss + config.lambda_scale * torch.relu(self.gaussians.scales - 0.05 * self.extent).mean()
+        bone = torch.zeros((), device=self.device)
+        if train_field:
+            bone = self.field.bone_loss(self.bone_samples, self.bone_sample_index, grid)
+            loss = loss + config.lambda_bone * bone
+            self.field_optimizer.zero_grad(set_to_none=True)
+        self.gaussians.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.gaussians.optimizer.step()
+        if train_field:
+            self.field_optimizer.step()
+
+        with torch.no_grad():
+            visible = (info["radii"] > 0).any(dim=-1)
+            # absolute screen gradient in NDC units (pixels -> [-1, 1]) as 3DGS thresholds it
+            scale = torch.tensor([camera.width * 0.5, camera.height * 0.5], device=self.device)
+            self.grad_accum += grad_out * scale
+            self.visible_count += visible.float()
+            self._density_control(step)
+        self.step += 1
+        return {"loss": float(loss), "l1": float(l1), "ssim": float(ssim_value), "bone": float(bone),
+                "psnr": psnr(image.detach(), gt), "gaussians": self.gaussians.count}
+
+    def _density_control(self, step: int) -> None:
+        config = self.config
+        in_window = config.densify_from <= step <= config.densify_until
+        if in_window and step > 0 and step % config.densify_every == 0:
+            count = self.gaussians.count
+            threshold = config.densify_grad_threshold
+            budget = config.max_gaussians
+            if count > budget:  # ToMiE A.4: raise the threshold as the count passes the budget
+                threshold *= 2.0 + (count - budget) / (budget / 6.0)
+            grad_norm = (self.grad_accum / self.visible_count.clamp_min(1)[:, None]).norm(dim=-1)
+            if count < 1.5 * budget:
+                self.gaussians.densify(grad_norm, threshold=threshold,
+                                       size_split=config.densify_percent_dense * self.extent,
+                                       generator=self.generator)
+            self._prune()
+            self._reset_densify_stats()
+        if (config.opacity_reset_every and step > 0 and step % config.opacity_reset_every == 0
+                and step <= config.densify_until):
+            self.gaussians.reset_opacity()
+
+    def _prune(self) -> None:
+        opacities = self.gaussians.opacities.detach()
+        max_scale = self.gaussians.scales.detach().max(dim=1).values
+        keep = (opacities > self.config.prune_opacity) & (max_scale < self.config.prune_max_scale * self.extent)
+        if not bool(keep.all()):
+            self.gaussians.prune(keep)
+
+    # ------------------------------------------------------------------------------------------- checkpoints
+    def checkpoint_state(self) -> dict:
+        return {
+            "step": self.step,
+            "config": self.config.to_dict(),
+            "gaussians": self.gaussians.state_for_checkpoint(),
+            "gaussian_optimizer": self.gaussians.optimizer.state_dict(),
+            "field": self.field.state_dict(),
+            "field_optimizer": self.field_optimizer.state_dict(),
+            "generator": self.generator.get_state(),
+            "frame_order": list(self.frame_order),
+            "grad_accum": self.grad_accum.cpu(),
+            "visible_count": self.visible_count.cpu(),
+            "torch_rng": torch.get_rng_state(),
+        }
+
+    def save_checkpoint(self) -> Path:
+        path = self.output_dir / CHECKPOINT_NAME
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save(self.checkpoint_state(), tmp)
+        os.replace(tmp, path)
+        return path
+
+    def load_checkpoint(self, path: str | os.PathLike) -> None:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        saved = FitConfig.from_dict(state["config"])
+        if saved.to_dict() != self.config.to_dict():
+            changed = sorted(k for k, v in saved.to_dict().items() if self.config.to_dict()[k] != v)
+            raise ValueError(f"{path}: the checkpoint was made with a different config ({', '.join(changed)}); "
+                             "resume with the same options or start a new output folder")
+        gaussians = GaussianModel.from_checkpoint(state["gaussians"], device=self.device)
+        self.avatar.gaussians = gaussians
+        self.gaussians = gaussians
+        gaussians.make_optimizer(lr_position=self.config.lr_position * self.extent, lr_scale=self.config.lr_scale,
+                                 lr_rotation=self.config.lr_rotation, lr_opacity=self.config.lr_opacity,
+                                 lr_color=self.config.lr_color)
+        gaussians.optimizer.load_state_dict(state["gaussian_optimizer"])
+        self.field.load_state_dict(state["field"])
+        self.field_optimizer.load_state_dict(state["field_optimizer"])
+        self.generator.set_state(state["generator"])
+        self.frame_order = list(state["frame_order"])
+        self.grad_accum = state["grad_accum"].to(self.device)
+        self.visible_count = state["visible_count"].to(self.device)
+        torch.set_rng_state(state["torch_rng"])
+        self.step = int(state["step"])
+
+    # ------------------------------------------------------------------------------------------------ run
+    def fit(self, *, resume: bool = False, progress: bool = True, stop_at: int | None = None) -> Avatar:
+        """Run (or continue) the fit and write the outputs.
+
+        Args:
+            resume: continue from ``checkpoint.pt`` in the output folder when it exists.
+            progress: show a tqdm progress bar.
+            stop_at: stop after this step (as an interruption would), without writing final outputs.
+        """
+        config = self.config
+        checkpoint = self.output_dir / CHECKPOINT_NAME
+        if resume and checkpoint.is_file():
+            self.load_checkpoint(checkpoint)
+        else:
+            self.log_path.unlink(missing_ok=True)
+            (self.output_dir / "config.json").write_text(config.to_json())
+            warm = self.warmup_field()
+            self._log({"stage": "warmup", "distillation_loss": warm, "gaussians": self.gaussians.count})
+        start_time = time.time()
+        end = config.iterations if stop_at is None else min(stop_at, config.iterations)
+        bar = tqdm.tqdm(total=config.iterations, initial=self.step, disable=not progress, desc="fit", unit="step")
+        while self.step < end:
+            stats = self.train_step()
+            bar.update(1)
+            if self.step % config.log_every == 0 or self.step == config.iterations:
+                stats["step"] = self.step
+                stats["seconds"] = round(time.time() - start_time, 2)
+                self._log(stats)
+                bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.2f}", n=stats["gaussians"])
+            if self.step % config.checkpoint_every == 0 and self.step < config.iterations:
+                self.save_checkpoint()
+        bar.close()
+        if self.step >= config.iterations:
+            self.write_outputs()
+        else:
+            self.save_checkpoint()
+        return self.avatar
+
+    def _log(self, record: dict) -> None:
+        with open(self.log_path, "a", encoding="utf-8") as f:
+            f.write(json.dumps(record) + "\n")
+
+    def write_outputs(self) -> None:
+        """Avatar file, canonical .ply, previews of a few training frames; the last checkpoint stays."""
+        from warpavatar.io.ply import write_gaussian_ply
+
+        self.avatar.save(self.output_dir / "avatar.pt", config=self.config.to_dict())
+        g = self.gaussians
+        write_gaussian_ply(self.output_dir / "canonical.ply", means=g.means.detach().cpu().numpy(),
+                           quats=g.normalized_quats.detach().cpu().numpy(), scales=g.scales.detach().cpu().numpy(),
+                           opacities=g.opacities.detach().cpu().numpy(),
+                           sh_coeffs=g.sh_coefficients().detach().cpu().numpy())
+        self.save_checkpoint()
+        self.write_previews()
+
+    @torch.no_grad()
+    def write_previews(self) -> None:
+        import cv2
+
+        preview_dir = self.output_dir / "previews"
+        preview_dir.mkdir(exist_ok=True)
+        picks = np.unique(np.linspace(0, len(self.train_indices) - 1, self.config.preview_frames).round().astype(int))
+        for index in picks:
+            image, _, _ = self.avatar.render(self.cameras[index], self.bone_transforms[index],
+                                             background=self.background)
+            gt, _ = self.target(index)
+            row = torch.cat([image, gt], dim=1).clamp(0, 1).cpu().numpy()
+            frame_id = int(self.video.frame_ids[self.train_indices[index]])
+            path = preview_dir / f"{frame_id:06d}.png"
+            cv2.imwrite(str(path), cv2.cvtColor((row * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
