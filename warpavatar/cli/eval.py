@@ -41,10 +41,9 @@ def main(argv=None) -> int:
     avatar = Avatar.load(args.avatar, device=device)
     folder = args.video_folder
     if (folder / "novel_view").is_dir() or (folder / "novel_pose").is_dir():
-        subject = data.load_subject(folder)
-        targets = [(f"{kind}/{name}", kind, name) for kind, names in
-                   (("novel_view", subject.novel_view), ("novel_pose", subject.novel_pose)) for name in names]
-        videos = ((label, subject.load(kind, name, scale=args.scale)) for label, kind, name in targets)
+        subject = data.load_subject(folder, scale=args.scale)
+        videos = ((f"{kind}/{name}", folders[name]) for kind, folders in
+                  (("novel_view", subject.novel_view), ("novel_pose", subject.novel_pose)) for name in folders)
     else:
         videos = iter([(folder.name, data.load_video_folder(folder, scale=args.scale))])
     results = {}

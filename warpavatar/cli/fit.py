@@ -74,7 +74,7 @@ def main(argv=None) -> int:
         results = {}
         for kind, folders in (("novel_view", subject.novel_view), ("novel_pose", subject.novel_pose)):
             for name in folders:
-                held_out = subject.load(kind, name)
+                held_out = folders[name]
                 result = evaluate_avatar(trainer.avatar, held_out, progress=False)
                 results[f"{kind}/{name}"] = {k: v for k, v in result.items() if k != "frames"}
                 print(f"  {kind}/{name}: masked PSNR {result['psnr_masked']:.2f} dB, "

@@ -1,0 +1,117 @@
+"""Driving a fitted avatar with a motion, frame by frame, on the avatar's device.
+
+Used by ``warpavatar-animate`` (USD export) and ``warpavatar-render`` (video): both pose the avatar with the
+same code path as fitting and evaluation (:meth:`warpavatar.avatar.Avatar.pose`), including any deformers.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import torch
+
+__all__ = ["OrbitCamera", "orbit_cameras", "read_cameras_json", "posed_frames", "parse_frame_range"]
+
+
+@dataclass
+class OrbitCamera:
+    """A pinhole camera in the OpenCV convention (same attributes as :class:`warpavatar.data.Camera`)."""
+
+    K: np.ndarray
+    world_to_camera: np.ndarray
+    width: int
+    height: int
+
+
+def parse_frame_range(text: str | None) -> slice | None:
+    """``"A:B"`` (either side optional) as a slice of motion frames; None for all."""
+    if not text:
+        return None
+    parts = text.split(":")
+    if len(parts) != 2:
+        raise ValueError(f"--frames must look like A:B (e.g. 0:120 or 30:), got {text!r}")
+    try:
+        start, stop = (int(p) if p.strip() else None for p in parts)
+    except ValueError:
+        raise ValueError(f"--frames must hold integers, got {text!r}") from None
+    return slice(start, stop)
+
+
+def _look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    forward = target - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    if np.linalg.norm(right) < 1e-6:  # looking along the up axis
+        right = np.cross(forward, np.array([1.0, 0.0, 0.0]))
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    rotation = np.stack([right, down, forward])  # rows: camera x (right), y (down), z (forward) in world
+    matrix = np.eye(4)
+    matrix[:3, :3] = rotation
+    matrix[:3, 3] = -rotation @ eye
+    return matrix.astype(np.float32)
+
+
+def orbit_cameras(skeleton, frame_count: int, *, width: int = 512, height: int = 512, turns: float = 1.0,
+                  elevation_degrees: float = 10.0, field_of_view_degrees: float = 40.0) -> list[OrbitCamera]:
+    """Cameras circling the skeleton's rest-pose centre once per ``turns``, framing its whole height."""
+    up = np.asarray(skeleton.up, dtype=np.float64)
+    up /= np.linalg.norm(up)
+    points = np.concatenate([skeleton.heads, skeleton.tails]).astype(np.float64)
+    centre = 0.5 * (points.min(0) + points.max(0))
+    size = float(np.linalg.norm(points.max(0) - points.min(0)))
+    focal = 0.5 * height / math.tan(math.radians(field_of_view_degrees) * 0.5)
+    distance = 0.75 * size / math.tan(math.radians(field_of_view_degrees) * 0.5)
+    # two axes orthogonal to up
+    side = np.cross(up, [1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.cross(up, [0.0, 1.0, 0.0])
+    side /= np.linalg.norm(side)
+    other = np.cross(up, side)
+    K = np.array([[focal, 0, (width - 1) * 0.5], [0, focal, (height - 1) * 0.5], [0, 0, 1]], dtype=np.float32)
+    cameras = []
+    elevation = math.radians(elevation_degrees)
+    for t in range(frame_count):
+        angle = 2 * math.pi * turns * t / max(1, frame_count)
+        direction = math.cos(elevation) * (math.cos(angle) * side + math.sin(angle) * other) + math.sin(elevation) * up
+        eye = centre + distance * direction
+        cameras.append(OrbitCamera(K, _look_at(eye, centre, up), width, height))
+    return cameras
+
+
+def read_cameras_json(path: str | Path, frame_count: int) -> list[OrbitCamera]:
+    """Cameras from a FORMAT.md ``cameras.json`` (fixed, or one per frame), one per motion frame."""
+    path = Path(path)
+    try:
+        spec = json.loads(path.read_text())
+        width, height = int(spec["width"]), int(spec["height"])
+        entries = spec.get("frames") or [spec]
+        cameras = []
+        for entry in entries:
+            K = np.asarray(entry["K"], dtype=np.float32)
+            w2c = np.asarray(entry["world_to_camera"], dtype=np.float32)
+            if K.shape != (3, 3) or w2c.shape != (4, 4):
+                raise ValueError(f"K must be 3x3 and world_to_camera 4x4, got {K.shape} and {w2c.shape}")
+            if not (np.isfinite(K).all() and np.isfinite(w2c).all()):
+                raise ValueError("non-finite camera values")
+            cameras.append(OrbitCamera(K, w2c, width, height))
+    except (OSError, KeyError, TypeError, json.JSONDecodeError, ValueError) as error:
+        raise ValueError(f"{path}: not a usable cameras.json ({error})") from error
+    if len(cameras) == 1:
+        return cameras * frame_count
+    if len(cameras) < frame_count:
+        raise ValueError(f"{path}: {len(cameras)} per-frame cameras for {frame_count} motion frames")
+    return cameras[:frame_count]
+
+
+@torch.no_grad()
+def posed_frames(avatar, bone_transforms: np.ndarray) -> Iterator[dict]:
+    """Yield the posed Gaussians of each frame (torch tensors on the avatar's device)."""
+    device = avatar.gaussians.means.device
+    grid = avatar.field.grid_weights()
+    for t in range(bone_transforms.shape[0]):
+        bones = torch.as_tensor(bone_transforms[t], dtype=torch.float32, device=device)
+        yield avatar.pose(bones, frame_index=t, grid=grid)

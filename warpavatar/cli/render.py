@@ -1,0 +1,114 @@
+"""``warpavatar-render``: render a fitted avatar driven by a motion to an MP4 or PNG frames."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+import tqdm
+
+from warpavatar.cli.common import default_device, friendly_errors, resolve_device
+
+DESCRIPTION = """Render a fitted avatar animated by a motion, as an MP4 (OpenCV) or a folder of PNG frames.
+
+Cameras: --camera takes a cameras.json (fixed or one per frame); --orbit circles the avatar; by default a
+video-folder motion uses its own cameras and other motions an orbit.
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="warpavatar-render", description=DESCRIPTION,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("avatar", type=Path, help="the fit's output folder (or its avatar.pt)")
+    parser.add_argument("--motion", required=True, type=Path,
+                        help="a video folder, a poses .npz of the same skeleton, or a .bvh file")
+    parser.add_argument("-o", "--output", required=True, type=Path,
+                        help="an .mp4 file, or a folder that receives 000000.png, 000001.png, ...")
+    camera = parser.add_mutually_exclusive_group()
+    camera.add_argument("--camera", type=Path, default=None, help="cameras.json to render through")
+    camera.add_argument("--orbit", action="store_true", help="circle the avatar once over the animation")
+    parser.add_argument("--size", type=int, default=512, help="orbit image width and height in pixels (default 512)")
+    parser.add_argument("--frames", default=None, metavar="A:B", help="only motion frames A..B-1 (default: all)")
+    parser.add_argument("--fps", type=float, default=None, help="video frame rate (default: the motion's)")
+    parser.add_argument("--background", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("R", "G", "B"),
+                        help="background colour in 0..1 (default black)")
+    parser.add_argument("--name-map", type=Path, default=None, help="BVH only: JSON avatar-joint -> BVH-joint names")
+    parser.add_argument("--device", default=default_device(), help="torch device (default: %(default)s)")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    return parser
+
+
+@friendly_errors
+@torch.no_grad()
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    import json
+
+    import cv2
+
+    from warpavatar.animation import orbit_cameras, parse_frame_range, read_cameras_json
+    from warpavatar.avatar import Avatar
+    from warpavatar.io.motion import load_motion
+
+    device = resolve_device(args.device)
+    avatar = Avatar.load(args.avatar, device=device)
+    name_map = json.loads(args.name_map.read_text()) if args.name_map else None
+    frames = parse_frame_range(args.frames)
+    motion = load_motion(args.motion, avatar.skeleton, name_map=name_map, frames=frames)
+    count = motion.bone_transforms.shape[0]
+    if args.camera:
+        cameras = read_cameras_json(args.camera, count)
+    elif not args.orbit and args.motion.is_dir():
+        from warpavatar.data import load_video_folder
+
+        cameras = load_video_folder(args.motion).cameras
+        cameras = cameras[frames] if frames is not None else cameras
+    else:
+        cameras = orbit_cameras(avatar.skeleton, count, width=args.size, height=args.size)
+    fps = args.fps or motion.fps
+    background = torch.tensor(args.background, dtype=torch.float32, device=device)
+    grid = avatar.field.grid_weights()
+
+    output = args.output
+    to_video = output.suffix.lower() in (".mp4", ".avi", ".mov")
+    tmp = output.with_name(output.stem + ".tmp" + output.suffix) if to_video else output.with_name(output.name + ".tmp")
+    writer = None
+    if not to_video:
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+    try:
+        for t in tqdm.trange(count, disable=args.no_progress, desc="render"):
+            bones = torch.as_tensor(motion.bone_transforms[t], dtype=torch.float32, device=device)
+            image, _, _ = avatar.render(cameras[t], bones, background=background, frame_index=t, grid=grid)
+            pixels = cv2.cvtColor((image.clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR)
+            if to_video:
+                if writer is None:
+                    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps,
+                                             (pixels.shape[1], pixels.shape[0]))
+                    if not writer.isOpened():
+                        raise ValueError(f"{output}: OpenCV cannot write this video file")
+                writer.write(pixels)
+            else:
+                cv2.imwrite(str(tmp / f"{t:06d}.png"), pixels)
+        if writer is not None:
+            writer.release()
+            writer = None
+        if not to_video and output.exists():
+            shutil.rmtree(output)
+        os.replace(tmp, output)
+    finally:
+        if writer is not None:
+            writer.release()
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True) if tmp.is_dir() else tmp.unlink()
+    print(f"wrote {output} ({count} frames at {fps:g} fps)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,303 @@
+"""Image metrics: PSNR, SSIM (value and differentiable map) and, when its weights are on disk, LPIPS.
+
+Images are float RGB in [0, 1]. :func:`psnr` and :func:`ssim` take ``[H, W, C]`` numpy arrays or torch
+tensors and return Python floats (evaluation); :func:`ssim_map` is plain torch, differentiable and batched,
+for training losses (``1 - ssim_map(pred, target).mean()``). A mask restricts a metric to the pixels where
+``mask > 0.5`` (so 0/1 floats, booleans and 0/255 ``uint8`` masks all work).
+
+SSIM follows Wang et al. 2004: an 11-tap Gaussian window with sigma 1.5, ``C1 = (0.01 L)^2`` and
+``C2 = (0.03 L)^2`` with the data range ``L = 1``, computed per channel and averaged over the pixels whose
+window lies inside the image (as ``skimage.metrics.structural_similarity(..., gaussian_weights=True,
+sigma=1.5, use_sample_covariance=False, data_range=1)`` does).
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+import math
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+__all__ = ["psnr", "ssim", "ssim_map", "lpips", "SSIM_WINDOW_SIZE", "SSIM_SIGMA"]
+
+SSIM_WINDOW_SIZE = 11
+"""Taps of SSIM's Gaussian window (per axis)."""
+
+SSIM_SIGMA = 1.5
+"""Standard deviation of SSIM's Gaussian window [pixels]."""
+
+_SSIM_K1 = 0.01
+_SSIM_K2 = 0.03
+_PADDINGS = ("valid", "reflect", "zeros")
+
+
+def _as_tensor(value, name: str) -> torch.Tensor:
+    if isinstance(value, torch.Tensor):
+        return value
+    if isinstance(value, np.ndarray):
+        return torch.from_numpy(np.ascontiguousarray(value))
+    raise TypeError(f"{name} must be a numpy array or a torch tensor, got {type(value).__name__}")
+
+
+def _check_image_pair(pred, target) -> tuple[torch.Tensor, torch.Tensor]:
+    """Both images as float tensors [H, W, C] on one device: float64 on CPU, at least float32 on GPU."""
+    pred = _as_tensor(pred, "pred").detach()
+    target = _as_tensor(target, "target").detach()
+    for name, image in (("pred", pred), ("target", target)):
+        if not image.is_floating_point():
+            raise TypeError(f"{name} must be a floating-point image in [0, 1], got {image.dtype}")
+        if image.dim() != 3:
+            raise ValueError(f"{name} must have shape [H, W, C], got {list(image.shape)}")
+    if pred.shape != target.shape:
+        raise ValueError(f"pred and target must have the same shape, got {list(pred.shape)} and {list(target.shape)}")
+    if pred.device != target.device:
+        target = target.to(pred.device)
+    dtype = torch.float64 if pred.device.type == "cpu" else torch.promote_types(
+        torch.promote_types(pred.dtype, target.dtype), torch.float32)
+    pred, target = pred.to(dtype), target.to(dtype)
+    if not bool(torch.isfinite(pred).all()) or not bool(torch.isfinite(target).all()):
+        raise ValueError("pred and target must be finite (no nan or inf)")
+    return pred, target
+
+
+def _check_mask(mask, height: int, width: int, device: torch.device) -> torch.Tensor:
+    """The mask as a bool tensor [H, W] (``mask > 0.5``)."""
+    mask = _as_tensor(mask, "mask").detach().to(device)
+    if mask.dim() == 3 and mask.shape[-1] == 1:
+        mask = mask[..., 0]
+    if mask.shape != (height, width):
+        raise ValueError(f"mask must have shape [{height}, {width}] (or [{height}, {width}, 1]), "
+                         f"got {list(mask.shape)}")
+    if mask.dtype == torch.bool:
+        return mask
+    if mask.is_floating_point() and not bool(torch.isfinite(mask).all()):
+        raise ValueError("mask must be finite")
+    return mask > 0.5
+
+
+def psnr(pred, target, *, mask=None) -> float:
+    """Peak signal-to-noise ratio [dB] of two images in [0, 1]: ``10 log10(1 / MSE)``.
+
+    Args:
+        pred: image, shape [H, W, C], floating point (numpy or torch, any device).
+        target: reference image, same shape.
+        mask: optional [H, W] (or [H, W, 1]); the squared error is then averaged over the pixels with
+            ``mask > 0.5`` and all channels.
+
+    Returns:
+        PSNR in dB; ``inf`` when the images are equal (on the mask).
+
+    Raises:
+        TypeError: non-floating images or non-array inputs.
+        ValueError: shape mismatch, non-finite values, or a mask that selects no pixel.
+    """
+    pred, target = _check_image_pair(pred, target)
+    squared_error = (pred - target).square()
+    if mask is not None:
+        selected = _check_mask(mask, pred.shape[0], pred.shape[1], pred.device)
+        if not bool(selected.any()):
+            raise ValueError("psnr: the mask selects no pixel")
+        squared_error = squared_error[selected]
+    mse = float(squared_error.mean()) if squared_error.numel() else float("nan")
+    if math.isnan(mse):
+        raise ValueError("psnr: the images are empty")
+    return math.inf if mse == 0.0 else -10.0 * math.log10(mse)
+
+
+@functools.lru_cache(maxsize=32)
+def _gaussian_window(window_size: int, sigma: float, groups: int, device: torch.device,
+                     dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """Separable, normalized Gaussian window as grouped conv2d weights: [groups, 1, K, 1] and [groups, 1, 1, K].
+
+    Built once per device and dtype (on the device itself: no host-to-device copy in the training loop).
+    """
+    offsets = torch.arange(window_size, dtype=torch.float64, device=device) - (window_size - 1) / 2.0
+    taps = torch.exp(-0.5 * (offsets / sigma) ** 2)
+    taps = (taps / taps.sum()).to(dtype)
+    vertical = taps.view(1, 1, window_size, 1).repeat(groups, 1, 1, 1)
+    horizontal = taps.view(1, 1, 1, window_size).repeat(groups, 1, 1, 1)
+    return vertical, horizontal
+
+
+def ssim_map(pred: torch.Tensor, target: torch.Tensor, *, padding: str = "valid", window_size: int = SSIM_WINDOW_SIZE,
+             sigma: float = SSIM_SIGMA, data_range: float = 1.0) -> torch.Tensor:
+    """Per-pixel, per-channel SSIM of two images (differentiable; gradients flow to both inputs).
+
+    The five local statistics (means, variances, covariance) of all channels are filtered together by one
+    grouped separable Gaussian convolution (two ``conv2d`` calls), so the cost is a handful of kernels on GPU.
+
+    Args:
+        pred: ``[H, W, C]`` (channels last, as the video folder's images) or ``[B, C, H, W]`` (channels
+            first, torch's batch layout); floating point.
+        target: same shape, dtype and device as ``pred``.
+        padding: ``"valid"``: only pixels whose window lies inside the image (the map shrinks by
+            ``window_size - 1`` per axis; the standard SSIM value is its mean); ``"reflect"`` or
+            ``"zeros"``: pad the image so the map keeps the image's size (handy with masks; zeros biases the
+            border, as in 3D Gaussian splatting's training loss).
+        window_size: taps of the Gaussian window per axis, odd.
+        sigma: standard deviation of the window [pixels].
+        data_range: ``L`` in ``C1 = (0.01 L)^2`` and ``C2 = (0.03 L)^2`` (1 for images in [0, 1]).
+
+    Returns:
+        SSIM values in the layout of the input: ``[H', W', C]`` or ``[B, C, H', W']``, with ``H' = H``
+        unless ``padding="valid"`` (``H' = H - window_size + 1``).
+    """
+    if not isinstance(pred, torch.Tensor) or not isinstance(target, torch.Tensor):
+        raise TypeError("ssim_map: pred and target must be torch tensors")
+    if not pred.is_floating_point() or pred.dtype != target.dtype:
+        raise TypeError(f"ssim_map: pred and target must share one floating dtype, got {pred.dtype} and {target.dtype}")
+    if pred.shape != target.shape:
+        raise ValueError(f"ssim_map: pred and target must have the same shape, got {list(pred.shape)} and "
+                         f"{list(target.shape)}")
+    if pred.device != target.device:
+        raise ValueError(f"ssim_map: pred and target must be on one device, got {pred.device} and {target.device}")
+    if padding not in _PADDINGS:
+        raise ValueError(f"ssim_map: padding must be one of {_PADDINGS}, got {padding!r}")
+    if isinstance(window_size, bool) or not isinstance(window_size, int) or window_size < 1 or window_size % 2 == 0:
+        raise ValueError(f"ssim_map: window_size must be a positive odd integer, got {window_size!r}")
+    if not (sigma > 0 and math.isfinite(sigma)) or not (data_range > 0 and math.isfinite(data_range)):
+        raise ValueError(f"ssim_map: sigma and data_range must be positive, got {sigma} and {data_range}")
+    channels_last = pred.dim() == 3
+    if channels_last:
+        x = pred.permute(2, 0, 1).unsqueeze(0)
+        y = target.permute(2, 0, 1).unsqueeze(0)
+    elif pred.dim() == 4:
+        x, y = pred, target
+    else:
+        raise ValueError(f"ssim_map: images must be [H, W, C] or [B, C, H, W], got {list(pred.shape)}")
+    batch, channels, height, width = x.shape
+    radius = window_size // 2
+    if padding == "valid" and (height < window_size or width < window_size):
+        raise ValueError(f"ssim_map: images of {height}x{width} pixels are smaller than the {window_size}-pixel "
+                         "window; use padding='reflect' or 'zeros'")
+    if padding == "reflect" and (height <= radius or width <= radius):
+        raise ValueError(f"ssim_map: reflect padding needs images larger than {radius} pixels, got {height}x{width}")
+    if batch == 0 or channels == 0 or height == 0 or width == 0:
+        raise ValueError(f"ssim_map: empty images, shape {list(pred.shape)}")
+
+    # Statistics to filter, stacked on the channel axis: [B, 5C, H, W].
+    stacked = torch.cat([x, y, x * x, y * y, x * y], dim=1)
+    if padding == "reflect":
+        stacked = F.pad(stacked, (radius, radius, radius, radius), mode="reflect")
+    elif padding == "zeros":
+        stacked = F.pad(stacked, (radius, radius, radius, radius))
+    groups = 5 * channels
+    vertical, horizontal = _gaussian_window(window_size, float(sigma), groups, x.device, x.dtype)
+    filtered = F.conv2d(F.conv2d(stacked, vertical, groups=groups), horizontal, groups=groups)
+    mean_x, mean_y, mean_xx, mean_yy, mean_xy = filtered.split(channels, dim=1)
+
+    c1 = (_SSIM_K1 * data_range) ** 2
+    c2 = (_SSIM_K2 * data_range) ** 2
+    mean_x_mean_y = mean_x * mean_y
+    mean_x_sq = mean_x * mean_x
+    mean_y_sq = mean_y * mean_y
+    variance_x = mean_xx - mean_x_sq
+    variance_y = mean_yy - mean_y_sq
+    covariance = mean_xy - mean_x_mean_y
+    values = ((2.0 * mean_x_mean_y + c1) * (2.0 * covariance + c2)) / (
+        (mean_x_sq + mean_y_sq + c1) * (variance_x + variance_y + c2))
+    if channels_last:
+        return values[0].permute(1, 2, 0)
+    return values
+
+
+def ssim(pred, target, *, mask=None) -> float:
+    """Structural similarity of two images in [0, 1] (standard SSIM: Gaussian window 11, sigma 1.5).
+
+    Args:
+        pred: image, shape [H, W, C] with H, W >= 11, floating point (numpy or torch, any device).
+        target: reference image, same shape.
+        mask: optional [H, W] (or [H, W, 1]); the SSIM map (valid pixels only, see :func:`ssim_map`) is then
+            averaged over the pixels with ``mask > 0.5`` (the mask cropped like the map) and all channels.
+            An all-ones mask gives the unmasked value.
+
+    Returns:
+        Mean SSIM, at most 1 (equal images give exactly 1).
+
+    Raises:
+        TypeError: non-floating images or non-array inputs.
+        ValueError: shape mismatch, images smaller than the window, non-finite values, or a mask that
+            selects no valid pixel.
+    """
+    pred, target = _check_image_pair(pred, target)
+    values = ssim_map(pred, target, padding="valid")
+    if mask is None:
+        return float(values.mean())
+    selected = _check_mask(mask, pred.shape[0], pred.shape[1], pred.device)
+    radius = SSIM_WINDOW_SIZE // 2
+    selected = selected[radius:selected.shape[0] - radius, radius:selected.shape[1] - radius]
+    if not bool(selected.any()):
+        raise ValueError("ssim: the mask selects no pixel at least 5 pixels from the border")
+    return float(values[selected].mean())
+
+
+# ----------------------------------------------------------------------------------------------------------
+# LPIPS, only from weights already on disk: nothing is ever downloaded.
+
+
+def _alexnet_checkpoint() -> Path | None:
+    """torchvision's ImageNet AlexNet weights in torch hub's cache, if present."""
+    try:
+        from torchvision.models import AlexNet_Weights
+
+        file_name = os.path.basename(AlexNet_Weights.IMAGENET1K_V1.url)
+    except Exception:  # older or missing torchvision
+        file_name = "alexnet-owt-7be5be79.pth"
+    path = Path(torch.hub.get_dir()) / "checkpoints" / file_name
+    return path if path.is_file() else None
+
+
+@functools.lru_cache(maxsize=None)
+def _lpips_network(device: str):
+    """The ``lpips`` package's AlexNet LPIPS with local weights, or None (with a warning) if any is missing."""
+    reasons = []
+    if importlib.util.find_spec("lpips") is None:
+        reasons.append("the 'lpips' package is not installed")
+    if importlib.util.find_spec("torchvision") is None:
+        reasons.append("torchvision is not installed")
+    checkpoint = _alexnet_checkpoint() if not reasons else None
+    if not reasons and checkpoint is None:
+        reasons.append(f"torchvision's AlexNet weights are not in torch hub's cache ({torch.hub.get_dir()})")
+    if not reasons:
+        spec = importlib.util.find_spec("lpips")
+        linear_weights = Path(spec.origin).parent / "weights" / "v0.1" / "alex.pth"
+        if not linear_weights.is_file():
+            reasons.append(f"the lpips package has no bundled weights at {linear_weights}")
+    if reasons:
+        warnings.warn(f"lpips: not computed ({'; '.join(reasons)}); weights are never downloaded", stacklevel=3)
+        return None
+    import lpips as lpips_package
+
+    # pnet_rand=True builds the AlexNet trunk without asking torchvision for (downloadable) weights; the
+    # trunk's weights are then copied from the cached checkpoint: features.<i>.* -> slice<k>.<i>.*.
+    network = lpips_package.LPIPS(net="alex", pretrained=True, pnet_rand=True, verbose=False)
+    trunk_state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    own_state = network.net.state_dict()
+    for key in own_state:
+        _, index, parameter = key.split(".", 2)
+        own_state[key] = trunk_state[f"features.{index}.{parameter}"]
+    network.net.load_state_dict(own_state)
+    return network.eval().requires_grad_(False).to(device)
+
+
+def lpips(pred, target) -> float | None:
+    """LPIPS (AlexNet, v0.1) of two [H, W, 3] images in [0, 1]; lower is more similar.
+
+    Only runs when the ``lpips`` package (with its bundled linear weights) and torchvision's AlexNet
+    weights in torch hub's cache are already present; otherwise it warns once and returns None.
+    """
+    pred, target = _check_image_pair(pred, target)
+    if pred.shape[-1] != 3:
+        raise ValueError(f"lpips: images must be RGB [H, W, 3], got {list(pred.shape)}")
+    network = _lpips_network(str(pred.device))
+    if network is None:
+        return None
+    to_network = lambda image: (image.float().permute(2, 0, 1).unsqueeze(0) * 2.0 - 1.0)  # noqa: E731
+    with torch.no_grad():
+        return float(network(to_network(pred), to_network(target)).mean())
