@@ -1,0 +1,927 @@
+"""Warp kernels of the Gaussian-splatting rasterizer: projection, tile binning, compositing and their backward.
+
+The pipeline of one forward pass (conventions in ``docs/conventions.md``):
+
+1. :func:`launch_project` (one thread per Gaussian): EWA projection of each 3D Gaussian to a 2D mean, a 2D
+   conic (inverse covariance), a camera depth, a per-axis pixel radius, an RGB colour (spherical harmonics
+   evaluated) and the number of 16x16 pixel tiles its radius box overlaps.
+2. Tile binning: an inclusive prefix sum of the tile counts (``wp.utils.array_scan``), then
+   :func:`launch_emit_tile_keys` writes one 64-bit key ``tile_id << 32 | depth bits`` per (Gaussian, tile)
+   pair, ``wp.utils.radix_sort_pairs`` sorts them (depth is positive, so its float bits sort like integers) and
+   :func:`launch_tile_ranges` finds each tile's ``[start, end)`` range in the sorted list.
+3. :func:`launch_composite_forward` (one 256-thread block per tile, one thread per pixel): front-to-back
+   alpha compositing; the block loads batches of 256 Gaussian records into shared memory, every thread
+   walks them for its pixel, and the block stops once all of its pixels are saturated. It stores the final
+   transmittance and the list index of the last composited Gaussian of every pixel for the backward pass.
+
+The backward pass:
+
+4. :func:`launch_composite_backward` walks each pixel's list back to front from its last composited
+   Gaussian, recovering the transmittance by division, and accumulates per-Gaussian gradients of the 2D
+   mean, conic, opacity, colour and depth; each warp sums its 32 pixels' contributions with shuffles before
+   one atomic add per value (a native CUDA snippet; on CPU every thread adds its own).
+5. :func:`launch_project_backward` maps those to gradients of the means, quaternions, scales and colours
+   (or SH coefficients) with Warp's automatic differentiation of the straight-line projection kernel
+   :data:`project_differentiable_kernel`, which shares every ``@wp.func`` with the forward projection.
+
+Kernels run on CPU and CUDA. On CUDA the tile kernels use ``block_dim=256``. On CPU every launcher uses
+``block_dim=1`` (each pixel thread is then a block of its own; the same code stays correct, it only loads each
+batch once per pixel) unless ``warp.config.enable_cpu_blocks`` is on, in which case the launchers pass
+:data:`PIXELS_PER_TILE` and CPU fibers reproduce the CUDA block semantics (the tests use this mode to check
+the cooperative code paths). All launches of this module on one device use one block size, so the module is
+compiled once per device.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+__all__ = [
+    "TILE_SIZE",
+    "PIXELS_PER_TILE",
+    "GRAD_RECORD_FLOATS",
+    "NEAR_PLANE",
+    "FAR_PLANE",
+    "BAD_MEANS",
+    "BAD_QUATS",
+    "BAD_SCALES",
+    "BAD_OPACITIES",
+    "BAD_COLORS",
+    "BAD_CAMERA",
+    "project_kernel",
+    "emit_tile_keys_kernel",
+    "tile_ranges_kernel",
+    "composite_forward_kernel",
+    "composite_backward_kernel",
+    "project_differentiable_kernel",
+    "launch_block_dim",
+    "launch_project",
+    "launch_emit_tile_keys",
+    "launch_tile_ranges",
+    "launch_composite_forward",
+    "launch_composite_backward",
+    "launch_project_backward",
+    "tile_key_bits",
+]
+
+TILE_SIZE = wp.constant(16)
+"""Side of a square pixel tile [px]; one tile is one thread block of the compositing kernels."""
+PIXELS_PER_TILE = wp.constant(256)
+"""Pixels (threads) per tile: ``TILE_SIZE ** 2``; also the number of Gaussians loaded per shared batch."""
+NEAR_PLANE = wp.constant(0.01)
+"""Gaussians with camera depth at or below this [world units] are culled (gsplat's default)."""
+FAR_PLANE = wp.constant(1.0e10)
+"""Gaussians with camera depth at or beyond this [world units] are culled (gsplat's default)."""
+BLUR_EPS2D = wp.constant(0.3)
+"""Added to the diagonal of every 2D covariance [px^2] (anti-aliasing low-pass of 3DGS)."""
+RADIUS_SIGMAS = wp.constant(3.33)
+"""The radius box extends this many standard deviations along each image axis."""
+ALPHA_THRESHOLD = wp.constant(1.0 / 255.0)
+"""A Gaussian whose alpha at a pixel is below this is skipped there."""
+ALPHA_MAX = wp.constant(0.999)
+"""Alpha is clamped to this so that the transmittance stays invertible."""
+TRANSMITTANCE_MIN = wp.constant(1.0e-4)
+"""A pixel stops before the Gaussian that would bring its transmittance to or below this."""
+
+GRAD_RECORD_FLOATS = 12
+"""Floats of per-Gaussian screen-space gradient in the buffer written by the compositing backward.
+
+The buffer is structure-of-arrays, ``[12 * gaussian_count]`` float32, segments in this order:
+``d mean2d`` (vec2), ``d conic`` (vec3: a, b, c of ``a dx^2/2 + b dx dy + c dy^2/2``), ``d opacity``,
+``d colour`` (vec3), ``d depth``, ``sum |d mean2d|`` per axis (vec2).
+"""
+
+# Bits of the non-finite-input flag written by the projection kernel.
+BAD_MEANS = 1
+BAD_QUATS = 2
+BAD_SCALES = 4
+BAD_OPACITIES = 8
+BAD_COLORS = 16
+BAD_CAMERA = 32
+
+# Real spherical-harmonics constants (Sloan, "Efficient Spherical Harmonic Evaluation", JCGT 2013).
+SH_C0 = wp.constant(0.28209479177387814)
+SH_C1 = wp.constant(0.4886025119029199)
+SH_C2_XY = wp.constant(1.0925484305920792)
+SH_C2_ZZ = wp.constant(0.9461746957575601)
+SH_C2_ZZ_OFFSET = wp.constant(0.31539156525252005)
+SH_C2_XX_YY = wp.constant(0.5462742152960396)
+SH_C3_A = wp.constant(0.5900435899266435)
+SH_C3_B = wp.constant(1.445305721320277)
+SH_C3_C_ZZ = wp.constant(2.285228997322329)
+SH_C3_C = wp.constant(0.4570457994644658)
+SH_C3_D_ZZ = wp.constant(1.865881662950577)
+SH_C3_D = wp.constant(1.119528997770346)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Projection helpers (shared by the forward kernel and the differentiable kernel)
+# ----------------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def quat_to_rotation(quat: wp.vec4) -> wp.mat33:
+    """Rotation matrix of a quaternion stored (w, x, y, z); it is normalized first."""
+    q = wp.normalize(quat)
+    w = q[0]
+    x = q[1]
+    y = q[2]
+    z = q[3]
+    return wp.mat33(
+        1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
+        2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
+        2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
+    )  # fmt: skip
+
+
+@wp.func
+def camera_covariance(world_to_camera_rotation: wp.mat33, quat: wp.vec4, scale: wp.vec3) -> wp.mat33:
+    """Camera-space 3D covariance ``W R S S^T R^T W^T`` [world units^2]."""
+    transform = world_to_camera_rotation @ quat_to_rotation(quat) @ wp.diag(scale)
+    return transform @ wp.transpose(transform)
+
+
+@wp.func
+def ewa_covariance_2d(mean_camera: wp.vec3, covariance_camera: wp.mat33, intrinsics: wp.mat33, width: float,
+                      height: float) -> wp.vec3:
+    """2D covariance (a, b, c) = (xx, xy, yy) [px^2] of the local affine approximation of the projection.
+
+    In the Jacobian, ``x/z`` and ``y/z`` are clamped to the image's extent plus 0.3 times the half field of
+    view on each side (1.3 times the half field of view for a centred principal point), as gsplat does.
+    The 0.3 px^2 blur is not added here.
+    """
+    fx = intrinsics[0, 0]
+    fy = intrinsics[1, 1]
+    cx = intrinsics[0, 2] + 0.5  # gsplat's principal point (pixel centres at half-integers)
+    cy = intrinsics[1, 2] + 0.5
+    tan_half_fov_x = 0.5 * width / fx
+    tan_half_fov_y = 0.5 * height / fy
+    limit_x_pos = (width - cx) / fx + 0.3 * tan_half_fov_x
+    limit_x_neg = cx / fx + 0.3 * tan_half_fov_x
+    limit_y_pos = (height - cy) / fy + 0.3 * tan_half_fov_y
+    limit_y_neg = cy / fy + 0.3 * tan_half_fov_y
+    z = mean_camera[2]
+    inv_z = 1.0 / z
+    tx = z * wp.clamp(mean_camera[0] * inv_z, -limit_x_neg, limit_x_pos)
+    ty = z * wp.clamp(mean_camera[1] * inv_z, -limit_y_neg, limit_y_pos)
+    jacobian_row_x = wp.vec3(fx * inv_z, 0.0, -fx * tx * inv_z * inv_z)
+    jacobian_row_y = wp.vec3(0.0, fy * inv_z, -fy * ty * inv_z * inv_z)
+    cov_row_x = covariance_camera @ jacobian_row_x
+    cov_row_y = covariance_camera @ jacobian_row_y
+    return wp.vec3(
+        wp.dot(jacobian_row_x, cov_row_x), wp.dot(jacobian_row_x, cov_row_y), wp.dot(jacobian_row_y, cov_row_y)
+    )
+
+
+@wp.func
+def project_mean(mean_camera: wp.vec3, intrinsics: wp.mat33) -> wp.vec2:
+    """Pixel position of a camera-space point, with pixel centres at half-integers (gsplat's convention)."""
+    inv_z = 1.0 / mean_camera[2]
+    return wp.vec2(
+        intrinsics[0, 0] * mean_camera[0] * inv_z + intrinsics[0, 2] + 0.5,
+        intrinsics[1, 1] * mean_camera[1] * inv_z + intrinsics[1, 2] + 0.5,
+    )
+
+
+@wp.func
+def conic_of(covariance_2d: wp.vec3) -> wp.vec3:
+    """Inverse (a, b, c) of the 2D covariance (xx, xy, yy) after adding the 0.3 px^2 blur."""
+    a = covariance_2d[0] + BLUR_EPS2D
+    b = covariance_2d[1]
+    c = covariance_2d[2] + BLUR_EPS2D
+    inv_det = 1.0 / (a * c - b * b)
+    return wp.vec3(c * inv_det, -b * inv_det, a * inv_det)
+
+
+@wp.func
+def sh_color(coefficients: wp.array2d(dtype=wp.vec3), gaussian: int, sh_degree: int, direction: wp.vec3) -> wp.vec3:
+    """RGB of real spherical harmonics of degree ``sh_degree`` (0..3) along a direction, before the offset.
+
+    ``direction`` need not be unit: it is normalized here. Coefficient ``k`` of Gaussian ``gaussian`` is
+    ``coefficients[gaussian, k]``.
+    """
+    d = wp.normalize(direction)
+    x = d[0]
+    y = d[1]
+    z = d[2]
+    color = SH_C0 * coefficients[gaussian, 0]
+    if sh_degree >= 1:
+        color += SH_C1 * (-y * coefficients[gaussian, 1] + z * coefficients[gaussian, 2] - x * coefficients[gaussian, 3])
+        if sh_degree >= 2:
+            zz = z * z
+            c1 = x * x - y * y
+            s1 = 2.0 * x * y
+            color += 0.5 * SH_C2_XY * s1 * coefficients[gaussian, 4]
+            color += -SH_C2_XY * z * y * coefficients[gaussian, 5]
+            color += (SH_C2_ZZ * zz - SH_C2_ZZ_OFFSET) * coefficients[gaussian, 6]
+            color += -SH_C2_XY * z * x * coefficients[gaussian, 7]
+            color += SH_C2_XX_YY * c1 * coefficients[gaussian, 8]
+            if sh_degree >= 3:
+                c2 = x * c1 - y * s1
+                s2 = x * s1 + y * c1
+                band_c = -SH_C3_C_ZZ * zz + SH_C3_C
+                color += -SH_C3_A * s2 * coefficients[gaussian, 9]
+                color += SH_C3_B * z * s1 * coefficients[gaussian, 10]
+                color += band_c * y * coefficients[gaussian, 11]
+                color += z * (SH_C3_D_ZZ * zz - SH_C3_D) * coefficients[gaussian, 12]
+                color += band_c * x * coefficients[gaussian, 13]
+                color += SH_C3_B * z * c1 * coefficients[gaussian, 14]
+                color += -SH_C3_A * c2 * coefficients[gaussian, 15]
+    return color
+
+
+@wp.func
+def gaussian_color(coefficients: wp.array2d(dtype=wp.vec3), gaussian: int, sh_degree: int, mean: wp.vec3,
+                   camera_center: wp.vec3) -> wp.vec3:
+    """Colour of a Gaussian: its RGB when ``sh_degree < 0``, else ``max(SH(direction) + 0.5, 0)``."""
+    if sh_degree < 0:
+        return coefficients[gaussian, 0]
+    value = sh_color(coefficients, gaussian, sh_degree, mean - camera_center) + wp.vec3(0.5)
+    return wp.vec3(wp.max(value[0], 0.0), wp.max(value[1], 0.0), wp.max(value[2], 0.0))
+
+
+@wp.func
+def camera_center_of(world_to_camera: wp.mat44) -> wp.vec3:
+    """Camera centre in world coordinates, ``-R^T t``."""
+    rotation = wp.mat33(
+        world_to_camera[0, 0], world_to_camera[0, 1], world_to_camera[0, 2],
+        world_to_camera[1, 0], world_to_camera[1, 1], world_to_camera[1, 2],
+        world_to_camera[2, 0], world_to_camera[2, 1], world_to_camera[2, 2],
+    )  # fmt: skip
+    translation = wp.vec3(world_to_camera[0, 3], world_to_camera[1, 3], world_to_camera[2, 3])
+    return -(wp.transpose(rotation) @ translation)
+
+
+@wp.func
+def rotation_of(world_to_camera: wp.mat44) -> wp.mat33:
+    """Upper-left 3x3 block of a 4x4 rigid transform."""
+    return wp.mat33(
+        world_to_camera[0, 0], world_to_camera[0, 1], world_to_camera[0, 2],
+        world_to_camera[1, 0], world_to_camera[1, 1], world_to_camera[1, 2],
+        world_to_camera[2, 0], world_to_camera[2, 1], world_to_camera[2, 2],
+    )  # fmt: skip
+
+
+@wp.func
+def to_camera(world_to_camera: wp.mat44, point: wp.vec3) -> wp.vec3:
+    """Camera-space coordinates of a world point."""
+    return rotation_of(world_to_camera) @ point + wp.vec3(
+        world_to_camera[0, 3], world_to_camera[1, 3], world_to_camera[2, 3]
+    )
+
+
+@wp.func
+def tile_box(center: wp.vec2, radius: wp.vec2i, tiles_x: int, tiles_y: int) -> wp.vec4i:
+    """Tiles ``[x0, x1) x [y0, y1)`` overlapped by the box ``center +- radius`` [px], clamped to the image."""
+    rx = float(radius[0]) / float(TILE_SIZE)
+    ry = float(radius[1]) / float(TILE_SIZE)
+    tx = center[0] / float(TILE_SIZE)
+    ty = center[1] / float(TILE_SIZE)
+    x0 = wp.clamp(wp.floor(tx - rx), 0.0, float(tiles_x))
+    x1 = wp.clamp(wp.ceil(tx + rx), 0.0, float(tiles_x))
+    y0 = wp.clamp(wp.floor(ty - ry), 0.0, float(tiles_y))
+    y1 = wp.clamp(wp.ceil(ty + ry), 0.0, float(tiles_y))
+    return wp.vec4i(int(x0), int(x1), int(y0), int(y1))
+
+
+@wp.func
+def finite_vec3(v: wp.vec3) -> bool:
+    return wp.isfinite(v[0]) and wp.isfinite(v[1]) and wp.isfinite(v[2])
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 1. Projection
+# ----------------------------------------------------------------------------------------------------------
+
+
+@wp.kernel(enable_backward=False)
+def project_kernel(
+    means: wp.array(dtype=wp.vec3),
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=wp.float32),
+    coefficients: wp.array2d(dtype=wp.vec3),
+    intrinsics: wp.array(dtype=wp.mat33),
+    world_to_camera: wp.array(dtype=wp.mat44),
+    width: int,
+    height: int,
+    tiles_x: int,
+    tiles_y: int,
+    sh_degree: int,
+    used_coefficients: int,
+    xy_opacity: wp.array(dtype=wp.vec3),
+    conics: wp.array(dtype=wp.vec3),
+    color_depth: wp.array(dtype=wp.vec4),
+    radii: wp.array(dtype=wp.vec2i),
+    tiles_touched: wp.array(dtype=wp.int32),
+    bad_input_flags: wp.array(dtype=wp.int32),
+):
+    """Project every Gaussian; culled ones get radius (0, 0), no tiles and zero mean2d, conic and colour.
+
+    Outputs per Gaussian: ``xy_opacity`` (pixel x, y with pixel centres at half-integers, opacity),
+    ``conics`` (a, b, c), ``color_depth`` (r, g, b, camera z), ``radii`` [px], ``tiles_touched``.
+    ``bad_input_flags[0]`` gets the ``BAD_*`` bits of the inputs holding non-finite values.
+    """
+    i = wp.tid()
+    mean = means[i]
+    quat = quats[i]
+    scale = scales[i]
+    opacity = opacities[i]
+    K = intrinsics[0]
+    view = world_to_camera[0]
+
+    flags = int(0)
+    if not finite_vec3(mean):
+        flags = flags | BAD_MEANS
+    if not (wp.isfinite(quat[0]) and wp.isfinite(quat[1]) and wp.isfinite(quat[2]) and wp.isfinite(quat[3])):
+        flags = flags | BAD_QUATS
+    if not finite_vec3(scale):
+        flags = flags | BAD_SCALES
+    if not wp.isfinite(opacity):
+        flags = flags | BAD_OPACITIES
+    for k in range(used_coefficients):
+        if not finite_vec3(coefficients[i, k]):
+            flags = flags | BAD_COLORS
+    if i == 0:
+        for r in range(3):
+            if not finite_vec3(wp.vec3(K[r, 0], K[r, 1], K[r, 2])):
+                flags = flags | BAD_CAMERA
+        for r in range(4):
+            if not (finite_vec3(wp.vec3(view[r, 0], view[r, 1], view[r, 2])) and wp.isfinite(view[r, 3])):
+                flags = flags | BAD_CAMERA
+    if flags != 0:
+        wp.atomic_or(bad_input_flags, 0, flags)
+
+    # Culled Gaussians keep zeros everywhere except their depth; the rest is written once at the end.
+    center = wp.vec2(0.0)
+    conic = wp.vec3(0.0)
+    color = wp.vec3(0.0)
+    radius = wp.vec2i(0, 0)
+    box = wp.vec4i(0, 0, 0, 0)
+    mean_camera = to_camera(view, mean)
+    depth = mean_camera[2]
+    if depth > NEAR_PLANE and depth < FAR_PLANE:
+        covariance_2d = ewa_covariance_2d(
+            mean_camera, camera_covariance(rotation_of(view), quat, scale), K, float(width), float(height)
+        )
+        a = covariance_2d[0] + BLUR_EPS2D
+        c = covariance_2d[2] + BLUR_EPS2D
+        det = a * c - covariance_2d[1] * covariance_2d[1]
+        if det > 0.0:
+            radius_x = wp.ceil(RADIUS_SIGMAS * wp.sqrt(a))
+            radius_y = wp.ceil(RADIUS_SIGMAS * wp.sqrt(c))
+            projected = project_mean(mean_camera, K)
+            if (
+                projected[0] + radius_x > 0.0
+                and projected[0] - radius_x < float(width)
+                and projected[1] + radius_y > 0.0
+                and projected[1] - radius_y < float(height)
+            ):
+                center = projected
+                conic = conic_of(covariance_2d)
+                radius = wp.vec2i(int(radius_x), int(radius_y))
+                box = tile_box(center, radius, tiles_x, tiles_y)
+                color = gaussian_color(coefficients, i, sh_degree, mean, camera_center_of(view))
+    xy_opacity[i] = wp.vec3(center[0], center[1], opacity)
+    conics[i] = conic
+    color_depth[i] = wp.vec4(color[0], color[1], color[2], depth)
+    radii[i] = radius
+    tiles_touched[i] = (box[1] - box[0]) * (box[3] - box[2])
+
+
+def launch_block_dim(device) -> int:
+    """Block size the launchers of this module use on ``device`` (one size per device, see module doc)."""
+    device = wp.get_device(device)
+    if device.is_cuda or wp.config.enable_cpu_blocks:
+        return int(PIXELS_PER_TILE)
+    return 1
+
+
+def launch_project(
+    means, quats, scales, opacities, coefficients, intrinsics, world_to_camera, *, width: int, height: int,
+    sh_degree: int, used_coefficients: int, xy_opacity, conics, color_depth, radii, tiles_touched,
+    bad_input_flags,
+) -> None:
+    """Launch :data:`project_kernel` over ``len(means)`` Gaussians (see the kernel for the arrays).
+
+    ``coefficients`` is ``[gaussian_count, coefficient_count]`` of vec3 (coefficient_count is 1 for RGB with
+    ``sh_degree=-1``); ``intrinsics`` and ``world_to_camera`` hold one mat33 / mat44 each.
+    """
+    gaussian_count = means.shape[0]
+    for name, array in (("quats", quats), ("scales", scales), ("opacities", opacities), ("xy_opacity", xy_opacity),
+                        ("conics", conics), ("color_depth", color_depth), ("radii", radii),
+                        ("tiles_touched", tiles_touched)):
+        if array.shape[0] != gaussian_count:
+            raise ValueError(f"{name} has {array.shape[0]} entries, expected {gaussian_count}")
+    if coefficients.shape[0] != gaussian_count or coefficients.shape[1] < used_coefficients:
+        raise ValueError(f"coefficients has shape {coefficients.shape}, expected [{gaussian_count}, >= {used_coefficients}]")
+    if gaussian_count == 0:
+        return
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    wp.launch(
+        project_kernel,
+        dim=gaussian_count,
+        inputs=[means, quats, scales, opacities, coefficients, intrinsics, world_to_camera, width, height, tiles_x,
+                tiles_y, sh_degree, used_coefficients],
+        outputs=[xy_opacity, conics, color_depth, radii, tiles_touched, bad_input_flags],
+        block_dim=launch_block_dim(means.device),
+    )
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 2. Tile binning
+# ----------------------------------------------------------------------------------------------------------
+
+
+def tile_key_bits(tile_count: int) -> int:
+    """Bits a tile id takes above the 32 depth bits of a sort key."""
+    return max(int(tile_count).bit_length(), 1)
+
+
+@wp.kernel(enable_backward=False)
+def emit_tile_keys_kernel(
+    xy_opacity: wp.array(dtype=wp.vec3),
+    depth_bits: wp.array2d(dtype=wp.int32),
+    radii: wp.array(dtype=wp.vec2i),
+    tile_ends: wp.array(dtype=wp.int32),
+    tiles_x: int,
+    tiles_y: int,
+    keys: wp.array(dtype=wp.int64),
+    gaussian_ids: wp.array(dtype=wp.int32),
+):
+    """Write the (tile << 32 | depth bits) key and the Gaussian index of every (Gaussian, tile) pair.
+
+    ``depth_bits`` is the ``color_depth`` buffer viewed as int32 ``[gaussian_count, 4]`` (column 3 is the
+    depth); ``tile_ends`` is the inclusive prefix sum of the tile counts.
+    """
+    i = wp.tid()
+    radius = radii[i]
+    if radius[0] == 0 and radius[1] == 0:
+        return
+    xyo = xy_opacity[i]
+    box = tile_box(wp.vec2(xyo[0], xyo[1]), radius, tiles_x, tiles_y)
+    depth_key = wp.int64(depth_bits[i, 3])  # positive float: its bits order like the value
+    slot = tile_ends[i] - (box[1] - box[0]) * (box[3] - box[2])
+    for ty in range(box[2], box[3]):
+        for tx in range(box[0], box[1]):
+            keys[slot] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | depth_key
+            gaussian_ids[slot] = i
+            slot += 1
+
+
+def launch_emit_tile_keys(xy_opacity, depth_bits, radii, tile_ends, *, width: int, height: int, keys,
+                          gaussian_ids) -> None:
+    """Launch :data:`emit_tile_keys_kernel`; ``keys``/``gaussian_ids`` hold at least the total pair count."""
+    gaussian_count = xy_opacity.shape[0]
+    for name, array in (("depth_bits", depth_bits), ("radii", radii), ("tile_ends", tile_ends)):
+        if array.shape[0] != gaussian_count:
+            raise ValueError(f"{name} has {array.shape[0]} entries, expected {gaussian_count}")
+    if keys.shape[0] != gaussian_ids.shape[0]:
+        raise ValueError("keys and gaussian_ids must have the same length")
+    if gaussian_count == 0 or keys.shape[0] == 0:
+        return
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    wp.launch(
+        emit_tile_keys_kernel,
+        dim=gaussian_count,
+        inputs=[xy_opacity, depth_bits, radii, tile_ends, tiles_x, tiles_y],
+        outputs=[keys, gaussian_ids],
+        block_dim=launch_block_dim(keys.device),
+    )
+
+
+@wp.kernel(enable_backward=False)
+def tile_ranges_kernel(sorted_keys: wp.array(dtype=wp.int64), pair_count: int, tile_ranges: wp.array2d(dtype=wp.int32)):
+    """Write ``[start, end)`` of every tile present in the sorted keys (``tile_ranges`` starts zeroed)."""
+    i = wp.tid()
+    tile = int(sorted_keys[i] >> wp.int64(32))
+    if i == 0:
+        tile_ranges[tile, 0] = 0
+    else:
+        previous = int(sorted_keys[i - 1] >> wp.int64(32))
+        if previous != tile:
+            tile_ranges[tile, 0] = i
+            tile_ranges[previous, 1] = i
+    if i == pair_count - 1:
+        tile_ranges[tile, 1] = pair_count
+
+
+def launch_tile_ranges(sorted_keys, pair_count: int, tile_ranges) -> None:
+    """Launch :data:`tile_ranges_kernel` over the first ``pair_count`` sorted keys."""
+    if sorted_keys.shape[0] < pair_count:
+        raise ValueError(f"sorted_keys has {sorted_keys.shape[0]} entries, fewer than pair_count={pair_count}")
+    if tile_ranges.ndim != 2 or tile_ranges.shape[1] != 2:
+        raise ValueError("tile_ranges must be an int32 array of shape [tile_count, 2]")
+    if pair_count == 0:
+        return
+    wp.launch(tile_ranges_kernel, dim=pair_count, inputs=[sorted_keys, pair_count], outputs=[tile_ranges],
+              block_dim=launch_block_dim(sorted_keys.device))
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 3. Compositing, forward
+# ----------------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def gaussian_alpha(xyo: wp.vec3, conic: wp.vec3, pixel_x: float, pixel_y: float) -> wp.vec3:
+    """(alpha, sigma, exp(-sigma)) of a Gaussian record at a pixel centre; alpha is clamped to 0.999."""
+    dx = xyo[0] - pixel_x
+    dy = xyo[1] - pixel_y
+    sigma = 0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) + conic[1] * dx * dy
+    falloff = wp.exp(-sigma)
+    return wp.vec3(wp.min(ALPHA_MAX, xyo[2] * falloff), sigma, falloff)
+
+
+@wp.kernel(enable_backward=False)
+def composite_forward_kernel(
+    tile_ranges: wp.array2d(dtype=wp.int32),
+    sorted_ids: wp.array(dtype=wp.int32),
+    xy_opacity: wp.array(dtype=wp.vec3),
+    conics: wp.array(dtype=wp.vec3),
+    color_depth: wp.array(dtype=wp.vec4),
+    background: wp.array(dtype=wp.vec3),
+    width: int,
+    height: int,
+    tiles_x: int,
+    image: wp.array(dtype=wp.vec3),
+    alpha: wp.array(dtype=wp.float32),
+    depth: wp.array(dtype=wp.float32),
+    final_transmittance: wp.array(dtype=wp.float32),
+    last_index: wp.array(dtype=wp.int32),
+):
+    """Front-to-back compositing of one pixel per thread, one tile per block (launch dim [tiles, 256]).
+
+    Per pixel (row-major ``y * width + x``): ``image`` = sum w_i c_i + T background, ``alpha`` = 1 - T,
+    ``depth`` = sum w_i z_i, ``final_transmittance`` = T, ``last_index`` = position in the sorted list of the
+    last composited Gaussian (-1 when none).
+    """
+    tile, lane = wp.tid()
+    tile_row = tile // tiles_x
+    pixel_x = (tile - tile_row * tiles_x) * TILE_SIZE + lane % TILE_SIZE
+    pixel_y = tile_row * TILE_SIZE + lane // TILE_SIZE
+    inside = pixel_x < width and pixel_y < height
+    center_x = float(pixel_x) + 0.5
+    center_y = float(pixel_y) + 0.5
+
+    range_start = tile_ranges[tile, 0]
+    range_end = tile_ranges[tile, 1]
+    batch_count = (range_end - range_start + PIXELS_PER_TILE - 1) // PIXELS_PER_TILE
+
+    transmittance = float(1.0)
+    color = wp.vec3(0.0)
+    depth_sum = float(0.0)
+    last = int(-1)
+    done = int(1)
+    if inside:
+        done = 0
+    for batch in range(batch_count):
+        # Stop the whole block once every pixel is saturated (the count is block-uniform).
+        done_count = wp.tile_sum(wp.tile(done))
+        if done_count[0] == wp.block_dim():
+            break
+        batch_start = range_start + batch * PIXELS_PER_TILE
+        ids = wp.tile_load(sorted_ids, shape=PIXELS_PER_TILE, offset=batch_start, storage="shared")
+        batch_xyo = wp.tile_load_indexed(xy_opacity, indices=ids, shape=(PIXELS_PER_TILE,), offset=(0,), axis=0,
+                                         storage="shared")
+        batch_conic = wp.tile_load_indexed(conics, indices=ids, shape=(PIXELS_PER_TILE,), offset=(0,), axis=0,
+                                           storage="shared")
+        batch_color = wp.tile_load_indexed(color_depth, indices=ids, shape=(PIXELS_PER_TILE,), offset=(0,), axis=0,
+                                           storage="shared")
+        batch_size = wp.min(PIXELS_PER_TILE, range_end - batch_start)
+        for k in range(batch_size):
+            if done != 0:
+                break
+            evaluated = gaussian_alpha(batch_xyo[k], batch_conic[k], center_x, center_y)
+            a = evaluated[0]
+            if evaluated[1] < 0.0 or a < ALPHA_THRESHOLD:
+                continue
+            next_transmittance = transmittance * (1.0 - a)
+            if next_transmittance <= TRANSMITTANCE_MIN:
+                done = 1
+                break
+            weight = a * transmittance
+            rgbd = batch_color[k]
+            color += weight * wp.vec3(rgbd[0], rgbd[1], rgbd[2])
+            depth_sum += weight * rgbd[3]
+            transmittance = next_transmittance
+            last = batch_start + k
+    if inside:
+        pixel = pixel_y * width + pixel_x
+        image[pixel] = color + transmittance * background[0]
+        alpha[pixel] = 1.0 - transmittance
+        depth[pixel] = depth_sum
+        final_transmittance[pixel] = transmittance
+        last_index[pixel] = last
+
+
+def _check_pixel_arrays(width: int, height: int, **arrays) -> None:
+    for name, array in arrays.items():
+        if array.shape[0] != width * height:
+            raise ValueError(f"{name} has {array.shape[0]} entries, expected width * height = {width * height}")
+
+
+def launch_composite_forward(tile_ranges, sorted_ids, xy_opacity, conics, color_depth, background, *, width: int,
+                             height: int, image, alpha, depth, final_transmittance, last_index) -> None:
+    """Launch :data:`composite_forward_kernel` over all tiles of a ``width`` x ``height`` image.
+
+    ``background`` holds one vec3; the pixel arrays are flat (``width * height`` entries).
+    """
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    if tile_ranges.shape[0] != tiles_x * tiles_y:
+        raise ValueError(f"tile_ranges has {tile_ranges.shape[0]} rows, expected {tiles_x * tiles_y} tiles")
+    _check_pixel_arrays(width, height, image=image, alpha=alpha, depth=depth, final_transmittance=final_transmittance,
+                        last_index=last_index)
+    if width * height == 0:
+        return
+    wp.launch(
+        composite_forward_kernel,
+        dim=(tiles_x * tiles_y, int(PIXELS_PER_TILE)),
+        inputs=[tile_ranges, sorted_ids, xy_opacity, conics, color_depth, background, width, height, tiles_x],
+        outputs=[image, alpha, depth, final_transmittance, last_index],
+        block_dim=launch_block_dim(image.device),
+    )
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 4. Compositing, backward
+# ----------------------------------------------------------------------------------------------------------
+
+# Sums one Gaussian's gradient contributions over the 32 lanes of each warp, then lane 0 adds them to the
+# structure-of-arrays buffer (layout: GRAD_RECORD_FLOATS). Every lane of a warp must reach the call together;
+# the caller guarantees it by iterating block-uniform loops and passing ``active = 0`` from idle lanes.
+_WARP_SUM_ADD_SNIPPET = r"""
+    const long long n = (long long)gaussian_count;
+    const long long g = (long long)gaussian;
+    float values[12];
+    values[0] = v_mean2d[0];
+    values[1] = v_mean2d[1];
+    values[2] = v_conic[0];
+    values[3] = v_conic[1];
+    values[4] = v_conic[2];
+    values[5] = v_opacity;
+    values[6] = v_color[0];
+    values[7] = v_color[1];
+    values[8] = v_color[2];
+    values[9] = v_depth;
+    values[10] = wp::abs(v_mean2d[0]);
+    values[11] = wp::abs(v_mean2d[1]);
+    const int value_count = with_abs ? 12 : 10;
+#if defined(__CUDA_ARCH__)
+    const unsigned int full_mask = 0xffffffffu;
+    if (__any_sync(full_mask, active != 0) == 0)
+        return;
+    #pragma unroll
+    for (int i = 0; i < 12; ++i) {
+        float v = active ? values[i] : 0.0f;
+        #pragma unroll
+        for (int offset = 16; offset > 0; offset >>= 1)
+            v += __shfl_down_sync(full_mask, v, offset);
+        values[i] = v;
+    }
+    if ((threadIdx.x & 31) != 0)
+        return;
+#else
+    if (!active)
+        return;
+#endif
+    float* base = grads.data;
+    const long long slots[12] = {
+        2 * g, 2 * g + 1,
+        2 * n + 3 * g, 2 * n + 3 * g + 1, 2 * n + 3 * g + 2,
+        5 * n + g,
+        6 * n + 3 * g, 6 * n + 3 * g + 1, 6 * n + 3 * g + 2,
+        9 * n + g,
+        10 * n + 2 * g, 10 * n + 2 * g + 1};
+    for (int i = 0; i < value_count; ++i)
+        wp::atomic_add(base + slots[i], values[i]);
+"""
+
+
+@wp.func_native(_WARP_SUM_ADD_SNIPPET)
+def warp_sum_atomic_add(
+    grads: wp.array(dtype=wp.float32),
+    gaussian_count: int,
+    gaussian: int,
+    active: int,
+    with_abs: int,
+    v_mean2d: wp.vec2,
+    v_conic: wp.vec3,
+    v_opacity: float,
+    v_color: wp.vec3,
+    v_depth: float,
+): ...
+
+
+@wp.kernel(enable_backward=False)
+def composite_backward_kernel(
+    tile_ranges: wp.array2d(dtype=wp.int32),
+    sorted_ids: wp.array(dtype=wp.int32),
+    xy_opacity: wp.array(dtype=wp.vec3),
+    conics: wp.array(dtype=wp.vec3),
+    color_depth: wp.array(dtype=wp.vec4),
+    background: wp.array(dtype=wp.vec3),
+    width: int,
+    height: int,
+    tiles_x: int,
+    final_transmittance: wp.array(dtype=wp.float32),
+    last_index: wp.array(dtype=wp.int32),
+    grad_image: wp.array(dtype=wp.vec3),
+    grad_alpha: wp.array(dtype=wp.float32),
+    grad_depth: wp.array(dtype=wp.float32),
+    with_abs: int,
+    grads: wp.array(dtype=wp.float32),
+):
+    """Back-to-front gradient of the compositing, one pixel per thread, one tile per block.
+
+    Adds into ``grads`` (structure-of-arrays, see ``GRAD_RECORD_FLOATS``; zeroed by the caller) the gradients
+    of the loss with respect to each Gaussian's 2D mean, conic, opacity, colour and depth, and the per-axis
+    sum of |d mean2d| over pixels when ``with_abs`` is 1.
+    """
+    tile, lane = wp.tid()
+    gaussian_count = xy_opacity.shape[0]
+    tile_row = tile // tiles_x
+    pixel_x = (tile - tile_row * tiles_x) * TILE_SIZE + lane % TILE_SIZE
+    pixel_y = tile_row * TILE_SIZE + lane // TILE_SIZE
+    inside = pixel_x < width and pixel_y < height
+    center_x = float(pixel_x) + 0.5
+    center_y = float(pixel_y) + 0.5
+
+    range_start = tile_ranges[tile, 0]
+    t_final = float(1.0)
+    last = int(-1)
+    g_color = wp.vec3(0.0)
+    g_alpha = float(0.0)
+    g_depth = float(0.0)
+    if inside:
+        pixel = pixel_y * width + pixel_x
+        t_final = final_transmittance[pixel]
+        last = last_index[pixel]
+        g_color = grad_image[pixel]
+        g_alpha = grad_alpha[pixel]
+        g_depth = grad_depth[pixel]
+    # Constant part of d pixel / d alpha_i * (1 - alpha_i): the alpha output and the background term.
+    g_alpha_transmittance = t_final * (g_alpha - wp.dot(background[0], g_color))
+
+    block_last = wp.tile_max(wp.tile(last))[0]
+    batch_count = (block_last + 1 - range_start + PIXELS_PER_TILE - 1) // PIXELS_PER_TILE
+
+    transmittance = t_final
+    color_behind = wp.vec3(0.0)
+    depth_behind = float(0.0)
+    for batch in range(batch_count):
+        batch_end = block_last + 1 - batch * PIXELS_PER_TILE
+        batch_begin = wp.max(range_start, batch_end - PIXELS_PER_TILE)
+        ids = wp.tile_load(sorted_ids, shape=PIXELS_PER_TILE, offset=batch_begin, storage="shared")
+        batch_xyo = wp.tile_load_indexed(xy_opacity, indices=ids, shape=(PIXELS_PER_TILE,), offset=(0,), axis=0,
+                                         storage="shared")
+        batch_conic = wp.tile_load_indexed(conics, indices=ids, shape=(PIXELS_PER_TILE,), offset=(0,), axis=0,
+                                           storage="shared")
+        batch_color = wp.tile_load_indexed(color_depth, indices=ids, shape=(PIXELS_PER_TILE,), offset=(0,), axis=0,
+                                           storage="shared")
+        batch_size = batch_end - batch_begin
+        for step in range(batch_size):
+            k = batch_size - 1 - step
+            xyo = batch_xyo[k]
+            conic = batch_conic[k]
+            active = int(0)
+            v_mean2d = wp.vec2(0.0)
+            v_conic = wp.vec3(0.0)
+            v_opacity = float(0.0)
+            v_color = wp.vec3(0.0)
+            v_depth = float(0.0)
+            if batch_begin + k <= last:
+                evaluated = gaussian_alpha(xyo, conic, center_x, center_y)
+                a = evaluated[0]
+                if evaluated[1] >= 0.0 and a >= ALPHA_THRESHOLD:
+                    active = 1
+                    rgbd = batch_color[k]
+                    rgb = wp.vec3(rgbd[0], rgbd[1], rgbd[2])
+                    inv_one_minus_alpha = 1.0 / (1.0 - a)
+                    transmittance = transmittance * inv_one_minus_alpha
+                    weight = a * transmittance
+                    v_color = weight * g_color
+                    v_depth = weight * g_depth
+                    v_alpha = (
+                        wp.dot(rgb * transmittance - color_behind * inv_one_minus_alpha, g_color)
+                        + (rgbd[3] * transmittance - depth_behind * inv_one_minus_alpha) * g_depth
+                        + g_alpha_transmittance * inv_one_minus_alpha
+                    )
+                    unclamped = xyo[2] * evaluated[2]
+                    if unclamped <= ALPHA_MAX:
+                        v_sigma = -unclamped * v_alpha
+                        dx = xyo[0] - center_x
+                        dy = xyo[1] - center_y
+                        v_conic = wp.vec3(0.5 * v_sigma * dx * dx, v_sigma * dx * dy, 0.5 * v_sigma * dy * dy)
+                        v_mean2d = v_sigma * wp.vec2(conic[0] * dx + conic[1] * dy, conic[1] * dx + conic[2] * dy)
+                        v_opacity = evaluated[2] * v_alpha
+                    color_behind += weight * rgb
+                    depth_behind += weight * rgbd[3]
+            warp_sum_atomic_add(grads, gaussian_count, ids[k], active, with_abs, v_mean2d, v_conic, v_opacity, v_color,
+                                v_depth)
+
+
+def launch_composite_backward(tile_ranges, sorted_ids, xy_opacity, conics, color_depth, background, *, width: int,
+                              height: int, final_transmittance, last_index, grad_image, grad_alpha, grad_depth,
+                              with_abs: bool, grads) -> None:
+    """Launch :data:`composite_backward_kernel`; ``grads`` is a zeroed float32 array of ``12 * gaussian_count``."""
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    if tile_ranges.shape[0] != tiles_x * tiles_y:
+        raise ValueError(f"tile_ranges has {tile_ranges.shape[0]} rows, expected {tiles_x * tiles_y} tiles")
+    _check_pixel_arrays(width, height, final_transmittance=final_transmittance, last_index=last_index,
+                        grad_image=grad_image, grad_alpha=grad_alpha, grad_depth=grad_depth)
+    if grads.shape[0] != GRAD_RECORD_FLOATS * xy_opacity.shape[0]:
+        raise ValueError(f"grads has {grads.shape[0]} entries, expected {GRAD_RECORD_FLOATS} * gaussian_count")
+    if width * height == 0 or xy_opacity.shape[0] == 0:
+        return
+    wp.launch(
+        composite_backward_kernel,
+        dim=(tiles_x * tiles_y, int(PIXELS_PER_TILE)),
+        inputs=[tile_ranges, sorted_ids, xy_opacity, conics, color_depth, background, width, height, tiles_x,
+                final_transmittance, last_index, grad_image, grad_alpha, grad_depth, int(bool(with_abs))],
+        outputs=[grads],
+        block_dim=launch_block_dim(grads.device),
+    )
+
+
+# ----------------------------------------------------------------------------------------------------------
+# 5. Projection, backward (Warp autodiff of a straight-line kernel)
+# ----------------------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def project_differentiable_kernel(
+    means: wp.array(dtype=wp.vec3),
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec3),
+    coefficients: wp.array2d(dtype=wp.vec3),
+    intrinsics: wp.array(dtype=wp.mat33),
+    world_to_camera: wp.array(dtype=wp.mat44),
+    radii: wp.array(dtype=wp.vec2i),
+    width: int,
+    height: int,
+    sh_degree: int,
+    mean2d: wp.array(dtype=wp.vec2),
+    conic: wp.array(dtype=wp.vec3),
+    depth: wp.array(dtype=wp.float32),
+    color: wp.array(dtype=wp.vec3),
+):
+    """The differentiable outputs of :data:`project_kernel` for the Gaussians it kept (radius > 0).
+
+    Only launched with ``adjoint=True``: its adjoint maps gradients of (mean2d, conic, depth, colour) to
+    gradients of (means, quats, scales, coefficients). Culled Gaussians return at once and get none.
+    """
+    i = wp.tid()
+    radius = radii[i]
+    if radius[0] == 0 and radius[1] == 0:
+        return
+    K = intrinsics[0]
+    view = world_to_camera[0]
+    mean = means[i]
+    mean_camera = to_camera(view, mean)
+    covariance_2d = ewa_covariance_2d(
+        mean_camera, camera_covariance(rotation_of(view), quats[i], scales[i]), K, float(width), float(height)
+    )
+    mean2d[i] = project_mean(mean_camera, K)
+    conic[i] = conic_of(covariance_2d)
+    depth[i] = mean_camera[2]
+    color[i] = gaussian_color(coefficients, i, sh_degree, mean, camera_center_of(view))
+
+
+def launch_project_backward(
+    means, quats, scales, coefficients, intrinsics, world_to_camera, radii, *, width: int, height: int,
+    sh_degree: int, scratch_mean2d, scratch_conic, scratch_depth, scratch_color, grad_mean2d, grad_conic,
+    grad_depth, grad_color, grad_means, grad_quats, grad_scales, grad_coefficients,
+) -> None:
+    """Adjoint launch of :data:`project_differentiable_kernel`.
+
+    ``grad_mean2d``/``grad_conic``/``grad_depth``/``grad_color`` are the incoming per-Gaussian gradients; the
+    ``grad_means``/``grad_quats``/``grad_scales``/``grad_coefficients`` arrays (zeroed by the caller) receive
+    the result. ``scratch_*`` arrays (same shapes as the incoming gradients, contents ignored) are written by
+    the forward replay of the adjoint kernel.
+    """
+    gaussian_count = means.shape[0]
+    for name, array in (("quats", quats), ("scales", scales), ("coefficients", coefficients), ("radii", radii),
+                        ("grad_mean2d", grad_mean2d), ("grad_conic", grad_conic), ("grad_depth", grad_depth),
+                        ("grad_color", grad_color), ("grad_means", grad_means), ("grad_quats", grad_quats),
+                        ("grad_scales", grad_scales), ("grad_coefficients", grad_coefficients),
+                        ("scratch_mean2d", scratch_mean2d), ("scratch_conic", scratch_conic),
+                        ("scratch_depth", scratch_depth), ("scratch_color", scratch_color)):
+        if array.shape[0] != gaussian_count:
+            raise ValueError(f"{name} has {array.shape[0]} entries, expected {gaussian_count}")
+    if gaussian_count == 0:
+        return
+    wp.launch(
+        project_differentiable_kernel,
+        dim=gaussian_count,
+        inputs=[means, quats, scales, coefficients, intrinsics, world_to_camera, radii, width, height, sh_degree],
+        outputs=[scratch_mean2d, scratch_conic, scratch_depth, scratch_color],
+        adj_inputs=[grad_means, grad_quats, grad_scales, grad_coefficients, None, None, None, 0, 0, 0],
+        adj_outputs=[grad_mean2d, grad_conic, grad_depth, grad_color],
+        adjoint=True,
+        block_dim=launch_block_dim(means.device),
+    )

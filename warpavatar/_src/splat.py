@@ -1,5 +1,282 @@
-"""Work in progress: being written (placeholder so that imports resolve)."""
+"""Differentiable Gaussian-splatting rasterizer: torch autograd bridge to the Warp kernels of ``kernels/splat.py``.
+
+One forward pass makes five Warp launches (projection, key emission, tile ranges, compositing, plus the prefix
+sum and radix sort of ``warp.utils``) and one host synchronization: reading the number of (Gaussian, tile) pairs
+to size the sort buffers (an upper bound would cost far more memory: every Gaussian may cover the image). The
+same read fetches the non-finite-input flag, so checking the inputs costs no extra synchronization. One
+backward pass makes two Warp launches (compositing backward, projection adjoint) and no synchronization.
+"""
+
+from __future__ import annotations
+
+import torch
+import warp as wp
+
+from warpavatar._src.warp_utils import check_tensor, to_warp, torch_stream_scope
+from warpavatar.kernels import splat as splat_kernels
+
+__all__ = ["rasterize_gaussians"]
+
+_BAD_INPUT_NAMES = (
+    (splat_kernels.BAD_MEANS, "means"),
+    (splat_kernels.BAD_QUATS, "quats"),
+    (splat_kernels.BAD_SCALES, "scales"),
+    (splat_kernels.BAD_OPACITIES, "opacities"),
+    (splat_kernels.BAD_COLORS, "colors"),
+    (splat_kernels.BAD_CAMERA, "K / world_to_camera"),
+)
 
 
-def rasterize_gaussians(*args, **kwargs):
-    raise NotImplementedError("rasterize_gaussians is being written")
+def _tile_grid(width: int, height: int) -> tuple[int, int]:
+    tile = int(splat_kernels.TILE_SIZE)
+    return (width + tile - 1) // tile, (height + tile - 1) // tile
+
+
+class _RasterizeGaussians(torch.autograd.Function):
+    """Autograd wrapper; inputs are already validated, float32 and contiguous (see :func:`rasterize_gaussians`)."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, coefficients, background, K, world_to_camera, width, height,
+                sh_degree, densify_grad_out):
+        device = means.device
+        gaussian_count = means.shape[0]
+        used_coefficients = 1 if sh_degree < 0 else (sh_degree + 1) ** 2
+        tiles_x, tiles_y = _tile_grid(width, height)
+        f32, i32 = dict(device=device, dtype=torch.float32), dict(device=device, dtype=torch.int32)
+
+        xy_opacity = torch.empty(gaussian_count, 3, **f32)
+        conics = torch.empty(gaussian_count, 3, **f32)
+        color_depth = torch.empty(gaussian_count, 4, **f32)
+        radii = torch.empty(gaussian_count, 2, **i32)
+        tiles_touched = torch.empty(gaussian_count, **i32)
+        # Inclusive prefix sum of tiles_touched, then the non-finite-input flag: one read fetches both.
+        tile_ends_and_flag = torch.zeros(gaussian_count + 1, **i32)
+        tile_ranges = torch.zeros(tiles_x * tiles_y, 2, **i32)
+        image = torch.empty(height, width, 3, **f32)
+        alpha = torch.empty(height, width, **f32)
+        depth = torch.empty(height, width, **f32)
+        final_transmittance = torch.empty(height, width, **f32)
+        last_index = torch.empty(height, width, **i32)
+
+        with torch_stream_scope(device):
+            w_means = to_warp(means, wp.vec3)
+            w_coefficients = to_warp(coefficients, wp.vec3)
+            w_K = to_warp(K.reshape(1, 3, 3), wp.mat33)
+            w_view = to_warp(world_to_camera.reshape(1, 4, 4), wp.mat44)
+            w_xy_opacity = to_warp(xy_opacity, wp.vec3)
+            w_conics = to_warp(conics, wp.vec3)
+            w_color_depth = to_warp(color_depth, wp.vec4)
+            w_radii = to_warp(radii, wp.vec2i)
+            w_tiles_touched = to_warp(tiles_touched)
+            w_tile_ends = to_warp(tile_ends_and_flag[:gaussian_count])
+            splat_kernels.launch_project(
+                w_means, to_warp(quats, wp.vec4), to_warp(scales, wp.vec3), to_warp(opacities), w_coefficients,
+                w_K, w_view, width=width, height=height, sh_degree=sh_degree, used_coefficients=used_coefficients,
+                xy_opacity=w_xy_opacity, conics=w_conics, color_depth=w_color_depth, radii=w_radii,
+                tiles_touched=w_tiles_touched, bad_input_flags=to_warp(tile_ends_and_flag[gaussian_count:]),
+            )
+            if gaussian_count:
+                wp.utils.array_scan(w_tiles_touched, w_tile_ends, inclusive=True)
+                pair_count, flags = tile_ends_and_flag[gaussian_count - 1:].tolist()  # the one host sync
+            else:
+                pair_count, flags = 0, 0
+            if flags:
+                bad = [name for bit, name in _BAD_INPUT_NAMES if flags & bit]
+                raise ValueError(f"rasterize_gaussians: non-finite values in {', '.join(bad)}")
+
+            sort_keys = torch.empty(2 * pair_count, device=device, dtype=torch.int64)
+            sorted_ids = torch.empty(2 * pair_count, **i32)
+            w_sorted_ids = to_warp(sorted_ids)
+            if pair_count:
+                w_sort_keys = to_warp(sort_keys)
+                splat_kernels.launch_emit_tile_keys(
+                    w_xy_opacity, to_warp(color_depth.view(torch.int32)), w_radii, w_tile_ends, width=width,
+                    height=height, keys=w_sort_keys[:pair_count], gaussian_ids=w_sorted_ids[:pair_count],
+                )
+                wp.utils.radix_sort_pairs(w_sort_keys, w_sorted_ids, pair_count, begin_bit=0,
+                                          end_bit=32 + splat_kernels.tile_key_bits(tiles_x * tiles_y))
+                splat_kernels.launch_tile_ranges(w_sort_keys, pair_count, to_warp(tile_ranges))
+            del sort_keys
+            w_background = to_warp(background.reshape(1, 3), wp.vec3)
+            splat_kernels.launch_composite_forward(
+                to_warp(tile_ranges), w_sorted_ids, w_xy_opacity, w_conics, w_color_depth, w_background, width=width,
+                height=height, image=to_warp(image.view(-1, 3), wp.vec3), alpha=to_warp(alpha.view(-1)),
+                depth=to_warp(depth.view(-1)), final_transmittance=to_warp(final_transmittance.view(-1)),
+                last_index=to_warp(last_index.view(-1)),
+            )
+
+        ctx.save_for_backward(means, quats, scales, coefficients, background, K, world_to_camera, xy_opacity, conics,
+                              color_depth, radii, tile_ranges, sorted_ids, final_transmittance, last_index)
+        ctx.width, ctx.height, ctx.sh_degree = width, height, sh_degree
+        ctx.densify_grad_out = densify_grad_out
+        # The per-Gaussian buffers are returned as-is for the info dict (built only when asked for).
+        ctx.mark_non_differentiable(radii, xy_opacity, color_depth)
+        return image, alpha, depth, radii, xy_opacity, color_depth
+
+    @staticmethod
+    def backward(ctx, grad_image, grad_alpha, grad_depth, *unused_info_grads):
+        (means, quats, scales, coefficients, background, K, world_to_camera, xy_opacity, conics, color_depth, radii,
+         tile_ranges, sorted_ids, final_transmittance, last_index) = ctx.saved_tensors
+        device = means.device
+        gaussian_count = means.shape[0]
+        width, height, sh_degree = ctx.width, ctx.height, ctx.sh_degree
+        densify_grad_out = ctx.densify_grad_out
+
+        def as_grad(grad, shape):
+            if grad is None:
+                return torch.zeros(shape, device=device, dtype=torch.float32)
+            return grad.to(torch.float32).contiguous()
+
+        grad_image = as_grad(grad_image, (height, width, 3))
+        grad_alpha = as_grad(grad_alpha, (height, width))
+        grad_depth = as_grad(grad_depth, (height, width))
+
+        n = gaussian_count
+        screen_grads = torch.zeros(splat_kernels.GRAD_RECORD_FLOATS * n, device=device, dtype=torch.float32)
+        coefficient_count = coefficients.shape[1]
+        param_grads = torch.zeros((10 + 3 * coefficient_count) * n, device=device, dtype=torch.float32)
+        grad_means = param_grads[: 3 * n].view(n, 3)
+        grad_quats = param_grads[3 * n: 7 * n].view(n, 4)
+        grad_scales = param_grads[7 * n: 10 * n].view(n, 3)
+        grad_coefficients = param_grads[10 * n:].view(n, coefficient_count, 3)
+        with torch_stream_scope(device):
+            w_screen = to_warp(screen_grads)
+            w_background = to_warp(background.reshape(1, 3), wp.vec3)
+            splat_kernels.launch_composite_backward(
+                to_warp(tile_ranges), to_warp(sorted_ids), to_warp(xy_opacity, wp.vec3), to_warp(conics, wp.vec3),
+                to_warp(color_depth, wp.vec4), w_background, width=width, height=height,
+                final_transmittance=to_warp(final_transmittance.view(-1)), last_index=to_warp(last_index.view(-1)),
+                grad_image=to_warp(grad_image.view(-1, 3), wp.vec3), grad_alpha=to_warp(grad_alpha.view(-1)),
+                grad_depth=to_warp(grad_depth.view(-1)), with_abs=densify_grad_out is not None, grads=w_screen,
+            )
+            if any(ctx.needs_input_grad[i] for i in (0, 1, 2, 4)):
+                scratch = torch.empty(9 * n, device=device, dtype=torch.float32)
+                splat_kernels.launch_project_backward(
+                    to_warp(means, wp.vec3), to_warp(quats, wp.vec4), to_warp(scales, wp.vec3),
+                    to_warp(coefficients, wp.vec3), to_warp(K.reshape(1, 3, 3), wp.mat33),
+                    to_warp(world_to_camera.reshape(1, 4, 4), wp.mat44), to_warp(radii, wp.vec2i), width=width,
+                    height=height, sh_degree=sh_degree,
+                    scratch_mean2d=to_warp(scratch[: 2 * n].view(n, 2), wp.vec2),
+                    scratch_conic=to_warp(scratch[2 * n: 5 * n].view(n, 3), wp.vec3),
+                    scratch_depth=to_warp(scratch[5 * n: 6 * n]),
+                    scratch_color=to_warp(scratch[6 * n:].view(n, 3), wp.vec3),
+                    grad_mean2d=to_warp(screen_grads[: 2 * n].view(n, 2), wp.vec2),
+                    grad_conic=to_warp(screen_grads[2 * n: 5 * n].view(n, 3), wp.vec3),
+                    grad_depth=to_warp(screen_grads[9 * n: 10 * n]),
+                    grad_color=to_warp(screen_grads[6 * n: 9 * n].view(n, 3), wp.vec3),
+                    grad_means=to_warp(grad_means, wp.vec3), grad_quats=to_warp(grad_quats, wp.vec4),
+                    grad_scales=to_warp(grad_scales, wp.vec3), grad_coefficients=to_warp(grad_coefficients, wp.vec3),
+                )
+        if densify_grad_out is not None:
+            densify_grad_out.add_(screen_grads[10 * n:].view(n, 2))
+        grad_opacities = screen_grads[5 * n: 6 * n]
+        grad_background = None
+        if ctx.needs_input_grad[5]:
+            grad_background = (grad_image * final_transmittance[..., None]).sum(dim=(0, 1))
+        return (grad_means, grad_quats, grad_scales, grad_opacities, grad_coefficients, grad_background,
+                None, None, None, None, None, None)
+
+
+def rasterize_gaussians(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    K: torch.Tensor,
+    world_to_camera: torch.Tensor,
+    width: int,
+    height: int,
+    *,
+    background: torch.Tensor | None = None,
+    sh_degree: int | None = None,
+    densify_grad_out: torch.Tensor | None = None,
+    return_info: bool = False,
+):
+    """Render 3D Gaussians into one camera with tile-based EWA splatting (3DGS / gsplat 1.5.3 conventions).
+
+    Differentiable with respect to ``means``, ``quats``, ``scales``, ``opacities``, ``colors`` and
+    ``background``; ``K`` and ``world_to_camera`` are constants. All work is float32 on the inputs' device.
+    Conventions (camera, pixel centres, quaternions, SH) are in ``docs/conventions.md``.
+
+    Args:
+        means: Gaussian centres in world units, shape [N, 3].
+        quats: rotations as (w, x, y, z) quaternions, shape [N, 4]; normalized inside (need not be unit).
+        scales: standard deviations along the rotated axes in world units (linear, > 0), shape [N, 3].
+        opacities: peak opacities in [0, 1], shape [N].
+        colors: RGB in [0, 1], shape [N, 3]; or, when ``sh_degree`` is given, spherical-harmonics coefficients
+            of shape [N, C, 3] with C >= (sh_degree + 1) ** 2 (the first (sh_degree + 1) ** 2 are used, so a
+            trainer may keep 16 and raise the degree over time; the others get zero gradient).
+        K: pinhole intrinsics [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels, shape [3, 3], with the centre of
+            pixel (column i, row j) at image coordinates (i, j).
+        world_to_camera: OpenCV-convention (x right, y down, z forward) rigid transform, shape [4, 4].
+        width: image width [px], >= 1.
+        height: image height [px], >= 1.
+        background: RGB composited behind the Gaussians with the final transmittance, shape [3]; None = black.
+        sh_degree: None for RGB ``colors``; 0..3 for SH coefficients (colour = max(SH(dir) + 0.5, 0) with dir the
+            unit vector from the camera centre to the Gaussian).
+        densify_grad_out: optional float32 tensor [N, 2] on the same device; the backward pass adds to it, per
+            Gaussian, the sum over pixels of |d loss / d mean2d| per image axis [loss units per pixel].
+        return_info: also return a dict of per-Gaussian projection results.
+
+    Returns:
+        ``(image, alpha, depth)``: float32 tensors of shapes [H, W, 3] (RGB), [H, W] (1 - final transmittance)
+        and [H, W] (sum over composited Gaussians of weight times camera-space z, not normalized by alpha).
+        With ``return_info`` a fourth item: ``{"radii": [N, 2] int32 per-axis radius in pixels (0 = culled),
+        "means2d": [N, 2] float32 projected centres in pixels (pixel centres at integers; 0 where culled),
+        "depths": [N] float32 camera-space z}`` (not differentiable).
+
+    Raises:
+        TypeError: a tensor argument is not a floating-point tensor, or a size is not an int.
+        ValueError: wrong shapes, mixed devices, bad sizes or degree, or non-finite values in the inputs.
+    """
+    check_tensor("means", means, (None, 3))
+    device = means.device
+    gaussian_count = means.shape[0]
+    check_tensor("quats", quats, (gaussian_count, 4), device=device)
+    check_tensor("scales", scales, (gaussian_count, 3), device=device)
+    check_tensor("opacities", opacities, (gaussian_count,), device=device)
+    check_tensor("K", K, (3, 3), device=device)
+    check_tensor("world_to_camera", world_to_camera, (4, 4), device=device)
+    for name, size in (("width", width), ("height", height)):
+        if isinstance(size, bool) or not isinstance(size, int):
+            raise TypeError(f"{name} must be an int, got {type(size).__name__}")
+        if size < 1:
+            raise ValueError(f"{name} must be >= 1, got {size}")
+    if sh_degree is None:
+        check_tensor("colors", colors, (gaussian_count, 3), device=device)
+        coefficients = colors.reshape(gaussian_count, 1, 3)
+        kernel_degree = -1
+    else:
+        if isinstance(sh_degree, bool) or not isinstance(sh_degree, int) or not 0 <= sh_degree <= 3:
+            raise ValueError(f"sh_degree must be None or an int in 0..3, got {sh_degree!r}")
+        check_tensor("colors", colors, (gaussian_count, None, 3), device=device)
+        if colors.shape[1] < (sh_degree + 1) ** 2:
+            raise ValueError(
+                f"colors has {colors.shape[1]} SH coefficients per Gaussian, sh_degree={sh_degree} needs "
+                f"at least {(sh_degree + 1) ** 2}"
+            )
+        coefficients = colors
+        kernel_degree = sh_degree
+    if background is None:
+        background = torch.zeros(3, device=device, dtype=torch.float32)
+    else:
+        check_tensor("background", background, (3,), device=device)
+    if densify_grad_out is not None:
+        check_tensor("densify_grad_out", densify_grad_out, (gaussian_count, 2), device=device)
+        if densify_grad_out.dtype != torch.float32:
+            raise TypeError(f"densify_grad_out must be float32, got {densify_grad_out.dtype}")
+
+    def prepare(tensor):
+        return tensor.to(torch.float32).contiguous()
+
+    image, alpha, depth, radii, xy_opacity, color_depth = _RasterizeGaussians.apply(
+        prepare(means), prepare(quats), prepare(scales), prepare(opacities), prepare(coefficients),
+        prepare(background), prepare(K.detach()), prepare(world_to_camera.detach()), width, height, kernel_degree,
+        densify_grad_out,
+    )
+    if return_info:
+        kept = radii.detach().bool().any(dim=1, keepdim=True)
+        means2d = torch.where(kept, xy_opacity.detach()[:, :2] - 0.5, 0.0)  # back to integer pixel centres
+        return image, alpha, depth, {"radii": radii, "means2d": means2d, "depths": color_depth.detach()[:, 3].clone()}
+    return image, alpha, depth

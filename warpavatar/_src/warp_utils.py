@@ -16,6 +16,9 @@ import functools
 import torch
 import warp as wp
 
+# Quiet from the start: some Warp calls initialize the runtime implicitly, before init_warp() runs.
+wp.config.quiet = True
+
 __all__ = [
     "init_warp",
     "warp_device",
