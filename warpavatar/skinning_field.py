@@ -102,6 +102,8 @@ class VoxelSkinningField(torch.nn.Module):
             width_in = hidden
         modules.append(torch.nn.Linear(width_in, joint_count))
         self.mlp = torch.nn.Sequential(*modules)
+        # The MLP only ever sees the grid points: encode them once (derived, so not saved in state dicts).
+        self.register_buffer("grid_encoding", self._encode(self.grid_points.reshape(-1, 3)), persistent=False)
 
     def _encode(self, points: torch.Tensor) -> torch.Tensor:
         unit = (points - self.bbox_min) / (self.bbox_max - self.bbox_min) * 2.0 - 1.0
@@ -113,7 +115,7 @@ class VoxelSkinningField(torch.nn.Module):
 
     def grid_weights(self) -> torch.Tensor:
         """The voxel grid of skinning weights [D,H,W,J] (softmax of the MLP at the grid points)."""
-        logits = self.mlp(self._encode(self.grid_points.reshape(-1, 3)))
+        logits = self.mlp(self.grid_encoding)
         return torch.softmax(logits, dim=-1).reshape(*self.grid_shape, self.joint_count)
 
     def weights(self, points: torch.Tensor, grid: torch.Tensor | None = None) -> torch.Tensor:
@@ -126,7 +128,7 @@ class VoxelSkinningField(torch.nn.Module):
 
     def distillation_loss(self, prior: torch.Tensor) -> torch.Tensor:
         """Cross-entropy of the grid's weights against a prior [D*H*W, J] (the warm-up objective)."""
-        logits = self.mlp(self._encode(self.grid_points.reshape(-1, 3)))
+        logits = self.mlp(self.grid_encoding)
         return -(prior * torch.log_softmax(logits, dim=-1)).sum(-1).mean()
 
     def bone_loss(self, sample_points: torch.Tensor, sample_bones: torch.Tensor, grid: torch.Tensor | None = None

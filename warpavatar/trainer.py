@@ -187,6 +187,7 @@ class Trainer:
         self.field_prior = bone_distance_prior(field.grid_points.reshape(-1, 3), heads, tails,
                                                temperature=0.02 * self.extent)
         self.step = 0
+        self._frozen_grid: torch.Tensor | None = None
         self.frame_order: list[int] = []
         self._reset_densify_stats()
         self.log_path = self.output_dir / "train_log.jsonl"
@@ -229,7 +230,8 @@ class Trainer:
             loss = self.field.distillation_loss(self.field_prior)
             loss.backward()
             self.field_optimizer.step()
-        return float(loss)
+        self._frozen_grid = None
+        return float(loss.detach())
 
     def train_step(self) -> dict:
         """One optimizer step on one training frame."""
@@ -242,7 +244,13 @@ class Trainer:
         K, world_to_camera = self.camera_tensors[index]
         self.gaussians.set_position_lr(self._position_lr(step))
 
-        grid = self.field.grid_weights() if train_field else self.field.grid_weights().detach()
+        if train_field:
+            grid = self.field.grid_weights()
+        else:  # the field is frozen in this stage: evaluate its grid once
+            if self._frozen_grid is None:
+                with torch.no_grad():
+                    self._frozen_grid = self.field.grid_weights()
+            grid = self._frozen_grid
         posed = self.avatar.pose(self.bone_transforms[index], sh_degree=self._active_sh_degree(step), grid=grid)
         grad_out = torch.zeros(self.gaussians.count, 2, device=self.device)
         image, alpha, _, info = ops.rasterize_gaussians(
@@ -343,6 +351,7 @@ class Trainer:
                                  lr_color=self.config.lr_color)
         gaussians.optimizer.load_state_dict(state["gaussian_optimizer"])
         self.field.load_state_dict(state["field"])
+        self._frozen_grid = None
         self.field_optimizer.load_state_dict(state["field_optimizer"])
         self.generator.set_state(state["generator"])
         self.frame_order = list(state["frame_order"])
