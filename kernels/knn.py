@@ -117,8 +117,9 @@ def knn_kernels(k: int):
         chunk_size: int,
         partial_distance_sq: wp.array2d(dtype=wp.float32),
     ):
-        # Thread (s, c): the k smallest squared distances from sample s to the points of chunk c.
-        sample, chunk = wp.tid()
+        # Thread (c, s): the k smallest squared distances from sample s to the points of chunk c. Samples vary
+        # fastest, so the threads of a warp read the same point at the same time (one broadcast load).
+        chunk, sample = wp.tid()
         i = sample_ids[sample]
         p = points[i]
         begin = chunk * chunk_size
@@ -276,7 +277,7 @@ def launch_knn_sample(
     kernel, _ = knn_kernels(k)
     wp.launch(
         kernel,
-        dim=(sample_count, chunk_count),
+        dim=(chunk_count, sample_count),
         inputs=[points, sample_ids, chunk_size],
         outputs=[partial_distance_sq],
         device=points.device,

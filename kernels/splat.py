@@ -667,7 +667,7 @@ _WARP_SUM_ADD_SNIPPET = r"""
     values[7] = v_color[1];
     values[8] = v_color[2];
     values[9] = v_depth;
-    values[10] = wp::abs(v_mean2d[0]);
+    values[10] = v_mean2d[0];
     values[11] = wp::abs(v_mean2d[1]);
     const int value_count = with_abs ? 12 : 10;
 #if defined(__CUDA_ARCH__)

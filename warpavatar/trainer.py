@@ -283,7 +283,8 @@ class Trainer:
             self.visible_count += visible.float()
             self._density_control(step)
         self.step += 1
-        return {"loss": float(loss), "l1": float(l1), "ssim": float(ssim_value), "bone": float(bone),
+        return {"loss": float(loss.detach()), "l1": float(l1.detach()), "ssim": float(ssim_value.detach()),
+                "bone": float(bone.detach()),
                 "psnr": psnr(image.detach(), gt), "gaussians": self.gaussians.count}
 
     def _density_control(self, step: int) -> None:
