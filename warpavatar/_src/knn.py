@@ -54,7 +54,8 @@ _SAMPLES = {"cuda": 256, "cpu": 64}
 """Sample points of the cell-width estimate, per device type."""
 
 _SAMPLE_CHUNK_CUDA = 4096
-"""Points per thread of the brute-force sample kernel on CUDA (on CPU one chunk holds all points)."""
+"""Smallest number of points per thread of the brute-force sample kernel on CUDA (on CPU one chunk holds
+all points)."""
 
 _CELL_SCALE = 1.0
 """Cell width over the median k-th neighbour distance."""
@@ -160,15 +161,17 @@ def _knn_graph(positions: torch.Tensor, k: int, max_radius: float | None) -> tup
     max_distance_sq = math.inf
     if max_radius is not None and math.isfinite(max_radius):
         radius_sq = np.float32(max_radius) * np.float32(max_radius)
-        max_distance_sq = float(np.nextafter(radius_sq, np.float32(np.inf)))
+        # Accept d^2 <= r^2: the threshold is the next float32 up (a normal number, so no flush-to-zero).
+        max_distance_sq = float(max(np.nextafter(radius_sq, np.float32(np.inf)), np.finfo(np.float32).tiny))
 
     index = torch.empty((point_count, k), dtype=torch.int64, device=device)
     distance = torch.empty((point_count, k), dtype=torch.float32, device=device)
     index_wp = to_warp(index)
     distance_wp = to_warp(distance)
     centred_wp = to_warp(centred, wp.vec3)
-    unfinished = [torch.empty(point_count, dtype=torch.int32, device=device) for _ in range(2)]
-    unfinished_wp = [to_warp(buffer) for buffer in unfinished]
+    # Ping-pong lists of unfinished query ids (the second one is allocated when a second level runs).
+    unfinished = [torch.empty(point_count, dtype=torch.int32, device=device)]
+    unfinished_wp = [to_warp(unfinished[0])]
     cell_budget = max(_MIN_CELLS, _CELLS_PER_POINT * point_count)
 
     # 3-4. Levels of ring search, each on a grid four times coarser than the last, over unfinished queries.
@@ -188,6 +191,9 @@ def _knn_graph(positions: torch.Tensor, k: int, max_radius: float | None) -> tup
         grid = wp.HashGrid(*dims, device=centred_wp.device)
         grid.build(centred_wp, cell_width)
         unfinished_count = torch.zeros(1, dtype=torch.int32, device=device)
+        if level == 1 and len(unfinished) == 1:
+            unfinished.append(torch.empty(point_count, dtype=torch.int32, device=device))
+            unfinished_wp.append(to_warp(unfinished[1]))
         out_ids_wp = unfinished_wp[level % 2]
         launch_knn_query(
             grid,
@@ -229,7 +235,10 @@ def _median_kth_distance_sq(
     point_count = positions.shape[0]
     sample_count = min(point_count, _SAMPLES["cuda" if device.type == "cuda" else "cpu"])
     sample_ids = (torch.arange(sample_count, device=device) * point_count // sample_count).to(torch.int32)
-    chunk_size = _SAMPLE_CHUNK_CUDA if device.type == "cuda" else point_count
+    if device.type == "cuda":  # at most 256 chunks, so the partial lists stay small
+        chunk_size = max(_SAMPLE_CHUNK_CUDA, -(-point_count // 256))
+    else:
+        chunk_size = point_count
     chunk_count = (point_count + chunk_size - 1) // chunk_size
     partial = torch.empty((sample_count, chunk_count * k), dtype=torch.float32, device=device)
     launch_knn_sample(points_wp, to_warp(sample_ids), chunk_size, to_warp(partial), k=k)

@@ -62,7 +62,11 @@ class _SpringStep(torch.autograd.Function):
         x_wp = to_warp(x, wp.vec3)
         with torch_stream_scope(x.device):
             launch_spring_force(
-                x_wp, to_warp(edges), to_warp(rest_offset, wp.vec3), to_warp(stiffness), to_warp(spring_force_sum, wp.vec3)
+                x_wp,
+                to_warp(edges),
+                to_warp(rest_offset, wp.vec3),
+                to_warp(stiffness),
+                to_warp(spring_force_sum, wp.vec3),
             )
             launch_spring_integrate(
                 x_wp,

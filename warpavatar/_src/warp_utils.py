@@ -16,8 +16,9 @@ import functools
 import torch
 import warp as wp
 
-# Quiet from the start: some Warp calls initialize the runtime implicitly, before init_warp() runs.
-wp.config.quiet = True
+# Quiet from the start (no banner, no module-load lines): some Warp calls initialize the runtime implicitly,
+# before init_warp() runs.
+wp.config.log_level = wp.LOG_WARNING
 
 __all__ = [
     "init_warp",
@@ -32,7 +33,6 @@ __all__ = [
 @functools.lru_cache(maxsize=None)
 def init_warp() -> None:
     """Initialize Warp once, without its start-up banner."""
-    wp.config.quiet = True
     wp.init()
 
 

@@ -8,9 +8,12 @@ import torch
 
 __all__ = ["knn_graph"]
 
+_ROWS_PER_CHUNK = 4096
+"""Query rows per ``cdist`` block (memory: ``_ROWS_PER_CHUNK * M`` floats)."""
+
 
 def knn_graph(
-    points: torch.Tensor, k: int, *, max_radius: float | None = None, chunk_size: int = 4096
+    points: torch.Tensor, k: int, *, max_radius: float | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Exact k nearest other points by all pairwise distances (``torch.cdist`` + ``topk``), in row chunks.
 
@@ -18,7 +21,6 @@ def knn_graph(
         points: positions, float ``[M, 3]``; computed in float32 like the Warp op.
         k: neighbours per point, ``>= 1``.
         max_radius: keep only neighbours at distance ``<= max_radius`` (``None``: no limit).
-        chunk_size: query rows per ``cdist`` block (memory ``chunk_size * M`` floats).
 
     Returns:
         ``(index int64 [M, k], distance float32 [M, k])``, nearest first; ``-1`` / ``inf`` padding.
@@ -33,8 +35,8 @@ def knn_graph(
     index = torch.full((point_count, k), -1, dtype=torch.int64, device=device)
     distance = torch.full((point_count, k), math.inf, dtype=torch.float32, device=device)
     take = min(k, point_count)
-    for start in range(0, point_count, chunk_size):
-        rows = positions[start : start + chunk_size]
+    for start in range(0, point_count, _ROWS_PER_CHUNK):
+        rows = positions[start : start + _ROWS_PER_CHUNK]
         block = torch.cdist(rows, positions, compute_mode="donot_use_mm_for_euclid_dist")
         own = torch.arange(start, start + rows.shape[0], device=device)
         block[torch.arange(rows.shape[0], device=device), own] = math.inf
