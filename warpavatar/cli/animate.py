@@ -27,7 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--motion", required=True, type=Path,
                         help="motion source: a video folder (its poses.npz), a poses .npz with bone_transforms of "
                              "the same skeleton, or a .bvh file")
-    parser.add_argument("-o", "--output", required=True, type=Path, help="the .usdc/.usda/.usd file to write")
+    parser.add_argument("-o", "--output", required=True, type=Path, help="the .usdc (or .usd, binary crate) file to write")
     parser.add_argument("--layout", choices=("particlefield", "points"), default="particlefield",
                         help="USD prim layout (default: %(default)s)")
     parser.add_argument("--frames", default=None, metavar="A:B", help="only motion frames A..B-1 (default: all)")
