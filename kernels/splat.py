@@ -92,12 +92,12 @@ The buffer is structure-of-arrays, ``[12 * gaussian_count]`` float32, segments i
 """
 
 # Bits of the non-finite-input flag written by the projection kernel.
-BAD_MEANS = 1
-BAD_QUATS = 2
-BAD_SCALES = 4
-BAD_OPACITIES = 8
-BAD_COLORS = 16
-BAD_CAMERA = 32
+BAD_MEANS = wp.constant(1)
+BAD_QUATS = wp.constant(2)
+BAD_SCALES = wp.constant(4)
+BAD_OPACITIES = wp.constant(8)
+BAD_COLORS = wp.constant(16)
+BAD_CAMERA = wp.constant(32)
 
 # Real spherical-harmonics constants (Sloan, "Efficient Spherical Harmonic Evaluation", JCGT 2013).
 SH_C0 = wp.constant(0.28209479177387814)
@@ -525,13 +525,27 @@ def launch_tile_ranges(sorted_keys, pair_count: int, tile_ranges) -> None:
 # ----------------------------------------------------------------------------------------------------------
 
 
+# exp for the per-pixel falloff: the fast hardware approximation on CUDA (as gsplat uses), exp on CPU.
+_FAST_EXP_SNIPPET = r"""
+#if defined(__CUDA_ARCH__)
+    return __expf(x);
+#else
+    return wp::exp(x);
+#endif
+"""
+
+
+@wp.func_native(_FAST_EXP_SNIPPET)
+def fast_exp(x: float) -> float: ...
+
+
 @wp.func
 def gaussian_alpha(xyo: wp.vec3, conic: wp.vec3, pixel_x: float, pixel_y: float) -> wp.vec3:
     """(alpha, sigma, exp(-sigma)) of a Gaussian record at a pixel centre; alpha is clamped to 0.999."""
     dx = xyo[0] - pixel_x
     dy = xyo[1] - pixel_y
     sigma = 0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) + conic[1] * dx * dy
-    falloff = wp.exp(-sigma)
+    falloff = fast_exp(-sigma)
     return wp.vec3(wp.min(ALPHA_MAX, xyo[2] * falloff), sigma, falloff)
 
 
@@ -654,33 +668,30 @@ def launch_composite_forward(tile_ranges, sorted_ids, xy_opacity, conics, color_
 # structure-of-arrays buffer (layout: GRAD_RECORD_FLOATS). Every lane of a warp must reach the call together;
 # the caller guarantees it by iterating block-uniform loops and passing ``active = 0`` from idle lanes.
 _WARP_SUM_ADD_SNIPPET = r"""
-    const long long n = (long long)gaussian_count;
-    const long long g = (long long)gaussian;
-    float values[12];
-    values[0] = v_mean2d[0];
-    values[1] = v_mean2d[1];
-    values[2] = v_conic[0];
-    values[3] = v_conic[1];
-    values[4] = v_conic[2];
-    values[5] = v_opacity;
-    values[6] = v_color[0];
-    values[7] = v_color[1];
-    values[8] = v_color[2];
-    values[9] = v_depth;
-    values[10] = v_mean2d[0];
-    values[11] = wp::abs(v_mean2d[1]);
-    const int value_count = with_abs ? 12 : 10;
+    float m0 = v_mean2d[0], m1 = v_mean2d[1];
+    float c0 = v_conic[0], c1 = v_conic[1], c2 = v_conic[2];
+    float o0 = v_opacity;
+    float r0 = v_color[0], r1 = v_color[1], r2 = v_color[2];
+    float d0 = v_depth;
+    float a0 = wp::abs(m0), a1 = wp::abs(m1);
 #if defined(__CUDA_ARCH__)
     const unsigned int full_mask = 0xffffffffu;
     if (__any_sync(full_mask, active != 0) == 0)
         return;
-    #pragma unroll
-    for (int i = 0; i < 12; ++i) {
-        float v = active ? values[i] : 0.0f;
+    auto warp_sum = [full_mask](float v) {
         #pragma unroll
         for (int offset = 16; offset > 0; offset >>= 1)
             v += __shfl_down_sync(full_mask, v, offset);
-        values[i] = v;
+        return v;
+    };
+    m0 = warp_sum(m0); m1 = warp_sum(m1);
+    c0 = warp_sum(c0); c1 = warp_sum(c1); c2 = warp_sum(c2);
+    o0 = warp_sum(o0);
+    r0 = warp_sum(r0); r1 = warp_sum(r1); r2 = warp_sum(r2);
+    d0 = warp_sum(d0);
+    if (with_abs) {
+        a0 = warp_sum(a0);
+        a1 = warp_sum(a1);
     }
     if ((threadIdx.x & 31) != 0)
         return;
@@ -688,17 +699,25 @@ _WARP_SUM_ADD_SNIPPET = r"""
     if (!active)
         return;
 #endif
+    const long long n = (long long)gaussian_count;
+    const long long g = (long long)gaussian;
     float* base = grads.data;
-    const long long slots[12] = {
-        2 * g, 2 * g + 1,
-        2 * n + 3 * g, 2 * n + 3 * g + 1, 2 * n + 3 * g + 2,
-        5 * n + g,
-        6 * n + 3 * g, 6 * n + 3 * g + 1, 6 * n + 3 * g + 2,
-        9 * n + g,
-        10 * n + 2 * g, 10 * n + 2 * g + 1};
-    for (int i = 0; i < value_count; ++i)
-        wp::atomic_add(base + slots[i], values[i]);
+    wp::atomic_add(base + 2 * g, m0);
+    wp::atomic_add(base + 2 * g + 1, m1);
+    wp::atomic_add(base + 2 * n + 3 * g, c0);
+    wp::atomic_add(base + 2 * n + 3 * g + 1, c1);
+    wp::atomic_add(base + 2 * n + 3 * g + 2, c2);
+    wp::atomic_add(base + 5 * n + g, o0);
+    wp::atomic_add(base + 6 * n + 3 * g, r0);
+    wp::atomic_add(base + 6 * n + 3 * g + 1, r1);
+    wp::atomic_add(base + 6 * n + 3 * g + 2, r2);
+    wp::atomic_add(base + 9 * n + g, d0);
+    if (with_abs) {
+        wp::atomic_add(base + 10 * n + 2 * g, a0);
+        wp::atomic_add(base + 10 * n + 2 * g + 1, a1);
+    }
 """
+
 
 
 @wp.func_native(_WARP_SUM_ADD_SNIPPET)

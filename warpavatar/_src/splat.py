@@ -1,10 +1,11 @@
 """Differentiable Gaussian-splatting rasterizer: torch autograd bridge to the Warp kernels of ``kernels/splat.py``.
 
-One forward pass makes five Warp launches (projection, key emission, tile ranges, compositing, plus the prefix
-sum and radix sort of ``warp.utils``) and one host synchronization: reading the number of (Gaussian, tile) pairs
-to size the sort buffers (an upper bound would cost far more memory: every Gaussian may cover the image). The
-same read fetches the non-finite-input flag, so checking the inputs costs no extra synchronization. One
-backward pass makes two Warp launches (compositing backward, projection adjoint) and no synchronization.
+One forward pass makes four Warp kernel launches (projection, key emission, tile ranges, compositing) plus the
+prefix sum and radix sort of ``warp.utils``, two small torch fills, and one host synchronization: reading the
+number of (Gaussian, tile) pairs to size the sort buffers (an upper bound would cost far more memory, as any
+Gaussian may cover the whole image). The same read fetches the non-finite-input flag, so checking the inputs
+costs no extra synchronization. One backward pass makes two Warp launches (compositing backward, projection
+adjoint), two torch fills and no synchronization.
 """
 
 from __future__ import annotations

@@ -1,0 +1,403 @@
+"""Tests of the Warp Gaussian rasterizer (``warpavatar.ops.rasterize_gaussians``) against the plain-torch reference.
+
+Scenes are small (up to 300 Gaussians, 64x48 pixels) and mix the awkward cases: Gaussians partly off-screen,
+behind the camera or on the near plane, very anisotropic, sub-pixel, and piles that saturate pixels.
+"""
+
+import contextlib
+import math
+
+import pytest
+import torch
+import warp as wp
+
+from warpavatar import ops
+from warpavatar._torch_impl import splat as reference
+
+DIFFERENTIABLE = ("means", "quats", "scales", "opacities", "colors", "background")
+
+
+def _random_rotation(generator: torch.Generator) -> torch.Tensor:
+    q, r = torch.linalg.qr(torch.randn(3, 3, generator=generator, dtype=torch.float64))
+    q = q * torch.sign(torch.diagonal(r))
+    if torch.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    return q
+
+
+def make_scene(seed: int, *, gaussian_count: int = 200, width: int = 56, height: int = 44, sh_degree=None,
+               device="cpu", with_background: bool = True, opacity_range=(0.05, 0.95), awkward: bool = True):
+    """A random scene as a dict of float32 tensors plus sizes; camera with a random pose and off-centre K.
+
+    With ``awkward``, 1/8 of the Gaussians each are placed around and beyond the image border, behind the camera
+    or on the near plane, made very anisotropic, made sub-pixel; 1/16 are opaque and centred on pixels.
+    """
+    generator = torch.Generator().manual_seed(seed)
+
+    def uniform(low, high, *shape):
+        return low + (high - low) * torch.rand(*shape, generator=generator, dtype=torch.float64)
+
+    fx, fy = 0.9 * width, 0.85 * width
+    cx, cy = (width - 1) / 2 + 2.3, (height - 1) / 2 - 1.7
+    # Camera-space centres: a visible bulk, then off-screen, behind-camera and near-plane groups.
+    depth = uniform(1.5, 5.0, gaussian_count)
+    spread = torch.stack([depth * width / (2 * fx), depth * height / (2 * fy)], dim=-1)
+    xy = uniform(-1.0, 1.0, gaussian_count, 2) * spread
+    group = gaussian_count // 8 if awkward else 0
+    xy[:group] *= uniform(1.0, 1.5, group, 1)  # around and beyond the image border
+    depth[group: group + group // 2] = uniform(-2.0, 0.0, group // 2)  # behind the camera
+    depth[group + group // 2: 2 * group] = uniform(0.0, 0.02, group - group // 2)  # near plane
+    # Pinned: centred on a pixel with opacity 1, so alpha hits the 0.999 clamp there.
+    pinned = slice(4 * group, 4 * group + group // 2)
+    pinned_count = group // 2
+    columns = torch.randint(0, width, (pinned_count,), generator=generator)
+    rows = torch.randint(0, height, (pinned_count,), generator=generator)
+    xy[pinned, 0] = (columns - cx) * depth[pinned] / fx
+    xy[pinned, 1] = (rows - cy) * depth[pinned] / fy
+    points_camera = torch.cat([xy, depth[:, None]], dim=-1)
+
+    rotation = _random_rotation(generator)
+    translation = uniform(-0.5, 0.5, 3)
+    world_to_camera = torch.eye(4, dtype=torch.float64)
+    world_to_camera[:3, :3], world_to_camera[:3, 3] = rotation, translation
+    means = (points_camera - translation) @ rotation  # R^T (p - t)
+
+    scales = torch.exp(uniform(math.log(0.01), math.log(0.25), gaussian_count, 3))
+    scales[2 * group: 3 * group] *= torch.tensor([20.0, 0.05, 0.1], dtype=torch.float64)  # very anisotropic
+    scales[3 * group: 4 * group] = uniform(1e-4, 1e-3, group, 3)  # sub-pixel
+    quats = torch.randn(gaussian_count, 4, generator=generator, dtype=torch.float64)
+    opacities = uniform(*opacity_range, gaussian_count)
+    opacities[pinned] = 1.0
+    if sh_degree is None:
+        colors = uniform(0.0, 1.0, gaussian_count, 3)
+    else:
+        colors = 0.4 * torch.randn(gaussian_count, 16, 3, generator=generator, dtype=torch.float64)
+    K = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    scene = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, K=K,
+                 world_to_camera=world_to_camera)
+    if with_background:
+        scene["background"] = uniform(0.0, 1.0, 3)
+    scene = {name: value.to(device=device, dtype=torch.float32) for name, value in scene.items()}
+    return scene, dict(width=width, height=height, sh_degree=sh_degree)
+
+
+def render(rasterize, scene, sizes, *, densify_grad_out=None, return_info=False):
+    return rasterize(
+        scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["colors"], scene["K"],
+        scene["world_to_camera"], sizes["width"], sizes["height"], background=scene.get("background"),
+        sh_degree=sizes["sh_degree"], densify_grad_out=densify_grad_out, return_info=return_info,
+    )
+
+
+def render_and_grad(rasterize, scene, sizes, cotangents, *, densify=False, dtype=torch.float32):
+    """Outputs, gradients of every differentiable input present, and the densification statistic.
+
+    ``dtype=torch.float64`` runs the (reference) rasterizer on float64 copies of the scene; results are
+    returned as float32.
+    """
+    scene = {name: value.detach().to(dtype).requires_grad_(name in DIFFERENTIABLE) for name, value in scene.items()}
+    densify_out = torch.zeros(scene["means"].shape[0], 2, device=scene["means"].device) if densify else None
+    outputs = render(rasterize, scene, sizes, densify_grad_out=densify_out)
+    names = [name for name in DIFFERENTIABLE if name in scene]
+    grads = torch.autograd.grad(outputs, [scene[name] for name in names], [c.to(dtype) for c in cotangents])
+    outputs = tuple(output.detach().float() for output in outputs)
+    return outputs, {name: grad.float() for name, grad in zip(names, grads)}, densify_out
+
+
+def render_reference(scene, sizes, cotangents, *, densify=False):
+    """The float64 plain-torch reference: the ground truth the float32 Warp op is held to."""
+    return render_and_grad(reference.rasterize_gaussians, scene, sizes, cotangents, densify=densify,
+                           dtype=torch.float64)
+
+
+def random_cotangents(sizes, device, seed):
+    generator = torch.Generator().manual_seed(1000 + seed)
+    shapes = [(sizes["height"], sizes["width"], 3), (sizes["height"], sizes["width"]), (sizes["height"], sizes["width"])]
+    return [torch.randn(*shape, generator=generator).to(device) for shape in shapes]
+
+
+def assert_images_close(actual, expected, name):
+    # A pixel where float32 rounding flips an alpha threshold changes by about 1/255 of a colour (or depth);
+    # allow a handful of those, nothing more.
+    scale = max(expected.abs().max().item(), 1.0)
+    difference = (actual - expected).abs() / scale
+    assert difference.max().item() < 5e-3, f"{name}: max relative difference {difference.max().item():.3g}"
+    assert difference.mean().item() < 3e-5, f"{name}: mean relative difference {difference.mean().item():.3g}"
+
+
+def assert_grads_close(actual, expected, name, rtol=3e-3):
+    scale = expected.abs().max().item()
+    error = (actual - expected).abs().max().item()
+    assert scale > 0, f"{name}: reference gradient is zero, the test would prove nothing"
+    assert error <= rtol * scale + 1e-6, f"{name}: max gradient error {error:.3g} vs scale {scale:.3g}"
+
+
+@contextlib.contextmanager
+def cpu_cooperative_blocks():
+    """Run CPU launches with 256-thread blocks (CPU fibers), the CUDA execution model, for this block only."""
+    previous = wp.config.enable_cpu_blocks
+    wp.config.enable_cpu_blocks = True
+    try:
+        yield
+    finally:
+        wp.config.enable_cpu_blocks = previous
+
+
+# ------------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "seed, sh_degree, width, height, gaussian_count",
+    [(0, None, 56, 44, 200), (1, 0, 40, 32, 120), (2, 1, 64, 48, 300), (3, 2, 48, 40, 160), (4, 3, 56, 44, 250)],
+)
+def test_matches_reference(device, seed, sh_degree, width, height, gaussian_count):
+    scene, sizes = make_scene(seed, gaussian_count=gaussian_count, width=width, height=height, sh_degree=sh_degree,
+                              device=device, with_background=seed % 2 == 0)
+    cotangents = random_cotangents(sizes, device, seed)
+    outputs, grads, densify = render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents, densify=True)
+    ref_outputs, ref_grads, ref_densify = render_reference(scene, sizes, cotangents, densify=True)
+    for actual, expected, name in zip(outputs, ref_outputs, ("image", "alpha", "depth")):
+        assert actual.shape == expected.shape and actual.dtype == torch.float32
+        assert_images_close(actual, expected, name)
+    assert ref_outputs[1].max() > 0.5, "the scene should cover part of the image"
+    for name in ref_grads:
+        assert_grads_close(grads[name], ref_grads[name], name)
+    assert_grads_close(densify, ref_densify, "densify_grad_out")
+
+
+def test_info_matches_reference(device):
+    scene, sizes = make_scene(5, device=device)
+    *_, info = render(ops.rasterize_gaussians, scene, sizes, return_info=True)
+    *_, ref_info = render(reference.rasterize_gaussians, scene, sizes, return_info=True)
+    assert info["radii"].dtype == torch.int32 and info["radii"].shape == (200, 2)
+    assert torch.equal(info["radii"], ref_info["radii"])
+    kept = ref_info["radii"].any(dim=1)
+    assert 0 < kept.sum() < 200, "the scene should have both culled and kept Gaussians"
+    torch.testing.assert_close(info["means2d"][kept], ref_info["means2d"][kept], atol=1e-3, rtol=1e-5)
+    assert torch.all(info["means2d"][~kept] == 0)
+    torch.testing.assert_close(info["depths"], ref_info["depths"].float(), atol=1e-5, rtol=1e-5)
+
+
+def test_saturated_piles_need_several_batches(device):
+    # 700 opaque, large Gaussians over a 40x32 image: tiles list more than 256 of them (several shared batches)
+    # and most pixels stop early on the transmittance floor.
+    scene, sizes = make_scene(6, gaussian_count=700, width=40, height=32, device=device, opacity_range=(0.3, 0.99),
+                              awkward=False)
+    scene["scales"] = scene["scales"].clamp(min=0.12)
+    means2d, _, _, radii = reference.project_gaussians(scene["means"], scene["quats"], scene["scales"], scene["K"],
+                                                       scene["world_to_camera"], 40, 32)
+    boxes = reference._tile_boxes(means2d, radii, 3, 2)
+    tiles_per_gaussian = [(tx, ty) for x0, x1, y0, y1 in boxes.tolist() for ty in range(y0, y1) for tx in range(x0, x1)]
+    assert max(tiles_per_gaussian.count(tile) for tile in set(tiles_per_gaussian)) > 256
+    cotangents = random_cotangents(sizes, device, 6)
+    outputs, grads, _ = render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents)
+    ref_outputs, ref_grads, _ = render_reference(scene, sizes, cotangents)
+    assert (ref_outputs[1] > 0.999).float().mean() > 0.5, "most pixels should saturate"
+    for actual, expected, name in zip(outputs, ref_outputs, ("image", "alpha", "depth")):
+        assert_images_close(actual, expected, name)
+    for name in ref_grads:
+        assert_grads_close(grads[name], ref_grads[name], name)
+
+
+def test_cpu_cooperative_blocks_match_reference():
+    """The CUDA execution model on CPU: 256 fibers per tile sharing batches, block-wide early exit."""
+    for seed, count, sh_degree in ((7, 700, None), (8, 200, 3)):
+        scene, sizes = make_scene(seed, gaussian_count=count, width=40, height=32, sh_degree=sh_degree,
+                                  awkward=count != 700)
+        if count == 700:
+            scene["scales"] = scene["scales"].clamp(min=0.12)
+        cotangents = random_cotangents(sizes, "cpu", seed)
+        with cpu_cooperative_blocks():
+            outputs, grads, densify = render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents, densify=True)
+        ref_outputs, ref_grads, ref_densify = render_reference(scene, sizes, cotangents, densify=True)
+        for actual, expected, name in zip(outputs, ref_outputs, ("image", "alpha", "depth")):
+            assert_images_close(actual, expected, name)
+        for name in ref_grads:
+            assert_grads_close(grads[name], ref_grads[name], name)
+        assert_grads_close(densify, ref_densify, "densify_grad_out")
+
+
+def test_pixel_centre_convention(device):
+    # A small round Gaussian whose mean projects (with the given K) to column 9, row 6 peaks on that pixel,
+    # with equal neighbours left/right and up/down.
+    width, height = 20, 14
+    K = torch.tensor([[30.0, 0.0, 9.5], [0.0, 30.0, 6.5], [0.0, 0.0, 1.0]], device=device)
+    z = 2.0
+    mean = torch.tensor([[(9 - 9.5) * z / 30.0, (6 - 6.5) * z / 30.0, z]], device=device)
+    image, alpha, depth = ops.rasterize_gaussians(
+        mean, torch.tensor([[1.0, 0.0, 0.0, 0.0]], device=device), torch.full((1, 3), 0.05, device=device),
+        torch.tensor([0.9], device=device), torch.ones(1, 3, device=device), K, torch.eye(4, device=device),
+        width, height)
+    row, column = divmod(int(alpha.argmax()), width)
+    assert (column, row) == (9, 6)
+    torch.testing.assert_close(alpha[6, 8], alpha[6, 10], rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(alpha[5, 9], alpha[7, 9], rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(depth[6, 9], alpha[6, 9] * z, rtol=1e-5, atol=1e-6)
+
+
+def smooth_scene(device, *, width=14, height=12):
+    """Five wide, half-transparent Gaussians that cover the whole tiny image with alpha well above 1/255.
+
+    No pixel sits near a threshold (alpha floor, transmittance floor, 0.999 clamp), so the image is a smooth
+    function of the inputs and finite differences are meaningful.
+    """
+    scene, sizes = make_scene(9, gaussian_count=5, width=width, height=height, sh_degree=1, device=device)
+    scene["means"] = torch.tensor(
+        [[0.0, 0.0, 0.0], [0.08, -0.05, 0.2], [-0.1, 0.04, 0.35], [0.03, 0.09, -0.25], [-0.05, -0.08, 0.1]],
+        device=device)
+    scene["world_to_camera"] = torch.eye(4, device=device)
+    scene["world_to_camera"][2, 3] = 2.5
+    scene["scales"] = torch.tensor([[1.0, 0.6, 0.8], [0.9, 1.1, 0.7], [0.7, 0.8, 1.2], [1.2, 0.9, 0.6],
+                                    [0.8, 0.8, 0.8]], device=device)
+    scene["scales"] *= 1.5
+    scene["opacities"] = torch.tensor([0.3, 0.45, 0.25, 0.5, 0.35], device=device)
+    scene["colors"] = scene["colors"][:, :4]
+    scene["K"][0, 2], scene["K"][1, 2] = (width - 1) / 2, (height - 1) / 2
+    # Check the claim: every Gaussian has alpha within (2/255, 0.999) at every pixel.
+    means2d, conics, _, radii = reference.project_gaussians(scene["means"], scene["quats"], scene["scales"],
+                                                            scene["K"], scene["world_to_camera"], width, height)
+    assert torch.all(radii > 0)
+    rows, columns = torch.meshgrid(torch.arange(height, device=device) + 0.5, torch.arange(width, device=device) + 0.5,
+                                   indexing="ij")
+    dx, dy = means2d[:, 0, None, None] - columns, means2d[:, 1, None, None] - rows
+    sigma = 0.5 * (conics[:, 0, None, None] * dx**2 + conics[:, 2, None, None] * dy**2) + conics[:, 1, None, None] * dx * dy
+    alpha = scene["opacities"][:, None, None] * torch.exp(-sigma)
+    assert alpha.min() > 2 / 255 and alpha.max() < 0.999
+    return scene, sizes
+
+
+def test_gradients_of_float64_reference_match_finite_differences():
+    scene, sizes = smooth_scene("cpu")
+    names = list(DIFFERENTIABLE)
+    inputs = [scene[name].double().requires_grad_() for name in names]
+
+    def function(*values):
+        local = dict(scene, **dict(zip(names, values)))
+        return render(reference.rasterize_gaussians, local, sizes)
+
+    assert torch.autograd.gradcheck(function, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
+
+
+def test_gradients_match_finite_differences(device):
+    """Directional central differences of the Warp op itself (float32, so loose), for every input."""
+    scene, sizes = smooth_scene(device)
+    cotangents = random_cotangents(sizes, device, 10)
+
+    def loss(values):
+        outputs = render(ops.rasterize_gaussians, values, sizes)
+        return sum((output.double() * weight.double()).sum() for output, weight in zip(outputs, cotangents))
+
+    _, grads, _ = render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents)
+    generator = torch.Generator().manual_seed(11)
+    for name in DIFFERENTIABLE:
+        direction = torch.randn(scene[name].shape, generator=generator).to(device)
+        step = 2e-3
+        plus = loss(dict(scene, **{name: scene[name] + step * direction}))
+        minus = loss(dict(scene, **{name: scene[name] - step * direction}))
+        numeric = ((plus - minus) / (2 * step)).item()
+        analytic = (grads[name].double() * direction.double()).sum().item()
+        assert abs(analytic) > 1e-2, f"{name}: the directional derivative should not vanish"
+        assert abs(numeric - analytic) <= 1e-2 * abs(analytic) + 1e-2, f"{name}: {numeric} vs {analytic}"
+
+
+def test_densify_grad_out_accumulates(device):
+    scene, sizes = make_scene(12, gaussian_count=80, width=40, height=32, device=device)
+    cotangents = random_cotangents(sizes, device, 12)
+    _, _, once = render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents, densify=True)
+    accumulated = torch.zeros_like(once)
+    for _ in range(2):
+        params = {name: value.detach().clone().requires_grad_(name == "means") for name, value in scene.items()}
+        outputs = render(ops.rasterize_gaussians, params, sizes, densify_grad_out=accumulated)
+        torch.autograd.backward(outputs, cotangents)
+    assert once.abs().max() > 0
+    torch.testing.assert_close(accumulated, 2 * once, rtol=1e-5, atol=1e-6)
+
+
+def test_empty_and_fully_culled_scenes(device):
+    scene, sizes = make_scene(13, gaussian_count=16, width=24, height=20, device=device)
+    background = scene["background"]
+    for count, shift in ((0, 0.0), (16, -10.0)):  # no Gaussians; all of them behind the camera
+        local = {name: value[:count] if name in ("means", "quats", "scales", "opacities", "colors") else value
+                 for name, value in scene.items()}
+        local["means"] = local["means"] + shift * scene["world_to_camera"][2, :3]
+        cotangents = random_cotangents(sizes, device, 13)
+        outputs, grads, densify = render_and_grad(ops.rasterize_gaussians, local, sizes, cotangents, densify=True)
+        image, alpha, depth = outputs
+        torch.testing.assert_close(image, background.expand(sizes["height"], sizes["width"], 3))
+        assert torch.all(alpha == 0) and torch.all(depth == 0)
+        for name in ("means", "quats", "scales", "opacities", "colors"):
+            assert grads[name].shape == local[name].shape and torch.all(grads[name] == 0)
+        torch.testing.assert_close(grads["background"], cotangents[0].sum(dim=(0, 1)))
+        assert torch.all(densify == 0)
+
+
+def test_rejects_bad_inputs(device):
+    scene, sizes = make_scene(14, gaussian_count=8, width=16, height=16, device=device)
+
+    def call(**changes):
+        local = dict(scene)
+        local.update({name: value for name, value in changes.items() if name in scene})
+        kwargs = {name: value for name, value in changes.items() if name not in scene}
+        args = dict(width=16, height=16, background=local["background"], sh_degree=None)
+        args.update(kwargs)
+        return ops.rasterize_gaussians(local["means"], local["quats"], local["scales"], local["opacities"],
+                                       local["colors"], local["K"], local["world_to_camera"], **args)
+
+    call()  # the unchanged scene is fine
+    with pytest.raises(ValueError, match="means"):
+        call(means=scene["means"][:, :2])
+    with pytest.raises(ValueError, match="quats"):
+        call(quats=scene["quats"][:5])
+    with pytest.raises(ValueError, match="scales"):
+        call(scales=scene["scales"][:, None])
+    with pytest.raises(ValueError, match="opacities"):
+        call(opacities=scene["opacities"][:, None])
+    with pytest.raises(ValueError, match="colors"):
+        call(colors=scene["colors"][:, :2])
+    with pytest.raises(ValueError, match="K"):
+        call(K=scene["K"][:2])
+    with pytest.raises(ValueError, match="world_to_camera"):
+        call(world_to_camera=scene["world_to_camera"][:3])
+    with pytest.raises(ValueError, match="background"):
+        call(background=scene["background"][:2])
+    with pytest.raises(TypeError, match="means"):
+        call(means=scene["means"].long())
+    with pytest.raises(TypeError, match="width"):
+        call(width=16.0)
+    with pytest.raises(ValueError, match="height"):
+        call(height=0)
+    with pytest.raises(ValueError, match="sh_degree"):
+        call(sh_degree=4, colors=torch.zeros(8, 25, 3, device=device))
+    with pytest.raises(ValueError, match="coefficients"):
+        call(sh_degree=2, colors=torch.zeros(8, 4, 3, device=device))
+    with pytest.raises(ValueError, match="densify_grad_out"):
+        call(densify_grad_out=torch.zeros(8, 3, device=device))
+    with pytest.raises(TypeError, match="densify_grad_out"):
+        call(densify_grad_out=torch.zeros(8, 2, device=device, dtype=torch.float64))
+    for name in ("means", "quats", "scales", "opacities", "colors"):
+        corrupted = scene[name].clone()
+        corrupted.view(-1)[3] = float("nan") if name != "scales" else float("inf")
+        with pytest.raises(ValueError, match=f"non-finite values in {name}"):
+            call(**{name: corrupted})
+    corrupted_K = scene["K"].clone()
+    corrupted_K[0, 0] = float("inf")
+    with pytest.raises(ValueError, match="non-finite values in K"):
+        call(K=corrupted_K)
+
+
+def test_matches_gsplat_when_available(device):
+    """Same image as gsplat 1.5.3 (K shifted by half a pixel for its convention); skipped without gsplat/CUDA."""
+    if not device.startswith("cuda"):
+        pytest.skip("gsplat's rasterizer runs on CUDA only")
+    gsplat = pytest.importorskip("gsplat")
+    scene, sizes = make_scene(15, gaussian_count=300, width=64, height=48, sh_degree=3, device=device)
+    image, alpha, _ = render(ops.rasterize_gaussians, scene, sizes)
+    K_gsplat = scene["K"].clone()
+    K_gsplat[0, 2] += 0.5
+    K_gsplat[1, 2] += 0.5
+    colors, alphas, _ = gsplat.rasterization(
+        scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["colors"],
+        scene["world_to_camera"][None], K_gsplat[None], sizes["width"], sizes["height"], sh_degree=3,
+        backgrounds=scene["background"][None])
+    assert_images_close(image, colors[0], "image vs gsplat")
+    assert_images_close(alpha, alphas[0, ..., 0], "alpha vs gsplat")

@@ -1,0 +1,190 @@
+"""Benchmark of the Gaussian rasterizer (``python tools/bench_kernels.py splat``), against gsplat when importable.
+
+Scenes follow the usual synthetic set-up: means ~ N(0, 0.6) per axis shifted 3 m in front of the camera,
+random-normal quaternions, scales U(0.002, 0.022), opacities U(0.05, 0.95), RGB colours U(0, 1); pinhole camera
+with fx = fy = 0.9 * width and the principal point at the image centre (gsplat gets cx + 0.5, cy + 0.5, its
+pixel-centre convention). Rows: 40k Gaussians at 1024x1024, 100k / 500k / 1M at 1920x1080.
+
+Per row: forward and backward median times (``bench_common.time_function``: warm-up, then the median of 20
+repetitions timed with CUDA events), peak memory of one forward + backward above the inputs
+(``bench_common.peak_memory_scope``, torch's allocator), the same for ``gsplat.rasterization`` (default
+options, render_mode "RGB+D" so that it also computes depth) on the same inputs, and the ratios ours / gsplat.
+``launches`` counts the ``wp.launch`` calls of one forward / one backward, plus the ``warp.utils`` scan and
+sort calls (each a few CUB kernels).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+
+import torch
+import warp as wp
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+from bench_common import peak_memory_scope, time_function  # noqa: E402
+
+from warpavatar.ops import rasterize_gaussians  # noqa: E402
+
+__all__ = ["run", "make_scene"]
+
+FULL_SIZES = ((40_000, 1024, 1024), (100_000, 1920, 1080), (500_000, 1920, 1080), (1_000_000, 1920, 1080))
+QUICK_SIZES = ((2_000, 128, 128), (5_000, 192, 108))
+
+
+def make_scene(gaussian_count: int, width: int, height: int, *, device: str, seed: int = 0) -> dict:
+    """The benchmark's random scene: float32 tensors on ``device`` and the camera, in warpavatar's conventions."""
+    generator = torch.Generator(device=device).manual_seed(seed)
+
+    def uniform(low, high, *shape):
+        return low + (high - low) * torch.rand(*shape, generator=generator, device=device)
+
+    means = 0.6 * torch.randn(gaussian_count, 3, generator=generator, device=device)
+    means[:, 2] += 3.0
+    focal = 0.9 * width
+    K = torch.tensor([[focal, 0.0, (width - 1) / 2], [0.0, focal, (height - 1) / 2], [0.0, 0.0, 1.0]], device=device)
+    return dict(
+        means=means,
+        quats=torch.randn(gaussian_count, 4, generator=generator, device=device),
+        scales=uniform(0.002, 0.022, gaussian_count, 3),
+        opacities=uniform(0.05, 0.95, gaussian_count),
+        colors=uniform(0.0, 1.0, gaussian_count, 3),
+        K=K,
+        world_to_camera=torch.eye(4, device=device),
+        width=width,
+        height=height,
+    )
+
+
+@contextlib.contextmanager
+def _count_warp_calls(counter: dict):
+    """Count ``wp.launch`` and ``warp.utils`` scan/sort calls made inside the block."""
+    originals = (wp.launch, wp.utils.array_scan, wp.utils.radix_sort_pairs)
+
+    def counted(name, function):
+        def wrapper(*args, **kwargs):
+            counter[name] = counter.get(name, 0) + 1
+            return function(*args, **kwargs)
+
+        return wrapper
+
+    wp.launch = counted("launch", originals[0])
+    wp.utils.array_scan = counted("utils", originals[1])
+    wp.utils.radix_sort_pairs = counted("utils", originals[2])
+    try:
+        yield counter
+    finally:
+        wp.launch, wp.utils.array_scan, wp.utils.radix_sort_pairs = originals
+
+
+def _ours(scene: dict, parameters: list):
+    def forward():
+        return rasterize_gaussians(parameters[0], parameters[1], parameters[2], parameters[3], parameters[4],
+                                   scene["K"], scene["world_to_camera"], scene["width"], scene["height"])
+
+    return forward
+
+
+def _gsplat(scene: dict, parameters: list):
+    try:
+        import gsplat
+    except Exception:  # not installed, or its CUDA extension cannot build here
+        return None
+    K = scene["K"].clone()
+    K[0, 2] += 0.5
+    K[1, 2] += 0.5
+
+    def forward():
+        colors, alphas, _ = gsplat.rasterization(
+            parameters[0], parameters[1], parameters[2], parameters[3], parameters[4],
+            scene["world_to_camera"][None], K[None], scene["width"], scene["height"], render_mode="RGB+D",
+        )
+        return colors[0, ..., :3], alphas[0, ..., 0], colors[0, ..., 3]
+
+    return forward
+
+
+def _measure(forward, parameters: list, device: str, warmup: int, repeats: int) -> tuple[float, float, float | None]:
+    """(forward ms, backward ms, peak MiB of one forward + backward)."""
+    outputs = forward()
+    cotangents = [torch.rand_like(output) for output in outputs]
+    forward_ms = time_function(lambda: forward(), device=device, warmup=warmup, repeats=repeats)
+    outputs = forward()
+    backward_ms = time_function(
+        lambda: torch.autograd.grad(outputs, parameters, cotangents, retain_graph=True),
+        device=device, warmup=warmup, repeats=repeats,
+    )
+    del outputs
+    with peak_memory_scope(device) as scope:
+        torch.autograd.grad(forward(), parameters, cotangents)
+    return forward_ms, backward_ms, scope.peak_mib
+
+
+def _ratio(ours, theirs):
+    if ours is None or theirs is None or theirs == 0:
+        return None
+    return ours / theirs
+
+
+def run(device: str, quick: bool) -> list[dict]:
+    """Benchmark rows (see the module docstring); ``quick`` uses tiny scenes and few repetitions."""
+    sizes = QUICK_SIZES if quick else FULL_SIZES
+    warmup, repeats = (1, 3) if quick else (5, 20)
+    rows = []
+    for gaussian_count, width, height in sizes:
+        scene = make_scene(gaussian_count, width, height, device=device)
+        parameters = [scene[name].clone().requires_grad_() for name in ("means", "quats", "scales", "opacities", "colors")]
+        ours = _ours(scene, parameters)
+
+        counter: dict = {}
+        with _count_warp_calls(counter):
+            outputs = ours()
+        forward_calls = dict(counter)
+        counter.clear()
+        with _count_warp_calls(counter):
+            torch.autograd.grad(outputs, parameters, [torch.ones_like(output) for output in outputs])
+        backward_calls = dict(counter)
+        del outputs
+
+        forward_ms, backward_ms, peak = _measure(ours, parameters, device, warmup, repeats)
+        row = {
+            "gaussians": gaussian_count,
+            "resolution": f"{width}x{height}",
+            "fwd ms": forward_ms,
+            "bwd ms": backward_ms,
+            "peak MiB": peak,
+            "launches fwd/bwd": (f"{forward_calls.get('launch', 0)}+{forward_calls.get('utils', 0)} utils / "
+                                 f"{backward_calls.get('launch', 0)}"),
+            "gsplat fwd ms": None,
+            "gsplat bwd ms": None,
+            "gsplat peak MiB": None,
+            "fwd ratio": None,
+            "bwd ratio": None,
+            "fwd+bwd ratio": None,
+            "peak ratio": None,
+        }
+        theirs = _gsplat(scene, parameters) if device.startswith("cuda") else None
+        if theirs is not None:
+            g_forward, g_backward, g_peak = _measure(theirs, parameters, device, warmup, repeats)
+            row.update({
+                "gsplat fwd ms": g_forward,
+                "gsplat bwd ms": g_backward,
+                "gsplat peak MiB": g_peak,
+                "fwd ratio": _ratio(forward_ms, g_forward),
+                "bwd ratio": _ratio(backward_ms, g_backward),
+                "fwd+bwd ratio": _ratio(forward_ms + backward_ms, g_forward + g_backward),
+                "peak ratio": _ratio(peak, g_peak),
+            })
+        rows.append(row)
+        del scene, parameters
+        if device.startswith("cuda"):
+            torch.cuda.empty_cache()
+    return rows
+
+
+if __name__ == "__main__":
+    from bench_common import markdown_table
+
+    print(markdown_table(run("cuda:0" if torch.cuda.is_available() else "cpu", quick="--quick" in sys.argv)))
