@@ -18,12 +18,23 @@ from typing import Protocol
 import torch
 
 from warpavatar import ops
-from warpavatar.gaussians import GaussianModel
+from warpavatar._torch_impl.splat import sh_basis
+from warpavatar.gaussians import SH_C0, GaussianModel
+from warpavatar.pose_correction import PoseCorrection
 from warpavatar.skinning_field import VoxelSkinningField
 
-__all__ = ["Deformer", "PosedGaussians", "Avatar", "AVATAR_FORMAT"]
+__all__ = ["Deformer", "PosedGaussians", "Avatar", "AVATAR_FORMAT", "quat_rotate"]
 
 AVATAR_FORMAT = "warpavatar-avatar/1"
+
+
+def quat_rotate(quats: torch.Tensor, vectors: torch.Tensor, *, inverse: bool = False) -> torch.Tensor:
+    """Rotate vectors [N,3] by unit quaternions [N,4] (w, x, y, z), or by their inverses."""
+    w, axis = quats[:, :1], quats[:, 1:]
+    if inverse:
+        axis = -axis
+    t = 2.0 * torch.cross(axis, vectors, dim=-1)
+    return vectors + w * t + torch.cross(axis, t, dim=-1)
 
 
 class PosedGaussians(dict):
@@ -55,6 +66,7 @@ class Avatar(torch.nn.Module):
         self.gaussians = gaussians
         self.field = field
         self.deformers: list[Deformer] = []
+        self.pose_correction: PoseCorrection | None = None
 
     @property
     def joint_count(self) -> int:
@@ -79,11 +91,16 @@ class Avatar(torch.nn.Module):
         """
         gaussians = self.gaussians
         degree = gaussians.sh_degree if sh_degree is None else min(sh_degree, gaussians.sh_degree)
-        weights = self.field.weights(gaussians.means, grid)
-        means, quats = ops.lbs(gaussians.means, weights, self.pose_bones(bone_transforms),
-                               quats=gaussians.normalized_quats)
-        posed = PosedGaussians(means=means, quats=quats, scales=gaussians.scales, opacities=gaussians.opacities,
-                               colors=gaussians.sh_coefficients(degree), sh_degree=degree, weights=weights)
+        bones = self.pose_bones(bone_transforms)
+        canonical_means, canonical_quats, scales = gaussians.means, gaussians.normalized_quats, gaussians.scales
+        if self.pose_correction is not None:
+            canonical_means, canonical_quats, scales = self.pose_correction(
+                canonical_means, canonical_quats, scales, bones)
+        weights = self.field.weights(canonical_means, grid)
+        means, quats = ops.lbs(canonical_means, weights, bones, quats=canonical_quats)
+        posed = PosedGaussians(means=means, quats=quats, scales=scales, opacities=gaussians.opacities,
+                               colors=gaussians.sh_coefficients(degree), sh_degree=degree, weights=weights,
+                               canonical_quats=canonical_quats)
         for deformer in self.deformers:
             posed = deformer(posed, frame_index=frame_index)
         return posed
@@ -105,10 +122,31 @@ class Avatar(torch.nn.Module):
         posed = self.pose(bone_transforms, sh_degree=sh_degree, frame_index=frame_index, grid=grid)
         K = torch.as_tensor(camera.K, dtype=torch.float32, device=device)
         world_to_camera = torch.as_tensor(camera.world_to_camera, dtype=torch.float32, device=device)
+        colors = self.view_colors(posed, world_to_camera)
         return ops.rasterize_gaussians(
-            posed["means"], posed["quats"], posed["scales"], posed["opacities"], posed["colors"], K, world_to_camera,
-            int(camera.width), int(camera.height), background=background, sh_degree=posed["sh_degree"],
+            posed["means"], posed["quats"], posed["scales"], posed["opacities"], colors, K, world_to_camera,
+            int(camera.width), int(camera.height), background=background,
             densify_grad_out=densify_grad_out, return_info=return_info)
+
+    @staticmethod
+    def view_colors(posed: PosedGaussians, world_to_camera: torch.Tensor) -> torch.Tensor:
+        """RGB [N,3] of posed Gaussians seen from a camera, with SH evaluated in each Gaussian's canonical frame.
+
+        The viewing direction is rotated back by the Gaussian's skinning rotation, so view-dependent colour
+        stays attached to the body as it turns (a world-frame evaluation would tie colours to where the
+        subject faced during training).
+        """
+        coefficients = posed["colors"]
+        if posed["sh_degree"] == 0:
+            return torch.clamp_min(coefficients[:, 0] * SH_C0 + 0.5, 0.0)
+        rotation = world_to_camera[:3, :3]
+        camera_centre = -rotation.T @ world_to_camera[:3, 3]
+        directions = posed["means"] - camera_centre
+        directions = directions / directions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        # skinning rotation R_i = R(q_posed) R(q_canonical)^T, so R_i^T d = R(q_canonical) R(q_posed)^T d
+        directions = quat_rotate(posed["canonical_quats"], quat_rotate(posed["quats"], directions, inverse=True))
+        basis = sh_basis(posed["sh_degree"], directions)  # [N,(d+1)^2]
+        return torch.clamp_min((basis[:, :, None] * coefficients).sum(dim=1) + 0.5, 0.0)
 
     # ------------------------------------------------------------------------------------------------ files
     def state_for_file(self, config: dict | None = None) -> dict:
@@ -121,6 +159,10 @@ class Avatar(torch.nn.Module):
                 "joint_count": self.field.joint_count,
                 "grid_shape": list(self.field.grid_shape),
                 "hyper": dict(self.field.hyper),
+            },
+            "pose_correction": None if self.pose_correction is None else {
+                "state_dict": {k: v.detach().cpu() for k, v in self.pose_correction.state_dict().items()},
+                "hyper": dict(self.pose_correction.hyper),
             },
             "config": config or {},
         }
@@ -146,7 +188,15 @@ class Avatar(torch.nn.Module):
         field = VoxelSkinningField(field_state["state_dict"]["bbox_min"], field_state["state_dict"]["bbox_max"],
                                    field_state["joint_count"], **hyper)
         field.load_state_dict(field_state["state_dict"])
-        return cls(skeleton, gaussians, field.to(device))
+        avatar = cls(skeleton, gaussians, field.to(device))
+        correction_state = state.get("pose_correction")
+        if correction_state is not None:
+            weights = correction_state["state_dict"]
+            correction = PoseCorrection(weights["bbox_min"], weights["bbox_max"], weights["parents"],
+                                        **correction_state["hyper"])
+            correction.load_state_dict(weights)
+            avatar.pose_correction = correction.to(device)
+        return avatar
 
     @classmethod
     def load(cls, path: str | os.PathLike, *, device="cpu") -> "Avatar":

@@ -42,6 +42,9 @@ class FitConfig:
     gaussian_only_steps: int = _opt(1500, "steps after warm-up where only the Gaussians train (field frozen)")
     field_lr: float = _opt(1e-3, "Adam learning rate of the skinning-field MLP")
     lambda_bone: float = _opt(0.5, "weight of the bone regularization (one-hot weights at bone midpoints)")
+    pose_correction: bool = _opt(True, "learn a pose-conditioned correction of canonical Gaussians (garments)")
+    pose_correction_hidden: int = _opt(128, "hidden width of the pose-correction MLP")
+    lambda_pose_correction: float = _opt(0.01, "weight of the pose correction's size regularizer")
     # Losses
     lambda_ssim: float = _opt(0.2, "weight of (1 - SSIM) in the photometric loss")
     lambda_mask: float = _opt(0.1, "weight of the L1 loss between rendered alpha and the foreground mask")

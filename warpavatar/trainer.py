@@ -12,16 +12,17 @@ import math
 import os
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import torch
 import tqdm
 
-from warpavatar import ops
 from warpavatar.avatar import Avatar
 from warpavatar.config import FitConfig
 from warpavatar.gaussians import GaussianModel
 from warpavatar.metrics import psnr, ssim_map
+from warpavatar.pose_correction import PoseCorrection
 from warpavatar.skinning_field import VoxelSkinningField, bone_distance_prior, bone_sample_points
 
 __all__ = ["Trainer", "initial_gaussians", "CHECKPOINT_NAME"]
@@ -159,10 +160,12 @@ class Trainer:
                       if video.masks is not None else None)
         self.bone_transforms = torch.as_tensor(video.bone_transforms[self.train_indices], dtype=torch.float32,
                                                device=self.device)
-        self.cameras = [video.cameras[i] for i in self.train_indices]
-        self.camera_tensors = [
-            (torch.as_tensor(c.K, dtype=torch.float32, device=self.device),
-             torch.as_tensor(c.world_to_camera, dtype=torch.float32, device=self.device)) for c in self.cameras]
+        # cameras with their matrices already on the device (no host-to-device copy per step)
+        self.cameras = [
+            SimpleNamespace(K=torch.as_tensor(c.K, dtype=torch.float32, device=self.device),
+                            world_to_camera=torch.as_tensor(c.world_to_camera, dtype=torch.float32, device=self.device),
+                            width=c.width, height=c.height)
+            for c in (video.cameras[i] for i in self.train_indices)]
         self.background = torch.as_tensor(video.background, dtype=torch.float32, device=self.device)
 
         skeleton = video.skeleton
@@ -177,9 +180,16 @@ class Trainer:
         self.avatar = Avatar(skeleton, gaussians, field)
         self.gaussians = gaussians
         self.field = field
+        network_parameters = list(field.parameters())
+        if config.pose_correction:
+            self.avatar.pose_correction = PoseCorrection(
+                bbox_min, bbox_max, torch.as_tensor(skeleton.parents), hidden=config.pose_correction_hidden
+            ).to(self.device)
+            network_parameters += list(self.avatar.pose_correction.parameters())
         gaussians.make_optimizer(lr_position=config.lr_position * self.extent, lr_scale=config.lr_scale,
                                  lr_rotation=config.lr_rotation, lr_opacity=config.lr_opacity, lr_color=config.lr_color)
-        self.field_optimizer = torch.optim.Adam(field.parameters(), lr=config.field_lr)
+        # the networks (skinning field, pose correction) train together from the joint stage on
+        self.field_optimizer = torch.optim.Adam(network_parameters, lr=config.field_lr)
         heads = torch.as_tensor(skeleton.heads, dtype=torch.float32, device=self.device)
         tails = torch.as_tensor(skeleton.tails, dtype=torch.float32, device=self.device)
         parents = torch.as_tensor(skeleton.parents, device=self.device)
@@ -241,7 +251,6 @@ class Trainer:
         index = self._next_frame()
         gt, mask = self.target(index)
         camera = self.cameras[index]
-        K, world_to_camera = self.camera_tensors[index]
         self.gaussians.set_position_lr(self._position_lr(step))
 
         if train_field:
@@ -251,12 +260,13 @@ class Trainer:
                 with torch.no_grad():
                     self._frozen_grid = self.field.grid_weights()
             grid = self._frozen_grid
-        posed = self.avatar.pose(self.bone_transforms[index], sh_degree=self._active_sh_degree(step), grid=grid)
+        correction = self.avatar.pose_correction
+        if correction is not None:
+            correction.requires_grad_(train_field)  # trains with the field, from the joint stage on
         grad_out = torch.zeros(self.gaussians.count, 2, device=self.device)
-        image, alpha, _, info = ops.rasterize_gaussians(
-            posed["means"], posed["quats"], posed["scales"], posed["opacities"], posed["colors"], K, world_to_camera,
-            camera.width, camera.height, background=self.background, sh_degree=posed["sh_degree"],
-            densify_grad_out=grad_out, return_info=True)
+        image, alpha, _, info = self.avatar.render(
+            camera, self.bone_transforms[index], background=self.background,
+            sh_degree=self._active_sh_degree(step), grid=grid, densify_grad_out=grad_out, return_info=True)
         l1 = (image - gt).abs().mean()
         ssim_value = ssim_map(image, gt).mean()
         loss = (1.0 - config.lambda_ssim) * l1 + config.lambda_ssim * (1.0 - ssim_value)
@@ -268,6 +278,8 @@ class Trainer:
         if train_field:
             bone = self.field.bone_loss(self.bone_samples, self.bone_sample_index, grid)
             loss = loss + config.lambda_bone * bone
+            if correction is not None:
+                loss = loss + config.lambda_pose_correction * correction.regularization()
             self.field_optimizer.zero_grad(set_to_none=True)
         self.gaussians.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -322,6 +334,8 @@ class Trainer:
             "gaussians": self.gaussians.state_for_checkpoint(),
             "gaussian_optimizer": self.gaussians.optimizer.state_dict(),
             "field": self.field.state_dict(),
+            "pose_correction": (self.avatar.pose_correction.state_dict()
+                                if self.avatar.pose_correction is not None else None),
             "field_optimizer": self.field_optimizer.state_dict(),
             "generator": self.generator.get_state(),
             "frame_order": list(self.frame_order),
@@ -352,6 +366,8 @@ class Trainer:
                                  lr_color=self.config.lr_color)
         gaussians.optimizer.load_state_dict(state["gaussian_optimizer"])
         self.field.load_state_dict(state["field"])
+        if self.avatar.pose_correction is not None:
+            self.avatar.pose_correction.load_state_dict(state["pose_correction"])
         self._frozen_grid = None
         self.field_optimizer.load_state_dict(state["field_optimizer"])
         self.generator.set_state(state["generator"])

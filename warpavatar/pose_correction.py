@@ -1,0 +1,103 @@
+"""Pose-conditioned correction of canonical Gaussians (in the spirit of ToMiE's Phi_d), applied before skinning.
+
+A small MLP maps (canonical position, pose) to a position offset, a rotation and a log-scale change of each
+canonical Gaussian. It captures what linear blend skinning of a fixed shape cannot: garments and soft parts
+whose shape follows the pose (a skirt that swings with the legs, a sleeve that folds). The pose is read from
+the bone transforms as each joint's rotation relative to its parent (6D: two matrix columns, minus the
+identity's), so it does not depend on where the subject stands or faces. The last layer starts at zero: the
+correction begins as the identity and grows only as far as the images ask for (and its regularizer allows).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+__all__ = ["PoseCorrection", "relative_rotations_6d"]
+
+
+def relative_rotations_6d(bone_transforms: torch.Tensor, parents: torch.Tensor) -> torch.Tensor:
+    """Each joint's rotation relative to its parent's, as 6 numbers (first two columns minus the identity's).
+
+    Args:
+        bone_transforms: [J,4,4] rest-to-posed transforms.
+        parents: [J] parent index, -1 for roots; roots contribute zeros, so the global heading is ignored.
+
+    Returns:
+        [J*6] pose feature.
+    """
+    rotations = bone_transforms[:, :3, :3]
+    has_parent = parents >= 0
+    parent_rotations = torch.where(has_parent[:, None, None], rotations[parents.clamp_min(0)], rotations)
+    relative = parent_rotations.transpose(1, 2) @ rotations
+    identity = torch.eye(3, device=rotations.device, dtype=rotations.dtype)
+    six = (relative - identity)[:, :, :2].reshape(-1, 6)
+    return six.reshape(-1)
+
+
+class PoseCorrection(torch.nn.Module):
+    """MLP(canonical position, pose) -> (offset [N,3], rotation (3 numbers: the vector part of an unnormalized
+    quaternion with w = 1), log-scale change [N,3]).
+
+    Args:
+        bbox_min: [3] canonical box corner (positions are encoded relative to the box).
+        bbox_max: [3] opposite corner.
+        parents: [J] parent index of each joint.
+        hidden: MLP width.
+        layers: hidden layers.
+        frequencies: positional-encoding octaves of the position.
+        pose_width: the pose feature [J*6] is first compressed to this many numbers.
+    """
+
+    def __init__(self, bbox_min: torch.Tensor, bbox_max: torch.Tensor, parents: torch.Tensor, *, hidden: int = 128,
+                 layers: int = 3, frequencies: int = 4, pose_width: int = 32):
+        super().__init__()
+        self.register_buffer("bbox_min", bbox_min.float().clone())
+        self.register_buffer("bbox_max", bbox_max.float().clone())
+        self.register_buffer("parents", torch.as_tensor(parents).long().clone())
+        self.frequencies = frequencies
+        self.hyper = dict(hidden=hidden, layers=layers, frequencies=frequencies, pose_width=pose_width)
+        joint_count = self.parents.shape[0]
+        self.pose_encoder = torch.nn.Linear(joint_count * 6, pose_width)
+        width_in = 3 + 6 * frequencies + pose_width
+        modules: list[torch.nn.Module] = []
+        for _ in range(layers):
+            modules += [torch.nn.Linear(width_in, hidden), torch.nn.SiLU()]
+            width_in = hidden
+        self.trunk = torch.nn.Sequential(*modules)
+        self.head = torch.nn.Linear(hidden, 3 + 3 + 3)
+        torch.nn.init.zeros_(self.head.weight)
+        torch.nn.init.zeros_(self.head.bias)
+        self.last_outputs: torch.Tensor | None = None
+
+    def _encode(self, points: torch.Tensor) -> torch.Tensor:
+        unit = (points - self.bbox_min) / (self.bbox_max - self.bbox_min) * 2.0 - 1.0
+        bands = [unit]
+        for octave in range(self.frequencies):
+            scaled = unit * (math.pi * 2.0**octave)
+            bands += [torch.sin(scaled), torch.cos(scaled)]
+        return torch.cat(bands, dim=-1)
+
+    def forward(self, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, bone_transforms: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Corrected canonical (means [N,3], unit quats [N,4], scales [N,3]) for this pose."""
+        pose = self.pose_encoder(relative_rotations_6d(bone_transforms, self.parents))
+        features = torch.cat([self._encode(means.detach()), pose.expand(means.shape[0], -1)], dim=-1)
+        outputs = self.head(self.trunk(features))
+        self.last_outputs = outputs
+        extent = (self.bbox_max - self.bbox_min).norm()
+        offset = outputs[:, :3] * (0.1 * extent)
+        delta = torch.cat([torch.ones_like(outputs[:, :1]), outputs[:, 3:6]], dim=-1)
+        delta = delta / delta.norm(dim=-1, keepdim=True)
+        w1, v1 = delta[:, :1], delta[:, 1:]
+        w2, v2 = quats[:, :1], quats[:, 1:]
+        rotated = torch.cat([w1 * w2 - (v1 * v2).sum(-1, keepdim=True),
+                             w1 * v2 + w2 * v1 + torch.cross(v1, v2, dim=-1)], dim=-1)
+        return means + offset, rotated, scales * torch.exp(outputs[:, 6:9].clamp(-3.0, 3.0))
+
+    def regularization(self) -> torch.Tensor:
+        """Mean squared raw output of the last forward (keeps the correction small where images do not need it)."""
+        if self.last_outputs is None:
+            return torch.zeros((), device=self.bbox_min.device)
+        return (self.last_outputs**2).sum(-1).mean()
