@@ -21,7 +21,7 @@ def _opt(default, help_text: str):
 class FitConfig:
     """Every knob of a fit. Iteration counts are optimizer steps (one training frame each)."""
 
-    iterations: int = _opt(15000, "total optimizer steps (one training frame per step)")
+    iterations: int = _opt(8000, "total optimizer steps (one training frame per step)")
     seed: int = _opt(0, "random seed: the fit is deterministic for a given seed on a given device")
     image_scale: float = _opt(1.0, "resize training frames by this factor (K is scaled to match)")
     max_train_frames: int = _opt(0, "use at most this many training frames, evenly spaced (0 = all)")
@@ -58,14 +58,14 @@ class FitConfig:
     lr_color: float = _opt(2.5e-3, "learning rate of SH DC coefficients (higher orders use 1/20 of it)")
     # Adaptive density control
     densify_from: int = _opt(500, "first step of densification (after the warm-up)")
-    densify_until: int = _opt(10000, "last step of densification")
+    densify_until: int = _opt(6000, "last step of densification")
     densify_every: int = _opt(100, "steps between densification rounds")
     densify_grad_threshold: float = _opt(2e-4, "mean screen-space gradient (NDC) above which a Gaussian is cloned or split")
     densify_percent_dense: float = _opt(0.01, "relative size (of the canonical extent) separating clone from split")
     max_gaussians: int = _opt(200000, "Gaussian budget: the densification threshold rises as the count nears it")
     prune_opacity: float = _opt(0.005, "Gaussians whose opacity falls below this are pruned")
     prune_max_scale: float = _opt(0.1, "Gaussians larger than this fraction of the canonical extent are pruned")
-    opacity_reset_every: int = _opt(3000, "steps between opacity resets (0 = never)")
+    opacity_reset_every: int = _opt(2500, "steps between opacity resets (0 = never)")
     # Book-keeping
     log_every: int = _opt(50, "steps between training-log lines (JSON lines)")
     checkpoint_every: int = _opt(1000, "steps between checkpoints (written atomically)")
