@@ -43,6 +43,8 @@ class FitConfig:
     field_lr: float = _opt(1e-3, "Adam learning rate of the skinning-field MLP")
     lambda_bone: float = _opt(0.5, "weight of the bone regularization (one-hot weights at bone midpoints)")
     pose_correction: bool = _opt(True, "learn a pose-conditioned correction of canonical Gaussians (garments)")
+    frame_codes: bool = _opt(True, "give each training frame a learned code in the pose correction (cloth "
+                             "dynamics of the training instants; other poses use the pose-only correction)")
     pose_correction_hidden: int = _opt(128, "hidden width of the pose-correction MLP")
     lambda_pose_correction: float = _opt(0.01, "weight of the pose correction's size regularizer")
     # Losses

@@ -6,6 +6,11 @@ whose shape follows the pose (a skirt that swings with the legs, a sleeve that f
 the bone transforms as each joint's rotation relative to its parent (6D: two matrix columns, minus the
 identity's), so it does not depend on where the subject stands or faces. The last layer starts at zero: the
 correction begins as the identity and grows only as far as the images ask for (and its regularizer allows).
+
+Cloth also depends on its history (a skirt still swinging after the legs stopped), which no function of the
+current pose can tell. For the instants seen in training, each training frame therefore also has a small
+learned code (as per-frame latent codes in dynamic NeRFs): a pose equal to a training frame's (a novel view of
+a training instant) uses that frame's code, any other pose uses the zero code, i.e. the pose-only correction.
 """
 
 from __future__ import annotations
@@ -48,19 +53,26 @@ class PoseCorrection(torch.nn.Module):
         layers: hidden layers.
         frequencies: positional-encoding octaves of the position.
         pose_width: the pose feature [J*6] is first compressed to this many numbers.
+        frame_count: number of training frames that get a code (0: none).
+        code_width: length of each frame code.
     """
 
     def __init__(self, bbox_min: torch.Tensor, bbox_max: torch.Tensor, parents: torch.Tensor, *, hidden: int = 128,
-                 layers: int = 3, frequencies: int = 4, pose_width: int = 32):
+                 layers: int = 3, frequencies: int = 4, pose_width: int = 32, frame_count: int = 0,
+                 code_width: int = 16):
         super().__init__()
         self.register_buffer("bbox_min", bbox_min.float().clone())
         self.register_buffer("bbox_max", bbox_max.float().clone())
         self.register_buffer("parents", torch.as_tensor(parents).long().clone())
         self.frequencies = frequencies
-        self.hyper = dict(hidden=hidden, layers=layers, frequencies=frequencies, pose_width=pose_width)
+        self.hyper = dict(hidden=hidden, layers=layers, frequencies=frequencies, pose_width=pose_width,
+                          frame_count=frame_count, code_width=code_width)
         joint_count = self.parents.shape[0]
         self.pose_encoder = torch.nn.Linear(joint_count * 6, pose_width)
-        width_in = 3 + 6 * frequencies + pose_width
+        self.frame_codes = torch.nn.Parameter(torch.zeros(frame_count, code_width))
+        # the training frames' poses, to recognise a training instant (filled by set_frame_poses)
+        self.register_buffer("frame_poses", torch.zeros(frame_count, joint_count, 4, 4))
+        width_in = 3 + 6 * frequencies + pose_width + (code_width if frame_count else 0)
         modules: list[torch.nn.Module] = []
         for _ in range(layers):
             modules += [torch.nn.Linear(width_in, hidden), torch.nn.SiLU()]
@@ -83,6 +95,8 @@ class PoseCorrection(torch.nn.Module):
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Corrected canonical (means [N,3], unit quats [N,4], scales [N,3]) for this pose."""
         pose = self.pose_encoder(relative_rotations_6d(bone_transforms, self.parents))
+        if self.frame_codes.shape[0]:
+            pose = torch.cat([pose, self.frame_code(bone_transforms)])
         features = torch.cat([self._encode(means.detach()), pose.expand(means.shape[0], -1)], dim=-1)
         outputs = self.head(self.trunk(features))
         self.last_outputs = outputs
@@ -96,8 +110,23 @@ class PoseCorrection(torch.nn.Module):
                              w1 * v2 + w2 * v1 + torch.cross(v1, v2, dim=-1)], dim=-1)
         return means + offset, rotated, scales * torch.exp(outputs[:, 6:9].clamp(-3.0, 3.0))
 
+    def set_frame_poses(self, bone_transforms: torch.Tensor) -> None:
+        """Record the training frames' poses [T,J,4,4] (T = frame_count), in the order of the codes."""
+        self.frame_poses.copy_(bone_transforms)
+
+    def frame_code(self, bone_transforms: torch.Tensor, *, tolerance: float = 1e-4) -> torch.Tensor:
+        """The code of the training frame whose pose equals ``bone_transforms`` (within ``tolerance``), else zeros.
+
+        Runs on the device without a host synchronization.
+        """
+        difference = (self.frame_poses - bone_transforms).abs().amax(dim=(1, 2, 3))
+        best = torch.argmin(difference)
+        matched = (difference[best] <= tolerance).to(self.frame_codes.dtype)
+        return self.frame_codes[best] * matched
+
     def regularization(self) -> torch.Tensor:
         """Mean squared raw output of the last forward (keeps the correction small where images do not need it)."""
         if self.last_outputs is None:
             return torch.zeros((), device=self.bbox_min.device)
-        return (self.last_outputs**2).sum(-1).mean()
+        codes = (self.frame_codes**2).sum(-1).mean() if self.frame_codes.shape[0] else 0.0
+        return (self.last_outputs**2).sum(-1).mean() + codes

@@ -183,8 +183,11 @@ class Trainer:
         network_parameters = list(field.parameters())
         if config.pose_correction:
             self.avatar.pose_correction = PoseCorrection(
-                bbox_min, bbox_max, torch.as_tensor(skeleton.parents), hidden=config.pose_correction_hidden
+                bbox_min, bbox_max, torch.as_tensor(skeleton.parents), hidden=config.pose_correction_hidden,
+                frame_count=len(self.train_indices) if config.frame_codes else 0
             ).to(self.device)
+            if config.frame_codes:
+                self.avatar.pose_correction.set_frame_poses(self.bone_transforms)
             network_parameters += list(self.avatar.pose_correction.parameters())
         gaussians.make_optimizer(lr_position=config.lr_position * self.extent, lr_scale=config.lr_scale,
                                  lr_rotation=config.lr_rotation, lr_opacity=config.lr_opacity, lr_color=config.lr_color)
