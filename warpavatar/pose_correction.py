@@ -15,9 +15,9 @@ a training instant) uses that frame's code, any other pose uses the zero code, i
 
 from __future__ import annotations
 
-import math
-
 import torch
+
+from warpavatar.skinning_field import box_encoding
 
 __all__ = ["PoseCorrection", "relative_rotations_6d"]
 
@@ -84,12 +84,7 @@ class PoseCorrection(torch.nn.Module):
         self.last_outputs: torch.Tensor | None = None
 
     def _encode(self, points: torch.Tensor) -> torch.Tensor:
-        unit = (points - self.bbox_min) / (self.bbox_max - self.bbox_min) * 2.0 - 1.0
-        bands = [unit]
-        for octave in range(self.frequencies):
-            scaled = unit * (math.pi * 2.0**octave)
-            bands += [torch.sin(scaled), torch.cos(scaled)]
-        return torch.cat(bands, dim=-1)
+        return box_encoding(points, self.bbox_min, self.bbox_max, self.frequencies)
 
     def forward(self, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, bone_transforms: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -15,7 +15,18 @@ import torch
 
 from warpavatar import ops
 
-__all__ = ["bone_distance_prior", "bone_sample_points", "grid_shape_for_box", "VoxelSkinningField"]
+__all__ = ["bone_distance_prior", "bone_sample_points", "grid_shape_for_box", "box_encoding", "VoxelSkinningField"]
+
+
+def box_encoding(points: torch.Tensor, bbox_min: torch.Tensor, bbox_max: torch.Tensor, frequencies: int
+                 ) -> torch.Tensor:
+    """Positional encoding [N, 3 + 6*frequencies] of points, after mapping the box to [-1, 1]^3."""
+    unit = (points - bbox_min) / (bbox_max - bbox_min) * 2.0 - 1.0
+    bands = [unit]
+    for octave in range(frequencies):
+        scaled = unit * (math.pi * 2.0**octave)
+        bands += [torch.sin(scaled), torch.cos(scaled)]
+    return torch.cat(bands, dim=-1)
 
 
 def _segment_distance(points: torch.Tensor, heads: torch.Tensor, tails: torch.Tensor) -> torch.Tensor:
@@ -106,12 +117,7 @@ class VoxelSkinningField(torch.nn.Module):
         self.register_buffer("grid_encoding", self._encode(self.grid_points.reshape(-1, 3)), persistent=False)
 
     def _encode(self, points: torch.Tensor) -> torch.Tensor:
-        unit = (points - self.bbox_min) / (self.bbox_max - self.bbox_min) * 2.0 - 1.0
-        bands = [unit]
-        for octave in range(self.frequencies):
-            scaled = unit * (math.pi * 2.0**octave)
-            bands += [torch.sin(scaled), torch.cos(scaled)]
-        return torch.cat(bands, dim=-1)
+        return box_encoding(points, self.bbox_min, self.bbox_max, self.frequencies)
 
     def grid_weights(self) -> torch.Tensor:
         """The voxel grid of skinning weights [D,H,W,J] (softmax of the MLP at the grid points)."""

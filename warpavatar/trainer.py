@@ -84,25 +84,39 @@ def _frames_for_init(video, count: int = 24) -> np.ndarray:
     return np.unique(np.linspace(0, video.frame_count - 1, min(count, video.frame_count)).round().astype(int))
 
 
+def _rigid_pixels(points: torch.Tensor, weights: torch.Tensor, video, t: int
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Pose canonical points [N,3] with skinning weights [N,J] to frame ``t`` and find their pixels.
+
+    Returns:
+        (row [N], column [N], valid [N]: in front of the camera and inside the image).
+    """
+    transforms = torch.as_tensor(video.bone_transforms[t], dtype=torch.float32)
+    blended = torch.einsum("nj,jab->nab", weights, transforms[:, :3, :])
+    posed = torch.einsum("nab,nb->na", blended[:, :, :3], points) + blended[:, :, 3]
+    camera = video.cameras[t]
+    pixels, z = _project(posed, torch.as_tensor(camera.K, dtype=torch.float32),
+                         torch.as_tensor(camera.world_to_camera, dtype=torch.float32))
+    column, row = pixels[:, 0].round().long(), pixels[:, 1].round().long()
+    valid = (z > 0) & (column >= 0) & (column < camera.width) & (row >= 0) & (row < camera.height)
+    return row, column, valid
+
+
+def _mask_hits(video, t: int, row: torch.Tensor, column: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    hit = torch.zeros_like(valid)
+    hit[valid] = torch.as_tensor(video.masks[t] > 127)[row[valid], column[valid]]
+    return hit
+
+
 def _carve(candidates: torch.Tensor, heads, tails, video, *, temperature: float) -> torch.Tensor:
     """Keep canonical points that, posed rigidly by the bone prior, fall inside the mask in nearly every frame."""
     weights = bone_distance_prior(candidates, heads, tails, temperature=temperature)
     inside_votes = torch.zeros(candidates.shape[0])
     seen_votes = torch.zeros(candidates.shape[0])
     for t in _frames_for_init(video):
-        transforms = torch.as_tensor(video.bone_transforms[t], dtype=torch.float32)
-        blended = torch.einsum("nj,jab->nab", weights, transforms[:, :3, :])
-        posed = torch.einsum("nab,nb->na", blended[:, :, :3], candidates) + blended[:, :, 3]
-        camera = video.cameras[t]
-        pixels, z = _project(posed, torch.as_tensor(camera.K, dtype=torch.float32),
-                             torch.as_tensor(camera.world_to_camera, dtype=torch.float32))
-        column, row = pixels[:, 0].round().long(), pixels[:, 1].round().long()
-        valid = (z > 0) & (column >= 0) & (column < camera.width) & (row >= 0) & (row < camera.height)
-        mask = torch.as_tensor(video.masks[t] > 127)
-        hit = torch.zeros_like(valid)
-        hit[valid] = mask[row[valid], column[valid]]
+        row, column, valid = _rigid_pixels(candidates, weights, video, t)
         seen_votes += valid.float()
-        inside_votes += hit.float()
+        inside_votes += _mask_hits(video, t, row, column, valid).float()
     keep = (seen_votes >= 3) & (inside_votes >= 0.9 * seen_votes)
     return candidates[keep]
 
@@ -113,18 +127,9 @@ def _initial_colours(positions, heads, tails, video, *, temperature: float) -> t
     total = torch.zeros(positions.shape[0], 3)
     count = torch.zeros(positions.shape[0])
     for t in _frames_for_init(video, 12):
-        transforms = torch.as_tensor(video.bone_transforms[t], dtype=torch.float32)
-        blended = torch.einsum("nj,jab->nab", weights, transforms[:, :3, :])
-        posed = torch.einsum("nab,nb->na", blended[:, :, :3], positions) + blended[:, :, 3]
-        camera = video.cameras[t]
-        pixels, z = _project(posed, torch.as_tensor(camera.K, dtype=torch.float32),
-                             torch.as_tensor(camera.world_to_camera, dtype=torch.float32))
-        column, row = pixels[:, 0].round().long(), pixels[:, 1].round().long()
-        valid = (z > 0) & (column >= 0) & (column < camera.width) & (row >= 0) & (row < camera.height)
+        row, column, valid = _rigid_pixels(positions, weights, video, t)
         if video.masks is not None:
-            inside = torch.zeros_like(valid)
-            inside[valid] = torch.as_tensor(video.masks[t] > 127)[row[valid], column[valid]]
-            valid = inside
+            valid = _mask_hits(video, t, row, column, valid)
         image = torch.as_tensor(video.images[t], dtype=torch.float32) / 255.0
         total[valid] += image[row[valid], column[valid]]
         count[valid] += 1
