@@ -18,7 +18,8 @@ def _tiny_config(**overrides):
                   init_carve_candidates=20000, init_carve_points=1500, sh_degree=1, sh_increase_every=100,
                   grid_cells=16, grid_min_cells=6, field_hidden=32, field_layers=2, field_warmup_steps=40,
                   gaussian_only_steps=80, densify_from=40, densify_until=120, densify_every=40,
-                  max_gaussians=6000, checkpoint_every=1000, log_every=20, preview_frames=1)
+                  max_gaussians=6000, checkpoint_every=1000, log_every=20, preview_frames=1,
+                  pose_correction=True, pose_correction_hidden=16)
     values.update(overrides)
     return preset("quick", **values)
 

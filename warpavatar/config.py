@@ -93,7 +93,7 @@ PRESETS: dict[str, dict] = {
     "default": {},
     # Small and fast: CPU fits in minutes, and the test suite.
     "quick": dict(
-        iterations=2500,
+        iterations=2000,
         image_scale=0.5,
         init_points_per_bone=150,
         init_carve_candidates=60000,
@@ -107,9 +107,10 @@ PRESETS: dict[str, dict] = {
         field_warmup_steps=300,
         gaussian_only_steps=600,
         densify_from=200,
-        densify_until=1800,
+        densify_until=1400,
         densify_every=100,
-        max_gaussians=20000,
+        max_gaussians=10000,
+        pose_correction=False,
         opacity_reset_every=0,
         checkpoint_every=500,
     ),

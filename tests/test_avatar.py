@@ -1,0 +1,95 @@
+"""Avatar pieces that the end-to-end fit does not pin down: canonical-frame SH colours and frame codes."""
+
+import math
+
+import torch
+
+from warpavatar.avatar import Avatar, PosedGaussians, quat_rotate
+from warpavatar.pose_correction import PoseCorrection, relative_rotations_6d
+
+
+def _random_unit_quats(count, generator):
+    q = torch.randn(count, 4, generator=generator)
+    return q / q.norm(dim=-1, keepdim=True)
+
+
+def _quat_multiply(a, b):
+    w1, v1 = a[:, :1], a[:, 1:]
+    w2, v2 = b[:, :1], b[:, 1:]
+    return torch.cat([w1 * w2 - (v1 * v2).sum(-1, keepdim=True), w1 * v2 + w2 * v1 + torch.cross(v1, v2, dim=-1)], -1)
+
+
+def _rotation_z(angle):
+    c, s = math.cos(angle), math.sin(angle)
+    return torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_quat_rotate_matches_matrix():
+    generator = torch.Generator().manual_seed(1)
+    angle = 0.7
+    q = torch.tensor([[math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2)]]).repeat(5, 1)
+    v = torch.randn(5, 3, generator=generator)
+    assert torch.allclose(quat_rotate(q, v), v @ _rotation_z(angle).T, atol=1e-6)
+    assert torch.allclose(quat_rotate(q, quat_rotate(q, v), inverse=True), v, atol=1e-6)
+
+
+def test_view_colors_follow_the_body_not_the_world():
+    """Turning the subject and the camera together by the same rotation leaves every colour unchanged."""
+    generator = torch.Generator().manual_seed(2)
+    count = 50
+    canonical = _random_unit_quats(count, generator)
+    means = torch.randn(count, 3, generator=generator)
+    colors = torch.randn(count, 16, 3, generator=generator) * 0.3
+    world_to_camera = torch.eye(4)
+    world_to_camera[:3, 3] = torch.tensor([0.1, -0.2, 4.0])
+
+    def posed_colors(angle):
+        rotation = _rotation_z(angle)
+        turn = torch.tensor([[math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2)]]).repeat(count, 1)
+        posed = PosedGaussians(means=means @ rotation.T, quats=_quat_multiply(turn, canonical), colors=colors,
+                               sh_degree=3, canonical_quats=canonical)
+        camera = world_to_camera.clone()
+        camera[:3, :3] = world_to_camera[:3, :3] @ rotation.T  # the camera turns with the subject
+        return Avatar.view_colors(posed, camera)
+
+    still, turned = posed_colors(0.0), posed_colors(1.1)
+    assert torch.allclose(still, turned, atol=1e-5)
+    # while a world-frame evaluation would change: the camera alone turning does change colours
+    posed = PosedGaussians(means=means, quats=canonical, colors=colors, sh_degree=3, canonical_quats=canonical)
+    camera = world_to_camera.clone()
+    camera[:3, :3] = _rotation_z(1.1)
+    assert not torch.allclose(Avatar.view_colors(posed, camera), still, atol=1e-3)
+
+
+def test_frame_code_is_used_only_for_training_poses():
+    generator = torch.Generator().manual_seed(3)
+    joint_count, frame_count = 4, 6
+    parents = torch.tensor([-1, 0, 1, 1])
+    poses = torch.eye(4).repeat(frame_count, joint_count, 1, 1)
+    for t in range(frame_count):
+        for j in range(joint_count):
+            poses[t, j, :3, :3] = _rotation_z(0.1 * t + 0.05 * j)
+            poses[t, j, :3, 3] = torch.randn(3, generator=generator)
+    correction = PoseCorrection(torch.zeros(3) - 1, torch.ones(3), parents, hidden=8, layers=1,
+                                frame_count=frame_count, code_width=5)
+    with torch.no_grad():
+        correction.frame_codes.normal_(generator=generator)
+    correction.set_frame_poses(poses)
+    for t in range(frame_count):
+        assert torch.equal(correction.frame_code(poses[t]), correction.frame_codes[t])
+    other = poses[2].clone()
+    other[1, :3, 3] += 0.01
+    assert torch.equal(correction.frame_code(other), torch.zeros(5))
+
+
+def test_relative_rotations_ignore_global_heading():
+    generator = torch.Generator().manual_seed(4)
+    parents = torch.tensor([-1, 0, 1])
+    bones = torch.eye(4).repeat(3, 1, 1)
+    for j in range(3):
+        bones[j, :3, :3] = _rotation_z(0.3 * (j + 1))
+        bones[j, :3, 3] = torch.randn(3, generator=generator)
+    turned = bones.clone()
+    turned[:, :3, :3] = _rotation_z(0.9) @ bones[:, :3, :3]
+    assert torch.allclose(relative_rotations_6d(bones, parents), relative_rotations_6d(turned, parents), atol=1e-6)
+    assert relative_rotations_6d(bones, parents).abs().max() > 0.1
