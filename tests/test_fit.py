@@ -45,7 +45,7 @@ def test_fit_learns_and_writes_outputs(demo_video, tmp_path):
     trainer = Trainer(demo_video, config, tmp_path / "fit")
     trainer.warmup_field()
     before = _mean_train_psnr(trainer)
-    trainer.fit(resume=True, progress=False)  # no checkpoint yet: a fresh fit (the warm-up runs again)
+    trainer.fit(progress=False)  # a fresh fit (its warm-up distils the same prior again)
     after = _mean_train_psnr(trainer)
     assert after > before + 3.0, (before, after)
 

@@ -10,7 +10,6 @@ full-frame PSNR/SSIM, fit time, Gaussian count) and writes OUT/benchmark.json.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path

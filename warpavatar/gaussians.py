@@ -116,8 +116,10 @@ class GaussianModel(torch.nn.Module):
             if group["name"] == "means":
                 group["lr"] = lr
 
-    def _replace_parameters(self, build) -> None:
-        """Swap every parameter for ``build(name, old_tensor)`` and reshape its Adam moments the same way."""
+    def _replace_parameters(self, build, build_moment=None) -> None:
+        """Swap every parameter for ``build(name, old_tensor)`` and its Adam moments for
+        ``build_moment(name, old_moment)`` (default: ``build``), keeping the optimizer pointing at them."""
+        build_moment = build if build_moment is None else build_moment
         for name in _PARAMETER_NAMES:
             old = getattr(self, name)
             new = torch.nn.Parameter(build(name, old.detach()))
@@ -125,8 +127,8 @@ class GaussianModel(torch.nn.Module):
                 group = next(g for g in self.optimizer.param_groups if g["name"] == name)
                 state = self.optimizer.state.pop(old, None)
                 if state:
-                    state = {key: (build(name, value) if key in ("exp_avg", "exp_avg_sq") else value)
-                             for key, value in state.items()}
+                    for key in ("exp_avg", "exp_avg_sq"):
+                        state[key] = build_moment(name, state[key])
                     self.optimizer.state[new] = state
                 group["params"] = [new]
             setattr(self, name, new)
@@ -138,19 +140,8 @@ class GaussianModel(torch.nn.Module):
 
     def append(self, values: dict[str, torch.Tensor]) -> None:
         """Add Gaussians given raw parameter values (same names as the parameters); their Adam moments start at 0."""
-
-        for name in _PARAMETER_NAMES:
-            old = getattr(self, name)
-            new = torch.nn.Parameter(torch.cat([old.detach(), values[name]], dim=0))
-            if self.optimizer is not None:
-                group = next(g for g in self.optimizer.param_groups if g["name"] == name)
-                state = self.optimizer.state.pop(old, None)
-                if state:
-                    for key in ("exp_avg", "exp_avg_sq"):
-                        state[key] = torch.cat([state[key], torch.zeros_like(values[name])], dim=0)
-                    self.optimizer.state[new] = state
-                group["params"] = [new]
-            setattr(self, name, new)
+        self._replace_parameters(lambda name, tensor: torch.cat([tensor, values[name]], dim=0),
+                                 lambda name, moment: torch.cat([moment, torch.zeros_like(values[name])], dim=0))
 
     def raw_parameters(self, index: torch.Tensor) -> dict[str, torch.Tensor]:
         """Detached copies of the raw parameters of the Gaussians ``index``."""

@@ -349,7 +349,6 @@ class Trainer:
             "frame_order": list(self.frame_order),
             "grad_accum": self.grad_accum.cpu(),
             "visible_count": self.visible_count.cpu(),
-            "torch_rng": torch.get_rng_state(),
         }
 
     def save_checkpoint(self) -> Path:
@@ -382,7 +381,6 @@ class Trainer:
         self.frame_order = list(state["frame_order"])
         self.grad_accum = state["grad_accum"].to(self.device)
         self.visible_count = state["visible_count"].to(self.device)
-        torch.set_rng_state(state["torch_rng"])
         self.step = int(state["step"])
 
     # ------------------------------------------------------------------------------------------------ run

@@ -154,7 +154,6 @@ def rasterize_gaussians(
 ):
     """Reference of :func:`warpavatar.ops.rasterize_gaussians` (same arguments and outputs)."""
     device, dtype = means.device, means.dtype
-    gaussian_count = means.shape[0]
     means2d, conics, depths, radii = project_gaussians(means, quats, scales, K, world_to_camera, width, height)
 
     if sh_degree is None:
