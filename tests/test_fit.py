@@ -19,7 +19,8 @@ def _tiny_config(**overrides):
                   grid_cells=16, grid_min_cells=6, field_hidden=32, field_layers=2, field_warmup_steps=40,
                   gaussian_only_steps=80, densify_from=40, densify_until=120, densify_every=40,
                   max_gaussians=6000, checkpoint_every=1000, log_every=20, preview_frames=1,
-                  pose_correction=True, pose_correction_hidden=16)
+                  pose_correction=True, pose_correction_hidden=16, secondary_motion=True,
+                  secondary_from=100)
     values.update(overrides)
     return preset("quick", **values)
 
@@ -71,7 +72,7 @@ def test_fit_learns_and_writes_outputs(demo_video, tmp_path):
 
 def test_resume_matches_uninterrupted(demo_video, tmp_path):
     config = _tiny_config(iterations=60, densify_from=20, densify_every=20, densify_until=50,
-                          gaussian_only_steps=30, checkpoint_every=1000)
+                          gaussian_only_steps=30, secondary_from=25, checkpoint_every=1000)
     whole = Trainer(demo_video, config, tmp_path / "whole")
     whole.fit(progress=False)
 
@@ -84,6 +85,9 @@ def test_resume_matches_uninterrupted(demo_video, tmp_path):
         a, b = getattr(whole.gaussians, name), getattr(resumed.gaussians, name)
         assert a.shape == b.shape, name
         assert torch.allclose(a, b, atol=1e-6), name
+    assert resumed.avatar.secondary_motion is not None
+    assert torch.allclose(whole.avatar.secondary_motion.displacement, resumed.avatar.secondary_motion.displacement,
+                          atol=1e-6)
 
 
 def test_resume_refuses_other_config(demo_video, tmp_path):

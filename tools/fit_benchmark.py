@@ -43,13 +43,15 @@ def main(argv=None) -> int:
     fit_minutes = (time.time() - start) / 60
     full_scale = data.load_subject(args.subject) if config.image_scale != 1.0 else subject
     rows = []
+    held_out = [("train", "", full_scale.train)]  # the fit itself, for comparison with the held-out folders
     for kind, folders in (("novel_view", full_scale.novel_view), ("novel_pose", full_scale.novel_pose)):
-        for name in folders:
-            result = evaluate_avatar(trainer.avatar, folders[name], progress=False)
-            rows.append({"run": label, "folder": f"{kind}/{name}", "psnr_masked": result["psnr_masked"],
-                         "psnr": result["psnr"], "ssim_masked": result["ssim_masked"], "ssim": result["ssim"],
-                         "fit_min": fit_minutes, "gaussians": trainer.gaussians.count,
-                         "render_ms": 1000 * result["seconds_per_frame"]})
+        held_out += [(kind, name, folders[name]) for name in folders]
+    for kind, name, folder in held_out:
+        result = evaluate_avatar(trainer.avatar, folder, progress=False)
+        rows.append({"run": label, "folder": f"{kind}/{name}".rstrip("/"), "psnr_masked": result["psnr_masked"],
+                     "psnr": result["psnr"], "ssim_masked": result["ssim_masked"], "ssim": result["ssim"],
+                     "fit_min": fit_minutes, "gaussians": trainer.gaussians.count,
+                     "render_ms": 1000 * result["seconds_per_frame"]})
     write_json_atomic(args.output / "benchmark.json", {"config": config.to_dict(), "device": args.device,
                                                        "rows": rows})
     for row in rows:

@@ -2,8 +2,16 @@
 
 Data flows one way: a pose (bone transforms [J,4,4], rest -> posed world, as poses.npz stores them) goes
 through :meth:`Avatar.pose_bones` (where grown joints would extend it), the skinning field gives each canonical
-Gaussian its weights, :func:`warpavatar.ops.lbs` moves positions and rotations, and each deformer in
-``Avatar.deformers`` may then add per-frame non-rigid offsets (secondary motion) before rendering.
+Gaussian its weights (read at the pose-corrected canonical position), the secondary motion of the training
+instants (:class:`~warpavatar.secondary_motion.SecondaryMotion`, SMAD's graph) displaces the canonical
+Gaussians, :func:`warpavatar.ops.lbs` moves positions and rotations, and each deformer in ``Avatar.deformers``
+may then add further per-frame non-rigid offsets before rendering.
+
+Colours are spherical harmonics in each Gaussian's canonical frame. Under ``shading="world"`` (the default of
+a fit) they are evaluated for the direction from a fixed world point (the training camera's centre) rather
+than from the rendering camera: with a fixed camera and a subject that turns, what varies in the training
+images is how the body faces the scene's lights, not the viewing direction, so a novel camera must see the
+shading the body has at that orientation. ``shading="view"`` is the usual view-dependent 3DGS colour.
 
 An avatar file (``avatar.pt``) holds everything needed to render it: the skeleton, the Gaussians, the field's
 weights and box, and the config it was fitted with.
@@ -21,6 +29,7 @@ from warpavatar import ops
 from warpavatar._torch_impl.splat import sh_basis
 from warpavatar.gaussians import SH_C0, GaussianModel
 from warpavatar.pose_correction import PoseCorrection
+from warpavatar.secondary_motion import SecondaryMotion
 from warpavatar.skinning_field import VoxelSkinningField
 
 __all__ = ["Deformer", "PosedGaussians", "Avatar", "AVATAR_FORMAT", "quat_rotate"]
@@ -67,6 +76,9 @@ class Avatar(torch.nn.Module):
         self.field = field
         self.deformers: list[Deformer] = []
         self.pose_correction: PoseCorrection | None = None
+        self.secondary_motion: SecondaryMotion | None = None
+        #: world point [3] the SH colours are evaluated from (``shading="world"``); None: the render camera
+        self.shading_origin: torch.Tensor | None = None
 
     @property
     def joint_count(self) -> int:
@@ -97,10 +109,15 @@ class Avatar(torch.nn.Module):
             canonical_means, canonical_quats, scales = self.pose_correction(
                 canonical_means, canonical_quats, scales, bones)
         weights = self.field.weights(canonical_means, grid)
-        means, quats = ops.lbs(canonical_means, weights, bones, quats=canonical_quats)
+        node_displacement = None
+        if self.secondary_motion is not None:
+            node_displacement = self.secondary_motion.node_displacement(bones)
+            canonical_means = canonical_means + self.secondary_motion.gaussian_displacement(
+                gaussians.means, node_displacement)
+        means, quats = ops.lbs(canonical_means.contiguous(), weights, bones, quats=canonical_quats)
         posed = PosedGaussians(means=means, quats=quats, scales=scales, opacities=gaussians.opacities,
                                colors=gaussians.sh_coefficients(degree), sh_degree=degree, weights=weights,
-                               canonical_quats=canonical_quats)
+                               canonical_quats=canonical_quats, node_displacement=node_displacement)
         for deformer in self.deformers:
             posed = deformer(posed, frame_index=frame_index)
         return posed
@@ -122,26 +139,28 @@ class Avatar(torch.nn.Module):
         posed = self.pose(bone_transforms, sh_degree=sh_degree, frame_index=frame_index, grid=grid)
         K = torch.as_tensor(camera.K, dtype=torch.float32, device=device)
         world_to_camera = torch.as_tensor(camera.world_to_camera, dtype=torch.float32, device=device)
-        colors = self.view_colors(posed, world_to_camera)
+        colors = self.view_colors(posed, world_to_camera, origin=self.shading_origin)
         return ops.rasterize_gaussians(
             posed["means"], posed["quats"], posed["scales"], posed["opacities"], colors, K, world_to_camera,
             int(camera.width), int(camera.height), background=background,
             densify_grad_out=densify_grad_out, return_info=return_info)
 
     @staticmethod
-    def view_colors(posed: PosedGaussians, world_to_camera: torch.Tensor) -> torch.Tensor:
+    def view_colors(posed: PosedGaussians, world_to_camera: torch.Tensor, *, origin: torch.Tensor | None = None
+                    ) -> torch.Tensor:
         """RGB [N,3] of posed Gaussians seen from a camera, with SH evaluated in each Gaussian's canonical frame.
 
-        The viewing direction is rotated back by the Gaussian's skinning rotation, so view-dependent colour
-        stays attached to the body as it turns (a world-frame evaluation would tie colours to where the
-        subject faced during training).
+        The direction (from ``origin`` [3] when given, else from the camera centre, to each Gaussian) is
+        rotated back by the Gaussian's skinning rotation, so colour stays attached to the body as it turns (a
+        world-frame evaluation would tie colours to where the subject faced during training).
         """
         coefficients = posed["colors"]
         if posed["sh_degree"] == 0:
             return torch.clamp_min(coefficients[:, 0] * SH_C0 + 0.5, 0.0)
-        rotation = world_to_camera[:3, :3]
-        camera_centre = -rotation.T @ world_to_camera[:3, 3]
-        directions = posed["means"] - camera_centre
+        if origin is None:
+            rotation = world_to_camera[:3, :3]
+            origin = -rotation.T @ world_to_camera[:3, 3]
+        directions = posed["means"] - origin.to(posed["means"])
         directions = directions / directions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         # skinning rotation R_i = R(q_posed) R(q_canonical)^T, so R_i^T d = R(q_canonical) R(q_posed)^T d
         directions = quat_rotate(posed["canonical_quats"], quat_rotate(posed["quats"], directions, inverse=True))
@@ -164,6 +183,8 @@ class Avatar(torch.nn.Module):
                 "state_dict": {k: v.detach().cpu() for k, v in self.pose_correction.state_dict().items()},
                 "hyper": dict(self.pose_correction.hyper),
             },
+            "secondary_motion": None if self.secondary_motion is None else self.secondary_motion.state_for_file(),
+            "shading_origin": None if self.shading_origin is None else self.shading_origin.detach().cpu(),
             "config": config or {},
         }
 
@@ -196,6 +217,10 @@ class Avatar(torch.nn.Module):
                                         **correction_state["hyper"])
             correction.load_state_dict(weights)
             avatar.pose_correction = correction.to(device)
+        if state.get("secondary_motion") is not None:
+            avatar.secondary_motion = SecondaryMotion.from_file_state(state["secondary_motion"], device=device)
+        if state.get("shading_origin") is not None:
+            avatar.shading_origin = state["shading_origin"].to(device=device, dtype=torch.float32)
         return avatar
 
     @classmethod

@@ -41,12 +41,24 @@ class FitConfig:
     field_warmup_steps: int = _opt(600, "warm-up steps that distil a rigid bone-distance prior into the field")
     gaussian_only_steps: int = _opt(1500, "steps after warm-up where only the Gaussians train (field frozen)")
     field_lr: float = _opt(1e-3, "Adam learning rate of the skinning-field MLP")
-    lambda_bone: float = _opt(0.5, "weight of the bone regularization (one-hot weights at bone midpoints)")
+    lambda_bone: float = _opt(5.0, "weight of the bone regularization (one-hot weights at bone midpoints)")
     pose_correction: bool = _opt(True, "learn a pose-conditioned correction of canonical Gaussians (garments)")
     frame_codes: bool = _opt(True, "give each training frame a learned code in the pose correction (cloth "
                              "dynamics of the training instants; other poses use the pose-only correction)")
     pose_correction_hidden: int = _opt(128, "hidden width of the pose-correction MLP")
     lambda_pose_correction: float = _opt(0.01, "weight of the pose correction's size regularizer")
+    # Secondary motion of the training instants (SMAD's graph, paper 000 Sec. 3.2-3.3)
+    secondary_motion: bool = _opt(False, "learn per-training-frame displacements of a voxel-downsampled Gaussian "
+                                  "graph (cloth that swings; novel views of training instants and replays use them)")
+    secondary_from: int = _opt(2000, "step at which the graph is built from the canonical Gaussians and starts to train")
+    secondary_voxel: float = _opt(0.03, "graph voxel edge as a fraction of the canonical box's longest side")
+    lr_secondary: float = _opt(1e-4, "Adam learning rate of the node displacements, times the canonical extent")
+    lambda_isometry: float = _opt(0.1, "weight of SMAD's isometry loss on the posed graph (per voxel^2)")
+    lambda_damping: float = _opt(0.01, "weight of SMAD's damping loss on node velocities (voxels per frame)")
+    lambda_displacement: float = _opt(1e-3, "weight of the mean squared node displacement (per voxel^2)")
+    shading: str = _opt("world", "'world': colours follow how the body faces a fixed light rig (evaluated from "
+                        "the training camera centre; right for a fixed camera and a turning subject); 'view': "
+                        "view-dependent colours from the rendering camera (3DGS)")
     # Losses
     lambda_ssim: float = _opt(0.2, "weight of (1 - SSIM) in the photometric loss")
     lambda_mask: float = _opt(0.1, "weight of the L1 loss between rendered alpha and the foreground mask")
@@ -72,6 +84,10 @@ class FitConfig:
     log_every: int = _opt(50, "steps between training-log lines (JSON lines)")
     checkpoint_every: int = _opt(1000, "steps between checkpoints (written atomically)")
     preview_frames: int = _opt(3, "training frames rendered as previews at the end")
+
+    def __post_init__(self):
+        if self.shading not in ("world", "view"):
+            raise ValueError(f"shading must be 'world' or 'view', got {self.shading!r}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -111,6 +127,7 @@ PRESETS: dict[str, dict] = {
         densify_every=100,
         max_gaussians=10000,
         pose_correction=False,
+        secondary_from=800,
         opacity_reset_every=0,
         checkpoint_every=500,
     ),

@@ -65,11 +65,12 @@ def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = N
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         render_seconds += time.perf_counter() - start
-        pred = image.clamp(0, 1).cpu()
-        gt = torch.as_tensor(video.images[t], dtype=torch.float32) / 255.0
+        # metrics run where the render is (on a GPU, CPU-side SSIM of every frame would dominate the time)
+        pred = image.clamp(0, 1)
+        gt = torch.as_tensor(video.images[t], device=device).float() / 255.0
         mask = None
         if video.masks is not None:
-            mask = torch.as_tensor(video.masks[t], dtype=torch.float32) / 255.0
+            mask = torch.as_tensor(video.masks[t], device=device).float() / 255.0
         record = {
             "frame_id": int(video.frame_ids[t]),
             "psnr": metrics.psnr(pred, gt),
@@ -84,7 +85,7 @@ def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = N
         frames.append(record)
         if save_renders is not None:
             error = ((pred - gt).abs() * 4).clamp(0, 1)
-            row = torch.cat([pred, gt, error], dim=1).numpy()
+            row = torch.cat([pred, gt, error], dim=1).cpu().numpy()
             cv2.imwrite(str(save_renders / f"{record['frame_id']:06d}.png"),
                         cv2.cvtColor((row * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
 

@@ -2,7 +2,9 @@
 
 Stages (TAGA appendix C): (1) warm-up: the skinning field alone distils a rigid bone-distance prior;
 (2) Gaussian-only: the Gaussians train under that frozen field; (3) joint: the field trains too, with the bone
-regularization. Adaptive density control (3DGS) runs with a Gaussian budget (ToMiE appendix A.4).
+regularization; from ``secondary_from`` on, the secondary motion of the training instants (SMAD's graph, built
+then from the canonical Gaussians) trains with it. Adaptive density control (3DGS) runs with a Gaussian budget
+(ToMiE appendix A.4).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from warpavatar.config import FitConfig
 from warpavatar.gaussians import GaussianModel
 from warpavatar.metrics import psnr, ssim_map
 from warpavatar.pose_correction import PoseCorrection
+from warpavatar.secondary_motion import SecondaryMotion, voxel_downsample
 from warpavatar.skinning_field import VoxelSkinningField, bone_distance_prior, bone_sample_points
 
 __all__ = ["Trainer", "initial_gaussians", "CHECKPOINT_NAME"]
@@ -183,6 +186,10 @@ class Trainer:
                                    min_cells=config.grid_min_cells, hidden=config.field_hidden,
                                    layers=config.field_layers, frequencies=config.field_frequencies).to(self.device)
         self.avatar = Avatar(skeleton, gaussians, field)
+        if config.shading == "world":
+            centres = torch.stack([-c.world_to_camera[:3, :3].T @ c.world_to_camera[:3, 3] for c in self.cameras])
+            self.avatar.shading_origin = centres.mean(0)
+        self.secondary_optimizer: torch.optim.Optimizer | None = None
         self.gaussians = gaussians
         self.field = field
         network_parameters = list(field.parameters())
@@ -271,6 +278,9 @@ class Trainer:
         correction = self.avatar.pose_correction
         if correction is not None:
             correction.requires_grad_(train_field)  # trains with the field, from the joint stage on
+        if config.secondary_motion and step >= config.secondary_from and self.avatar.secondary_motion is None:
+            self._build_secondary_motion()
+        secondary = self.avatar.secondary_motion
         grad_out = torch.zeros(self.gaussians.count, 2, device=self.device)
         image, alpha, _, info = self.avatar.render(
             camera, self.bone_transforms[index], background=self.background,
@@ -289,11 +299,20 @@ class Trainer:
             if correction is not None:
                 loss = loss + config.lambda_pose_correction * correction.regularization()
             self.field_optimizer.zero_grad(set_to_none=True)
+        isometry = torch.zeros((), device=self.device)
+        if secondary is not None:
+            isometry = secondary.isometry(secondary.node_displacement(self.bone_transforms[index]))
+            loss = (loss + config.lambda_isometry * isometry + config.lambda_damping * secondary.damping(index)
+                    + config.lambda_displacement * secondary.magnitude(index))
+            self.secondary_optimizer.zero_grad(set_to_none=True)
         self.gaussians.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.gaussians.optimizer.step()
         if train_field:
             self.field_optimizer.step()
+        if secondary is not None:
+            secondary.sparsify_gradient()
+            self.secondary_optimizer.step()
 
         with torch.no_grad():
             visible = (info["radii"] > 0).any(dim=-1)
@@ -304,7 +323,7 @@ class Trainer:
             self._density_control(step)
         self.step += 1
         return {"loss": float(loss.detach()), "l1": float(l1.detach()), "ssim": float(ssim_value.detach()),
-                "bone": float(bone.detach()),
+                "bone": float(bone.detach()), "isometry": float(isometry.detach()),
                 "psnr": psnr(image.detach(), gt), "gaussians": self.gaussians.count}
 
     def _density_control(self, step: int) -> None:
@@ -323,6 +342,8 @@ class Trainer:
                                        generator=self.generator)
             self._prune()
             self._reset_densify_stats()
+            if self.avatar.secondary_motion is not None:
+                self.avatar.secondary_motion.bind(self.gaussians.means)
         if (config.opacity_reset_every and step > 0 and step % config.opacity_reset_every == 0
                 and step <= config.densify_until):
             self.gaussians.reset_opacity()
@@ -333,6 +354,22 @@ class Trainer:
         keep = (opacities > self.config.prune_opacity) & (max_scale < self.config.prune_max_scale * self.extent)
         if not bool(keep.all()):
             self.gaussians.prune(keep)
+
+    def _build_secondary_motion(self, state: dict | None = None) -> None:
+        """SMAD's graph from the current canonical Gaussians (or from a checkpoint's ``state``), and its optimizer."""
+        config = self.config
+        if state is None:
+            field = self.field
+            voxel = config.secondary_voxel * float((field.bbox_max - field.bbox_min).max())
+            nodes = voxel_downsample(self.gaussians.means.detach(), voxel)
+            fps = float(getattr(self.video, "fps", 30.0) or 30.0)
+            secondary = SecondaryMotion(nodes, self.bone_transforms, voxel_size=voxel, frame_rate=fps)
+            secondary.bind(self.gaussians.means)
+        else:
+            secondary = SecondaryMotion.from_file_state(state, device=self.device)
+        self.avatar.secondary_motion = secondary
+        # row-sparse Adam: a frame's displacements move only in the steps that see that frame
+        self.secondary_optimizer = torch.optim.SparseAdam([secondary.displacement], lr=config.lr_secondary * self.extent)
 
     # ------------------------------------------------------------------------------------------- checkpoints
     def checkpoint_state(self) -> dict:
@@ -345,6 +382,10 @@ class Trainer:
             "pose_correction": (self.avatar.pose_correction.state_dict()
                                 if self.avatar.pose_correction is not None else None),
             "field_optimizer": self.field_optimizer.state_dict(),
+            "secondary_motion": (self.avatar.secondary_motion.state_for_file()
+                                 if self.avatar.secondary_motion is not None else None),
+            "secondary_optimizer": (self.secondary_optimizer.state_dict()
+                                    if self.secondary_optimizer is not None else None),
             "generator": self.generator.get_state(),
             "frame_order": list(self.frame_order),
             "grad_accum": self.grad_accum.cpu(),
@@ -377,6 +418,9 @@ class Trainer:
             self.avatar.pose_correction.load_state_dict(state["pose_correction"])
         self._frozen_grid = None
         self.field_optimizer.load_state_dict(state["field_optimizer"])
+        if state.get("secondary_motion") is not None:
+            self._build_secondary_motion(state["secondary_motion"])
+            self.secondary_optimizer.load_state_dict(state["secondary_optimizer"])
         self.generator.set_state(state["generator"])
         self.frame_order = list(state["frame_order"])
         self.grad_accum = state["grad_accum"].to(self.device)
