@@ -96,3 +96,8 @@ def test_resume_refuses_other_config(demo_video, tmp_path):
     other = Trainer(demo_video, _tiny_config(iterations=20, lambda_ssim=0.5), tmp_path / "run")
     with pytest.raises(ValueError, match="lambda_ssim"):
         other.fit(resume=True, progress=False)
+
+
+def test_bad_shading_is_a_clear_error():
+    with pytest.raises(ValueError, match="shading must be 'world' or 'view'"):
+        preset("quick", shading="lambert")

@@ -18,7 +18,6 @@ gets that frame's displacement; any other pose gets none (the skinned, pose-corr
 
 from __future__ import annotations
 
-import math
 import warnings
 
 import torch
@@ -88,18 +87,18 @@ class SecondaryMotion(torch.nn.Module):
             Gaussian-to-node binding and the unit of the regularizers.
         neighbors: k of the node graph's k-NN edges (SMAD: 16).
         bind_count: nearest nodes each Gaussian blends.
-        frame_rate: frames per second of the training video (velocities are per second).
+
+    Velocities in the regularizers are in voxels per training frame (finite differences of consecutive rows).
     """
 
     def __init__(self, node_positions: torch.Tensor, frame_poses: torch.Tensor, *, voxel_size: float,
-                 neighbors: int = 16, bind_count: int = 4, frame_rate: float = 30.0):
+                 neighbors: int = 16, bind_count: int = 4):
         super().__init__()
         node_positions = node_positions.detach().float().contiguous()
         node_count = node_positions.shape[0]
         if node_count < 2:
             raise ValueError(f"secondary motion needs at least 2 graph nodes, got {node_count}")
-        self.hyper = dict(voxel_size=float(voxel_size), neighbors=int(neighbors), bind_count=int(bind_count),
-                          frame_rate=float(frame_rate))
+        self.hyper = dict(voxel_size=float(voxel_size), neighbors=int(neighbors), bind_count=int(bind_count))
         self.register_buffer("nodes", node_positions.clone())
         index, _ = ops.knn_graph(node_positions, min(neighbors, node_count - 1))
         receivers = torch.arange(node_count, device=index.device)[:, None].expand_as(index)
@@ -234,7 +233,3 @@ class SecondaryMotion(torch.nn.Module):
         return (f"nodes={self.node_count}, edges={self.edges.shape[0]}, frames={self.frame_count}, "
                 f"voxel_size={self.hyper['voxel_size']:.4g}")
 
-
-def default_voxel_size(bbox_min: torch.Tensor, bbox_max: torch.Tensor, *, fraction: float) -> float:
-    """Voxel edge as a fraction of the canonical box's longest side."""
-    return float(fraction * (bbox_max - bbox_min).max()) if math.isfinite(fraction) else 0.0

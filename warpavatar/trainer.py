@@ -362,8 +362,7 @@ class Trainer:
             field = self.field
             voxel = config.secondary_voxel * float((field.bbox_max - field.bbox_min).max())
             nodes = voxel_downsample(self.gaussians.means.detach(), voxel)
-            fps = float(getattr(self.video, "fps", 30.0) or 30.0)
-            secondary = SecondaryMotion(nodes, self.bone_transforms, voxel_size=voxel, frame_rate=fps)
+            secondary = SecondaryMotion(nodes, self.bone_transforms, voxel_size=voxel)
             secondary.bind(self.gaussians.means)
         else:
             secondary = SecondaryMotion.from_file_state(state, device=self.device)
