@@ -77,6 +77,8 @@ class Avatar(torch.nn.Module):
         self.deformers: list[Deformer] = []
         self.pose_correction: PoseCorrection | None = None
         self.secondary_motion: SecondaryMotion | None = None
+        #: optional global world-frame irradiance (:class:`warpavatar.lighting.WorldLighting`)
+        self.lighting: torch.nn.Module | None = None
         #: world point [3] the SH colours are evaluated from (``shading="world"``); None: the render camera
         self.shading_origin: torch.Tensor | None = None
 
@@ -109,6 +111,7 @@ class Avatar(torch.nn.Module):
             canonical_means, canonical_quats, scales = self.pose_correction(
                 canonical_means, canonical_quats, scales, bones)
         weights = self.field.weights(canonical_means, grid)
+        rest_means = canonical_means
         node_displacement = None
         if self.secondary_motion is not None:
             node_displacement = self.secondary_motion.node_displacement(bones)
@@ -117,7 +120,8 @@ class Avatar(torch.nn.Module):
         means, quats = ops.lbs(canonical_means.contiguous(), weights, bones, quats=canonical_quats)
         posed = PosedGaussians(means=means, quats=quats, scales=scales, opacities=gaussians.opacities,
                                colors=gaussians.sh_coefficients(degree), sh_degree=degree, weights=weights,
-                               canonical_quats=canonical_quats, node_displacement=node_displacement)
+                               canonical_quats=canonical_quats, canonical_means=rest_means,
+                               node_displacement=node_displacement)
         for deformer in self.deformers:
             posed = deformer(posed, frame_index=frame_index)
         return posed
@@ -140,6 +144,8 @@ class Avatar(torch.nn.Module):
         K = torch.as_tensor(camera.K, dtype=torch.float32, device=device)
         world_to_camera = torch.as_tensor(camera.world_to_camera, dtype=torch.float32, device=device)
         colors = self.view_colors(posed, world_to_camera, origin=self.shading_origin)
+        if self.lighting is not None:
+            colors = self.lighting(colors, posed, posed["canonical_means"])
         return ops.rasterize_gaussians(
             posed["means"], posed["quats"], posed["scales"], posed["opacities"], colors, K, world_to_camera,
             int(camera.width), int(camera.height), background=background,
@@ -185,6 +191,8 @@ class Avatar(torch.nn.Module):
             },
             "secondary_motion": None if self.secondary_motion is None else self.secondary_motion.state_for_file(),
             "shading_origin": None if self.shading_origin is None else self.shading_origin.detach().cpu(),
+            "lighting": None if self.lighting is None else {
+                k: v.detach().cpu() for k, v in self.lighting.state_dict().items()},
             "config": config or {},
         }
 
@@ -219,6 +227,12 @@ class Avatar(torch.nn.Module):
             avatar.pose_correction = correction.to(device)
         if state.get("secondary_motion") is not None:
             avatar.secondary_motion = SecondaryMotion.from_file_state(state["secondary_motion"], device=device)
+        if state.get("lighting") is not None:
+            from warpavatar.lighting import WorldLighting
+
+            lighting = WorldLighting(state["lighting"]["heads"], state["lighting"]["tails"])
+            lighting.load_state_dict(state["lighting"])
+            avatar.lighting = lighting.to(device)
         if state.get("shading_origin") is not None:
             avatar.shading_origin = state["shading_origin"].to(device=device, dtype=torch.float32)
         return avatar

@@ -56,6 +56,9 @@ class FitConfig:
     lambda_isometry: float = _opt(0.1, "weight of SMAD's isometry loss on the posed graph (per voxel^2)")
     lambda_damping: float = _opt(0.01, "weight of SMAD's damping loss on node velocities (voxels per frame)")
     lambda_displacement: float = _opt(1e-3, "weight of the mean squared node displacement (per voxel^2)")
+    lighting: bool = _opt(False, "multiply colours by a global first-order irradiance of each Gaussian's world "
+                          "normal (lights fixed in the world; extrapolates to sides never facing the camera)")
+    lr_lighting: float = _opt(1e-3, "Adam learning rate of the global lighting's 12 numbers")
     shading: str = _opt("world", "'world': colours follow how the body faces a fixed light rig (evaluated from "
                         "the training camera centre; right for a fixed camera and a turning subject); 'view': "
                         "view-dependent colours from the rendering camera (3DGS)")

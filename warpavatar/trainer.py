@@ -190,6 +190,13 @@ class Trainer:
             centres = torch.stack([-c.world_to_camera[:3, :3].T @ c.world_to_camera[:3, 3] for c in self.cameras])
             self.avatar.shading_origin = centres.mean(0)
         self.secondary_optimizer: torch.optim.Optimizer | None = None
+        self.lighting_optimizer: torch.optim.Optimizer | None = None
+        if config.lighting:
+            from warpavatar.lighting import WorldLighting
+
+            self.avatar.lighting = WorldLighting(torch.as_tensor(skeleton.heads), torch.as_tensor(skeleton.tails)
+                                                 ).to(self.device)
+            self.lighting_optimizer = torch.optim.Adam(self.avatar.lighting.parameters(), lr=config.lr_lighting)
         self.gaussians = gaussians
         self.field = field
         network_parameters = list(field.parameters())
@@ -306,8 +313,12 @@ class Trainer:
                     + config.lambda_displacement * secondary.magnitude(index))
             self.secondary_optimizer.zero_grad(set_to_none=True)
         self.gaussians.optimizer.zero_grad(set_to_none=True)
+        if self.lighting_optimizer is not None:
+            self.lighting_optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.gaussians.optimizer.step()
+        if self.lighting_optimizer is not None:
+            self.lighting_optimizer.step()
         if train_field:
             self.field_optimizer.step()
         if secondary is not None:
@@ -385,6 +396,9 @@ class Trainer:
                                  if self.avatar.secondary_motion is not None else None),
             "secondary_optimizer": (self.secondary_optimizer.state_dict()
                                     if self.secondary_optimizer is not None else None),
+            "lighting": (self.avatar.lighting.state_dict() if self.avatar.lighting is not None else None),
+            "lighting_optimizer": (self.lighting_optimizer.state_dict() if self.lighting_optimizer is not None
+                                   else None),
             "generator": self.generator.get_state(),
             "frame_order": list(self.frame_order),
             "grad_accum": self.grad_accum.cpu(),
@@ -420,6 +434,9 @@ class Trainer:
         if state.get("secondary_motion") is not None:
             self._build_secondary_motion(state["secondary_motion"])
             self.secondary_optimizer.load_state_dict(state["secondary_optimizer"])
+        if self.avatar.lighting is not None:
+            self.avatar.lighting.load_state_dict(state["lighting"])
+            self.lighting_optimizer.load_state_dict(state["lighting_optimizer"])
         self.generator.set_state(state["generator"])
         self.frame_order = list(state["frame_order"])
         self.grad_accum = state["grad_accum"].to(self.device)
