@@ -93,3 +93,27 @@ def test_relative_rotations_ignore_global_heading():
     turned[:, :3, :3] = _rotation_z(0.9) @ bones[:, :3, :3]
     assert torch.allclose(relative_rotations_6d(bones, parents), relative_rotations_6d(turned, parents), atol=1e-6)
     assert relative_rotations_6d(bones, parents).abs().max() > 0.1
+
+
+def test_world_shading_ignores_the_rendering_camera():
+    """With a shading origin, colours do not depend on where the rendering camera is."""
+    generator = torch.Generator().manual_seed(3)
+    count = 40
+    quats = torch.randn(count, 4, generator=generator)
+    quats = quats / quats.norm(dim=-1, keepdim=True)
+    posed = PosedGaussians(means=torch.randn(count, 3, generator=generator), quats=quats,
+                           colors=torch.randn(count, 4, 3, generator=generator) * 0.3, sh_degree=1,
+                           canonical_quats=quats)
+    origin = torch.tensor([0.0, 0.0, -4.0])
+    first, second = torch.eye(4), torch.eye(4)
+    first[:3, 3] = torch.tensor([0.0, 0.0, 4.0])
+    angle = 1.3
+    second[:3, :3] = torch.tensor([[math.cos(angle), 0.0, math.sin(angle)], [0.0, 1.0, 0.0],
+                                   [-math.sin(angle), 0.0, math.cos(angle)]])
+    second[:3, 3] = torch.tensor([0.5, 0.0, 4.0])
+    a = Avatar.view_colors(posed, first, origin=origin)
+    b = Avatar.view_colors(posed, second, origin=origin)
+    assert torch.equal(a, b)
+    # and equals the view-dependent colour for a camera whose centre is the origin
+    assert torch.allclose(a, Avatar.view_colors(posed, first), atol=1e-6)
+    assert not torch.allclose(a, Avatar.view_colors(posed, second), atol=1e-3)

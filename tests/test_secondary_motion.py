@@ -1,12 +1,9 @@
 """SMAD's graph for the training instants: downsampling, binding, blending, frame matching, losses, files."""
 
-import math
-
 import pytest
 import torch
 
 from warpavatar import ops
-from warpavatar.avatar import Avatar, PosedGaussians
 from warpavatar.secondary_motion import SecondaryMotion, voxel_downsample
 
 
@@ -129,27 +126,3 @@ def test_file_state_round_trip_keeps_binding_and_values(device):
         a = module.gaussian_displacement(moved, module.node_displacement(poses[t]))
         b = loaded.gaussian_displacement(moved, loaded.node_displacement(poses[t]))
         assert torch.equal(a, b)
-
-
-def test_world_shading_ignores_the_rendering_camera():
-    """With a shading origin, colours do not depend on where the rendering camera is."""
-    generator = torch.Generator().manual_seed(3)
-    count = 40
-    quats = torch.randn(count, 4, generator=generator)
-    quats = quats / quats.norm(dim=-1, keepdim=True)
-    posed = PosedGaussians(means=torch.randn(count, 3, generator=generator), quats=quats,
-                           colors=torch.randn(count, 4, 3, generator=generator) * 0.3, sh_degree=1,
-                           canonical_quats=quats)
-    origin = torch.tensor([0.0, 0.0, -4.0])
-    first, second = torch.eye(4), torch.eye(4)
-    first[:3, 3] = torch.tensor([0.0, 0.0, 4.0])
-    angle = 1.3
-    second[:3, :3] = torch.tensor([[math.cos(angle), 0.0, math.sin(angle)], [0.0, 1.0, 0.0],
-                                   [-math.sin(angle), 0.0, math.cos(angle)]])
-    second[:3, 3] = torch.tensor([0.5, 0.0, 4.0])
-    a = Avatar.view_colors(posed, first, origin=origin)
-    b = Avatar.view_colors(posed, second, origin=origin)
-    assert torch.equal(a, b)
-    # and equals the view-dependent colour for a camera whose centre is the origin
-    assert torch.allclose(a, Avatar.view_colors(posed, first), atol=1e-6)
-    assert not torch.allclose(a, Avatar.view_colors(posed, second), atol=1e-3)

@@ -50,7 +50,9 @@ class PosedGaussians(dict):
     """Posed Gaussians ready for :func:`warpavatar.ops.rasterize_gaussians`.
 
     Keys: ``means`` [N,3], ``quats`` [N,4] (w,x,y,z), ``scales`` [N,3], ``opacities`` [N],
-    ``colors`` [N,(d+1)^2,3] SH coefficients, ``sh_degree`` (int), ``weights`` [N,J] skinning weights.
+    ``colors`` [N,(d+1)^2,3] SH coefficients, ``sh_degree`` (int), ``weights`` [N,J] skinning weights,
+    ``canonical_quats`` [N,4] and ``canonical_means`` [N,3]: the (pose-corrected) rest-pose orientations and
+    centres, before secondary motion.
     """
 
 
@@ -111,17 +113,14 @@ class Avatar(torch.nn.Module):
             canonical_means, canonical_quats, scales = self.pose_correction(
                 canonical_means, canonical_quats, scales, bones)
         weights = self.field.weights(canonical_means, grid)
-        rest_means = canonical_means
-        node_displacement = None
+        displaced_means = canonical_means
         if self.secondary_motion is not None:
-            node_displacement = self.secondary_motion.node_displacement(bones)
-            canonical_means = canonical_means + self.secondary_motion.gaussian_displacement(
-                gaussians.means, node_displacement)
-        means, quats = ops.lbs(canonical_means.contiguous(), weights, bones, quats=canonical_quats)
+            displaced_means = canonical_means + self.secondary_motion.gaussian_displacement(
+                gaussians.means, self.secondary_motion.node_displacement(bones))
+        means, quats = ops.lbs(displaced_means.contiguous(), weights, bones, quats=canonical_quats)
         posed = PosedGaussians(means=means, quats=quats, scales=scales, opacities=gaussians.opacities,
                                colors=gaussians.sh_coefficients(degree), sh_degree=degree, weights=weights,
-                               canonical_quats=canonical_quats, canonical_means=rest_means,
-                               node_displacement=node_displacement)
+                               canonical_quats=canonical_quats, canonical_means=canonical_means)
         for deformer in self.deformers:
             posed = deformer(posed, frame_index=frame_index)
         return posed
@@ -145,7 +144,7 @@ class Avatar(torch.nn.Module):
         world_to_camera = torch.as_tensor(camera.world_to_camera, dtype=torch.float32, device=device)
         colors = self.view_colors(posed, world_to_camera, origin=self.shading_origin)
         if self.lighting is not None:
-            colors = self.lighting(colors, posed, posed["canonical_means"])
+            colors = self.lighting(colors, posed)
         return ops.rasterize_gaussians(
             posed["means"], posed["quats"], posed["scales"], posed["opacities"], colors, K, world_to_camera,
             int(camera.width), int(camera.height), background=background,

@@ -17,19 +17,16 @@ from __future__ import annotations
 import torch
 
 from warpavatar.avatar import quat_rotate
+from warpavatar.skinning_field import closest_on_segments
 
 __all__ = ["WorldLighting", "outward_normals"]
 
 
 def _closest_on_bones(points: torch.Tensor, heads: torch.Tensor, tails: torch.Tensor) -> torch.Tensor:
-    """Closest point [N,3] on the nearest bone segment to each point [N,3]."""
-    axis = tails - heads
-    length_sq = (axis * axis).sum(-1).clamp_min(1e-12)
+    """Closest point [N,3] on the nearest bone segment to each point [N,3] (in chunks: [n,J,3] at a time)."""
     closest = []
     for chunk in torch.split(points, 32768):
-        rel = chunk[:, None, :] - heads[None]
-        t = ((rel * axis[None]).sum(-1) / length_sq).clamp(0.0, 1.0)
-        candidates = heads[None] + t[..., None] * axis[None]  # [n,J,3]
+        candidates = closest_on_segments(chunk, heads, tails)  # [n,J,3]
         nearest = (chunk[:, None, :] - candidates).square().sum(-1).argmin(dim=1)
         closest.append(candidates[torch.arange(chunk.shape[0], device=points.device), nearest])
     return torch.cat(closest)
@@ -67,9 +64,10 @@ class WorldLighting(torch.nn.Module):
         self.ambient = torch.nn.Parameter(torch.ones(3))
         self.directional = torch.nn.Parameter(torch.zeros(3, 3))  # [rgb, xyz]
 
-    def forward(self, colors: torch.Tensor, posed: dict, canonical_means: torch.Tensor) -> torch.Tensor:
-        """Lit colours [N,3] from SH colours [N,3] and the posed Gaussians (``quats``, ``canonical_quats``, ``scales``)."""
-        normals = outward_normals(canonical_means, posed["canonical_quats"], posed["quats"], posed["scales"],
-                                  self.heads, self.tails)
+    def forward(self, colors: torch.Tensor, posed: dict) -> torch.Tensor:
+        """Lit colours [N,3] from SH colours [N,3] and the posed Gaussians (``canonical_means``, ``quats``,
+        ``canonical_quats``, ``scales``)."""
+        normals = outward_normals(posed["canonical_means"], posed["canonical_quats"], posed["quats"],
+                                  posed["scales"], self.heads, self.tails)
         irradiance = (self.ambient + normals @ self.directional.T).clamp_min(0.0)
         return colors * irradiance

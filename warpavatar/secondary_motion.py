@@ -109,8 +109,8 @@ class SecondaryMotion(torch.nn.Module):
         self.register_buffer("frame_poses", frame_poses.detach().float().clone())
         self.displacement = torch.nn.Parameter(torch.zeros(frame_poses.shape[0], node_count, 3,
                                                            device=node_positions.device))
-        self._binding: tuple[int, torch.Tensor, torch.Tensor] | None = None
-        self._blend: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._binding: tuple[torch.Tensor, torch.Tensor] | None = None  # (node index [N,b], weights [N,b])
+        self._blend: tuple[torch.Tensor, torch.Tensor] | None = None  # sparse W [N,M] and W^T, built from it
 
     @property
     def node_count(self) -> int:
@@ -136,11 +136,11 @@ class SecondaryMotion(torch.nn.Module):
         self._set_binding(torch.cat(indices), torch.cat(weights))
 
     def _set_binding(self, index: torch.Tensor, weights: torch.Tensor) -> None:
-        self._binding = (index.shape[0], index, weights)
+        self._binding = (index, weights)
         self._blend = _blend_matrices(index, weights, self.node_count)
 
     def _bound(self, means: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        if self._binding is None or self._binding[0] != means.shape[0]:
+        if self._binding is None or self._binding[0].shape[0] != means.shape[0]:
             self.bind(means)
         return self._blend
 
@@ -209,7 +209,7 @@ class SecondaryMotion(torch.nn.Module):
     # ---------------------------------------------------------------------------------------- files
     def state_for_file(self) -> dict:
         """Everything to rebuild the module, including the current Gaussian binding (so a reload renders the same)."""
-        binding = None if self._binding is None else {"index": self._binding[1].cpu(), "weights": self._binding[2].cpu()}
+        binding = None if self._binding is None else {"index": self._binding[0].cpu(), "weights": self._binding[1].cpu()}
         return {"state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()}, "hyper": dict(self.hyper),
                 "binding": binding}
 

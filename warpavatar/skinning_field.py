@@ -15,7 +15,7 @@ import torch
 
 from warpavatar import ops
 
-__all__ = ["bone_distance_prior", "bone_sample_points", "grid_shape_for_box", "box_encoding", "VoxelSkinningField"]
+__all__ = ["closest_on_segments", "bone_distance_prior", "bone_sample_points", "grid_shape_for_box", "box_encoding", "VoxelSkinningField"]
 
 
 def box_encoding(points: torch.Tensor, bbox_min: torch.Tensor, bbox_max: torch.Tensor, frequencies: int
@@ -29,14 +29,18 @@ def box_encoding(points: torch.Tensor, bbox_min: torch.Tensor, bbox_max: torch.T
     return torch.cat(bands, dim=-1)
 
 
-def _segment_distance(points: torch.Tensor, heads: torch.Tensor, tails: torch.Tensor) -> torch.Tensor:
-    """Distance [N,J] from each point to each bone segment head->tail."""
+def closest_on_segments(points: torch.Tensor, heads: torch.Tensor, tails: torch.Tensor) -> torch.Tensor:
+    """Closest point [N,J,3] of each bone segment head->tail ([J,3] each) to each point [N,3]."""
     axis = tails - heads  # [J,3]
     length_sq = (axis * axis).sum(-1).clamp_min(1e-12)
     rel = points[:, None, :] - heads[None]  # [N,J,3]
     t = ((rel * axis[None]).sum(-1) / length_sq).clamp(0.0, 1.0)
-    closest = heads[None] + t[..., None] * axis[None]
-    return (points[:, None, :] - closest).norm(dim=-1)
+    return heads[None] + t[..., None] * axis[None]
+
+
+def _segment_distance(points: torch.Tensor, heads: torch.Tensor, tails: torch.Tensor) -> torch.Tensor:
+    """Distance [N,J] from each point to each bone segment head->tail."""
+    return (points[:, None, :] - closest_on_segments(points, heads, tails)).norm(dim=-1)
 
 
 def bone_distance_prior(points: torch.Tensor, heads: torch.Tensor, tails: torch.Tensor, *, temperature: float

@@ -308,7 +308,7 @@ class Trainer:
             self.field_optimizer.zero_grad(set_to_none=True)
         isometry = torch.zeros((), device=self.device)
         if secondary is not None:
-            isometry = secondary.isometry(secondary.node_displacement(self.bone_transforms[index]))
+            isometry = secondary.isometry(secondary.displacement[index])
             loss = (loss + config.lambda_isometry * isometry + config.lambda_damping * secondary.damping(index)
                     + config.lambda_displacement * secondary.magnitude(index))
             self.secondary_optimizer.zero_grad(set_to_none=True)
