@@ -72,7 +72,8 @@ def test_fit_learns_and_writes_outputs(demo_video, tmp_path):
 
 def test_resume_matches_uninterrupted(demo_video, tmp_path):
     config = _tiny_config(iterations=60, densify_from=20, densify_every=20, densify_until=50,
-                          gaussian_only_steps=30, secondary_from=25, lighting=True, checkpoint_every=1000)
+                          gaussian_only_steps=30, secondary_from=25, lighting=True, checkpoint_every=1000,
+                          backward_mapping=True, backward_from=30, backward_every=10, backward_until=60)
     whole = Trainer(demo_video, config, tmp_path / "whole")
     whole.fit(progress=False)
 
@@ -86,6 +87,12 @@ def test_resume_matches_uninterrupted(demo_video, tmp_path):
         assert a.shape == b.shape, name
         assert torch.allclose(a, b, atol=1e-6), name
     assert resumed.avatar.secondary_motion is not None
+    # the backward mapping ran (its cache was rebuilt after the last densification) and resumed the same way
+    assert whole.backward.ready and resumed.backward.ready
+    assert torch.equal(whole.backward.index, resumed.backward.index)
+    assert torch.allclose(whole.backward.target_means, resumed.backward.target_means, atol=1e-6)
+    log = [json.loads(line) for line in (tmp_path / "whole" / "train_log.jsonl").read_text().splitlines()]
+    assert any(entry.get("ambiguous", 0) > 0 for entry in log), log
     assert torch.equal(whole.avatar.lighting.directional, resumed.avatar.lighting.directional)
     assert torch.allclose(whole.avatar.secondary_motion.displacement, resumed.avatar.secondary_motion.displacement,
                           atol=1e-6)

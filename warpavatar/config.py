@@ -47,6 +47,20 @@ class FitConfig:
                              "dynamics of the training instants; other poses use the pose-only correction)")
     pose_correction_hidden: int = _opt(128, "hidden width of the pose-correction MLP")
     lambda_pose_correction: float = _opt(0.01, "weight of the pose correction's size regularizer")
+    # TAGA's backward mapping (paper 004 Sec. 3.2-3.4)
+    backward_mapping: bool = _opt(False, "detect Gaussians whose skinning disagrees with a bone GMM (ambiguous), "
+                                  "correct them from their nearest normal neighbours and pull the canonical "
+                                  "model and skinning field towards the correction (TAGA's cycle losses)")
+    backward_from: int = _opt(3000, "first step of the backward-mapping phase")
+    backward_until: int = _opt(6500, "last step of the backward-mapping phase")
+    backward_every: int = _opt(150, "steps between refreshes of the detected and corrected Gaussians")
+    backward_threshold: float = _opt(0.5, "Gaussians whose confidence 1 - JSD(GMM weights, weights) is at most "
+                                     "this are ambiguous")
+    backward_neighbours: int = _opt(8, "nearest normal Gaussians an ambiguous one may take its weights from")
+    backward_max_move: float = _opt(0.05, "corrections moving a canonical centre farther than this fraction of "
+                                    "the canonical extent are dropped (distant parts touching in the frame)")
+    lambda_geo: float = _opt(1000.0, "weight of the geometry cycle loss (mean L1 distance, world units)")
+    lambda_skin: float = _opt(10.0, "weight of the skinning cycle loss (mean squared weight difference)")
     # Secondary motion of the training instants (SMAD's graph, paper 000 Sec. 3.2-3.3)
     secondary_motion: bool = _opt(False, "learn per-training-frame displacements of a voxel-downsampled Gaussian "
                                   "graph (cloth that swings; novel views of training instants and replays use them)")
@@ -91,6 +105,10 @@ class FitConfig:
     def __post_init__(self):
         if self.shading not in ("world", "view"):
             raise ValueError(f"shading must be 'world' or 'view', got {self.shading!r}")
+        if not 0.0 < self.backward_threshold < 1.0:
+            raise ValueError(f"backward_threshold must lie in (0, 1), got {self.backward_threshold}")
+        if self.backward_every < 1:
+            raise ValueError(f"backward_every must be at least 1, got {self.backward_every}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -131,6 +149,8 @@ PRESETS: dict[str, dict] = {
         max_gaussians=10000,
         pose_correction=False,
         secondary_from=800,
+        backward_from=1000,
+        backward_until=1700,
         opacity_reset_every=0,
         checkpoint_every=500,
     ),

@@ -21,6 +21,7 @@ import torch
 import tqdm
 
 from warpavatar.avatar import Avatar
+from warpavatar.backward_mapping import BackwardMapping
 from warpavatar.config import FitConfig
 from warpavatar.gaussians import GaussianModel
 from warpavatar.metrics import psnr, ssim_map
@@ -216,6 +217,13 @@ class Trainer:
         tails = torch.as_tensor(skeleton.tails, dtype=torch.float32, device=self.device)
         parents = torch.as_tensor(skeleton.parents, device=self.device)
         self.bone_samples, self.bone_sample_index = bone_sample_points(heads, tails, parents)
+        self.backward: BackwardMapping | None = None
+        if config.backward_mapping:
+            self.backward = BackwardMapping(heads, tails, parents, threshold=config.backward_threshold,
+                                            neighbours=config.backward_neighbours,
+                                            min_semi_axis=0.005 * self.extent,
+                                            max_move=config.backward_max_move * self.extent)
+        self._backward_refreshed = -1
         self.field_prior = bone_distance_prior(field.grid_points.reshape(-1, 3), heads, tails,
                                                temperature=0.02 * self.extent)
         self.step = 0
@@ -300,9 +308,14 @@ class Trainer:
         if config.lambda_scale > 0:
             loss = loss + config.lambda_scale * torch.relu(self.gaussians.scales - 0.05 * self.extent).mean()
         bone = torch.zeros((), device=self.device)
+        geo = skin = torch.zeros((), device=self.device)
         if train_field:
             bone = self.field.bone_loss(self.bone_samples, self.bone_sample_index, grid)
             loss = loss + config.lambda_bone * bone
+            if self.backward is not None and config.backward_from <= step <= config.backward_until:
+                self._refresh_backward(step, index, grid)
+                geo, skin = self.backward.losses(self.gaussians.means, self.field, grid)
+                loss = loss + config.lambda_geo * geo + config.lambda_skin * skin
             if correction is not None:
                 loss = loss + config.lambda_pose_correction * correction.regularization()
             self.field_optimizer.zero_grad(set_to_none=True)
@@ -335,6 +348,9 @@ class Trainer:
         self.step += 1
         return {"loss": float(loss.detach()), "l1": float(l1.detach()), "ssim": float(ssim_value.detach()),
                 "bone": float(bone.detach()), "isometry": float(isometry.detach()),
+                "geo": float(geo.detach()), "skin": float(skin.detach()),
+                "ambiguous": (int(self.backward.index.numel()) if self.backward is not None and self.backward.ready
+                              else 0),
                 "psnr": psnr(image.detach(), gt), "gaussians": self.gaussians.count}
 
     def _density_control(self, step: int) -> None:
@@ -353,6 +369,8 @@ class Trainer:
                                        generator=self.generator)
             self._prune()
             self._reset_densify_stats()
+            if self.backward is not None:  # its cached indices no longer name the same Gaussians
+                self.backward.clear()
             if self.avatar.secondary_motion is not None:
                 self.avatar.secondary_motion.bind(self.gaussians.means)
         if (config.opacity_reset_every and step > 0 and step % config.opacity_reset_every == 0
@@ -365,6 +383,17 @@ class Trainer:
         keep = (opacities > self.config.prune_opacity) & (max_scale < self.config.prune_max_scale * self.extent)
         if not bool(keep.all()):
             self.gaussians.prune(keep)
+
+    def _refresh_backward(self, step: int, index: int, grid: torch.Tensor) -> None:
+        """Re-detect and correct ambiguous Gaussians on training frame ``index`` when the cache is stale."""
+        backward = self.backward
+        if backward.ready and step - self._backward_refreshed < self.config.backward_every:
+            return
+        with torch.no_grad():
+            posed = self.avatar.pose(self.bone_transforms[index], grid=grid)
+            backward.refresh(self.gaussians.means.detach(), posed["means"], posed["weights"],
+                             self.avatar.pose_bones(self.bone_transforms[index]))
+        self._backward_refreshed = step
 
     def _build_secondary_motion(self, state: dict | None = None) -> None:
         """SMAD's graph from the current canonical Gaussians (or from a checkpoint's ``state``), and its optimizer."""
@@ -399,6 +428,8 @@ class Trainer:
             "lighting": (self.avatar.lighting.state_dict() if self.avatar.lighting is not None else None),
             "lighting_optimizer": (self.lighting_optimizer.state_dict() if self.lighting_optimizer is not None
                                    else None),
+            "backward": (dict(self.backward.state() or {}, refreshed=self._backward_refreshed)
+                         if self.backward is not None and self.backward.ready else None),
             "generator": self.generator.get_state(),
             "frame_order": list(self.frame_order),
             "grad_accum": self.grad_accum.cpu(),
@@ -437,6 +468,10 @@ class Trainer:
         if self.avatar.lighting is not None:
             self.avatar.lighting.load_state_dict(state["lighting"])
             self.lighting_optimizer.load_state_dict(state["lighting_optimizer"])
+        if self.backward is not None:
+            saved_backward = state.get("backward")
+            self.backward.load_state(saved_backward, device=self.device)
+            self._backward_refreshed = int(saved_backward["refreshed"]) if saved_backward else -1
         self.generator.set_state(state["generator"])
         self.frame_order = list(state["frame_order"])
         self.grad_accum = state["grad_accum"].to(self.device)
