@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 import torch
 
+pytest.importorskip("pxr")  # usd-core is a dependency; skip cleanly where it is absent (the GPU machine)
+
 from warpavatar import data
 from warpavatar.avatar import Avatar
 from warpavatar.cli import animate, render
 from warpavatar.gaussians import GaussianModel
 from warpavatar.io.usd import read_gaussian_usd
 from warpavatar.skinning_field import VoxelSkinningField, bone_distance_prior
-
-pytest.importorskip("pxr")
 
 
 @pytest.fixture(scope="module")

@@ -6,6 +6,9 @@ import os
 import numpy as np
 import pytest
 import torch
+
+pytest.importorskip("pxr")  # usd-core is a dependency; skip cleanly where it is absent (the GPU machine)
+
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, UsdVol
 
 from warpavatar.io.usd import GaussianUsdWriter, read_gaussian_usd
