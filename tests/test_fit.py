@@ -109,3 +109,35 @@ def test_resume_refuses_other_config(demo_video, tmp_path):
 def test_bad_shading_is_a_clear_error():
     with pytest.raises(ValueError, match="shading must be 'world' or 'view'"):
         preset("quick", shading="lambert")
+
+
+def test_training_target_keeps_edge_pixels_of_flat_background_frames(demo_video, tmp_path):
+    import dataclasses
+
+    index = 2
+    auto = Trainer(demo_video, _tiny_config(iterations=1), tmp_path / "auto")
+    frame_index = int(auto.train_indices[index])  # the tiny config trains on a subset of the frames
+    image = torch.as_tensor(demo_video.images[frame_index]).float() / 255.0
+    mask = torch.as_tensor(demo_video.masks[frame_index]).float() / 255.0
+    background = torch.as_tensor(demo_video.background, dtype=torch.float32)
+    composite = image * mask[..., None] + background * (1 - mask[..., None])
+    # the demo's meta.json declares the flat background its frames were rendered over: 'auto' keeps the frame
+    assert "background" in demo_video.meta
+    target, target_mask = auto.target(index)
+    assert torch.equal(target, image) and torch.equal(target_mask, mask)
+    # the frame and the composite differ at the anti-aliased pixels just outside the mask
+    outside = (mask == 0) & (image.sum(-1) > 0)
+    assert bool(outside.any())
+    masked = Trainer(demo_video, _tiny_config(iterations=1, target="masked"), tmp_path / "masked")
+    assert torch.equal(masked.target(index)[0], composite)
+    # a folder that declares no background (a real video) is cut out by its mask under 'auto'
+    undeclared = dataclasses.replace(demo_video, meta={})
+    cut = Trainer(undeclared, _tiny_config(iterations=1), tmp_path / "undeclared")
+    assert torch.equal(cut.target(index)[0], composite)
+    frame = Trainer(undeclared, _tiny_config(iterations=1, target="frame"), tmp_path / "frame")
+    assert torch.equal(frame.target(index)[0], image)
+
+
+def test_bad_target_is_a_clear_error():
+    with pytest.raises(ValueError, match="target must be"):
+        preset("quick", target="alpha")

@@ -78,6 +78,10 @@ class FitConfig:
                         "the training camera centre; right for a fixed camera and a turning subject); 'view': "
                         "view-dependent colours from the rendering camera (3DGS)")
     # Losses
+    target: str = _opt("auto", "what the render is compared with: 'frame' (the frame as it is), 'masked' (the "
+                       "masked foreground over the background colour) or 'auto' ('frame' when meta.json declares "
+                       "the flat background the frames were rendered over, so their anti-aliased edge pixels "
+                       "stay; 'masked' otherwise)")
     lambda_ssim: float = _opt(0.2, "weight of (1 - SSIM) in the photometric loss")
     lambda_mask: float = _opt(0.1, "weight of the L1 loss between rendered alpha and the foreground mask")
     lambda_scale: float = _opt(0.0, "weight of a penalty on Gaussian scales above scale_limit")
@@ -106,6 +110,8 @@ class FitConfig:
     def __post_init__(self):
         if self.shading not in ("world", "view"):
             raise ValueError(f"shading must be 'world' or 'view', got {self.shading!r}")
+        if self.target not in ("auto", "frame", "masked"):
+            raise ValueError(f"target must be 'auto', 'frame' or 'masked', got {self.target!r}")
         if not 0.0 < self.backward_threshold < 1.0:
             raise ValueError(f"backward_threshold must lie in (0, 1), got {self.backward_threshold}")
         if self.backward_every < 1:

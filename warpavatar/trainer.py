@@ -176,6 +176,10 @@ class Trainer:
                             width=c.width, height=c.height)
             for c in (video.cameras[i] for i in self.train_indices)]
         self.background = torch.as_tensor(video.background, dtype=torch.float32, device=self.device)
+        # frames rendered over a declared flat background are their own target (their edge pixels mix the
+        # subject with that colour, as a render does); otherwise the mask cuts the foreground out
+        self.composite_target = self.masks is not None and (
+            config.target == "masked" or (config.target == "auto" and "background" not in video.meta))
 
         skeleton = video.skeleton
         positions, colours, bbox_min, bbox_max = initial_gaussians(skeleton, video, config, generator=self.generator,
@@ -254,11 +258,17 @@ class Trainer:
         return min(self.config.sh_degree, step // max(1, self.config.sh_increase_every))
 
     def target(self, index: int) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Ground truth of training frame ``index``: foreground over the frame's background colour, and mask."""
+        """Ground truth of training frame ``index`` and its mask (None without masks).
+
+        The image is the frame itself, or (``composite_target``) its masked foreground over the background
+        colour (see ``FitConfig.target``).
+        """
         image = self.images[index].float() / 255.0
         if self.masks is None:
             return image, None
         mask = (self.masks[index].float() / 255.0)
+        if not self.composite_target:
+            return image, mask
         return image * mask[..., None] + self.background * (1 - mask[..., None]), mask
 
     # -------------------------------------------------------------------------------------------- the stages
