@@ -3,8 +3,9 @@
 Stages (TAGA appendix C): (1) warm-up: the skinning field alone distils a rigid bone-distance prior;
 (2) Gaussian-only: the Gaussians train under that frozen field; (3) joint: the field trains too, with the bone
 regularization; from ``secondary_from`` on, the secondary motion of the training instants (SMAD's graph, built
-then from the canonical Gaussians) trains with it. Adaptive density control (3DGS) runs with a Gaussian budget
-(ToMiE appendix A.4).
+then from the canonical Gaussians) trains with it; between ``backward_from`` and ``backward_until``, TAGA's
+backward mapping (when enabled) adds its cycle losses. Adaptive density control (3DGS) runs with a Gaussian
+budget (ToMiE appendix A.4).
 """
 
 from __future__ import annotations
