@@ -32,9 +32,14 @@ from warpavatar.pose_correction import PoseCorrection
 from warpavatar.secondary_motion import SecondaryMotion
 from warpavatar.skinning_field import VoxelSkinningField
 
-__all__ = ["Deformer", "PosedGaussians", "Avatar", "AVATAR_FORMAT", "quat_rotate"]
+__all__ = ["Deformer", "PosedGaussians", "Avatar", "AVATAR_FORMAT", "quat_rotate", "camera_centre"]
 
 AVATAR_FORMAT = "warpavatar-avatar/1"
+
+
+def camera_centre(world_to_camera: torch.Tensor) -> torch.Tensor:
+    """World position [3] of a camera's centre from its [4,4] ``world_to_camera`` (``-R^T t``)."""
+    return -world_to_camera[:3, :3].T @ world_to_camera[:3, 3]
 
 
 def quat_rotate(quats: torch.Tensor, vectors: torch.Tensor, *, inverse: bool = False) -> torch.Tensor:
@@ -163,8 +168,7 @@ class Avatar(torch.nn.Module):
         if posed["sh_degree"] == 0:
             return torch.clamp_min(coefficients[:, 0] * SH_C0 + 0.5, 0.0)
         if origin is None:
-            rotation = world_to_camera[:3, :3]
-            origin = -rotation.T @ world_to_camera[:3, 3]
+            origin = camera_centre(world_to_camera)
         directions = posed["means"] - origin.to(posed["means"])
         directions = directions / directions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         # skinning rotation R_i = R(q_posed) R(q_canonical)^T, so R_i^T d = R(q_canonical) R(q_posed)^T d

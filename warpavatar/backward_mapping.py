@@ -188,8 +188,7 @@ class BackwardMapping:
         use = torch.ones(posed_means.shape[0], dtype=torch.bool, device=posed_means.device)
         gmm.fit(posed_means, weights, use=use, weight_floor=self.weight_floor, percentile=self.percentile)
         ambiguous = ~use
-        estimate = gmm.estimate(posed_means)
-        for _ in range(self.em_iterations):
+        for _ in range(max(1, self.em_iterations)):
             estimate = gmm.estimate(posed_means)  # E-step
             found = (1.0 - jensen_shannon(estimate, weights)) <= self.threshold
             if torch.equal(found, ambiguous):

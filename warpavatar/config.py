@@ -65,12 +65,14 @@ class FitConfig:
     # Secondary motion of the training instants (SMAD's graph, paper 000 Sec. 3.2-3.3)
     secondary_motion: bool = _opt(False, "learn per-training-frame displacements of a voxel-downsampled Gaussian "
                                   "graph (cloth that swings; novel views of training instants and replays use them)")
-    secondary_from: int = _opt(2000, "step at which the graph is built from the canonical Gaussians and starts to train")
+    secondary_from: int = _opt(2000, "step at which the graph is built from the canonical Gaussians and starts to "
+                               "train")
     secondary_voxel: float = _opt(0.03, "graph voxel edge as a fraction of the canonical box's longest side")
     lr_secondary: float = _opt(1e-4, "Adam learning rate of the node displacements, times the canonical extent")
     lambda_isometry: float = _opt(0.1, "weight of SMAD's isometry loss on the posed graph (per voxel^2)")
     lambda_damping: float = _opt(0.01, "weight of SMAD's damping loss on node velocities (voxels per frame)")
     lambda_displacement: float = _opt(1e-3, "weight of the mean squared node displacement (per voxel^2)")
+    # Colours
     lighting: bool = _opt(False, "multiply colours by a global first-order irradiance of each Gaussian's world "
                           "normal (lights fixed in the world; extrapolates to sides never facing the camera)")
     lr_lighting: float = _opt(1e-3, "Adam learning rate of the global lighting's 12 numbers")

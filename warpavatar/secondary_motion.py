@@ -194,7 +194,8 @@ class SecondaryMotion(torch.nn.Module):
         return ops.damping_loss(velocity.contiguous())
 
     def magnitude(self, frame: torch.Tensor | int) -> torch.Tensor:
-        """Mean squared displacement of frame ``frame``'s nodes, in voxels (keeps what the images leave free at rest)."""
+        """Mean squared displacement of frame ``frame``'s nodes, in voxels (keeps what the images leave free at
+        rest)."""
         return (self.displacement[int(frame)] / self.hyper["voxel_size"]).square().sum(-1).mean()
 
     def sparsify_gradient(self) -> None:
@@ -209,7 +210,8 @@ class SecondaryMotion(torch.nn.Module):
     # ---------------------------------------------------------------------------------------- files
     def state_for_file(self) -> dict:
         """Everything to rebuild the module, including the current Gaussian binding (so a reload renders the same)."""
-        binding = None if self._binding is None else {"index": self._binding[0].cpu(), "weights": self._binding[1].cpu()}
+        binding = (None if self._binding is None
+                   else {"index": self._binding[0].cpu(), "weights": self._binding[1].cpu()})
         return {"state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()}, "hyper": dict(self.hyper),
                 "binding": binding}
 

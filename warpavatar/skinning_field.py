@@ -15,7 +15,8 @@ import torch
 
 from warpavatar import ops
 
-__all__ = ["closest_on_segments", "bone_distance_prior", "bone_sample_points", "grid_shape_for_box", "box_encoding", "VoxelSkinningField"]
+__all__ = ["closest_on_segments", "bone_distance_prior", "bone_sample_points", "grid_shape_for_box", "box_encoding",
+           "VoxelSkinningField"]
 
 
 def box_encoding(points: torch.Tensor, bbox_min: torch.Tensor, bbox_max: torch.Tensor, frequencies: int

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 import tqdm
 
-from warpavatar.avatar import Avatar
+from warpavatar.avatar import Avatar, camera_centre
 from warpavatar.backward_mapping import BackwardMapping
 from warpavatar.config import FitConfig
 from warpavatar.gaussians import GaussianModel
@@ -193,8 +193,7 @@ class Trainer:
                                    layers=config.field_layers, frequencies=config.field_frequencies).to(self.device)
         self.avatar = Avatar(skeleton, gaussians, field)
         if config.shading == "world":
-            centres = torch.stack([-c.world_to_camera[:3, :3].T @ c.world_to_camera[:3, 3] for c in self.cameras])
-            self.avatar.shading_origin = centres.mean(0)
+            self.avatar.shading_origin = torch.stack([camera_centre(c.world_to_camera) for c in self.cameras]).mean(0)
         self.secondary_optimizer: torch.optim.Optimizer | None = None
         self.lighting_optimizer: torch.optim.Optimizer | None = None
         if config.lighting:
@@ -360,6 +359,7 @@ class Trainer:
         return {"loss": float(loss.detach()), "l1": float(l1.detach()), "ssim": float(ssim_value.detach()),
                 "bone": float(bone.detach()), "isometry": float(isometry.detach()),
                 "geo": float(geo.detach()), "skin": float(skin.detach()),
+                # ambiguous Gaussians the backward mapping has corrected (its cached constraints)
                 "ambiguous": (int(self.backward.index.numel()) if self.backward is not None and self.backward.ready
                               else 0),
                 "psnr": psnr(image.detach(), gt), "gaussians": self.gaussians.count}
@@ -419,7 +419,8 @@ class Trainer:
             secondary = SecondaryMotion.from_file_state(state, device=self.device)
         self.avatar.secondary_motion = secondary
         # row-sparse Adam: a frame's displacements move only in the steps that see that frame
-        self.secondary_optimizer = torch.optim.SparseAdam([secondary.displacement], lr=config.lr_secondary * self.extent)
+        self.secondary_optimizer = torch.optim.SparseAdam([secondary.displacement],
+                                                          lr=config.lr_secondary * self.extent)
 
     # ------------------------------------------------------------------------------------------- checkpoints
     def checkpoint_state(self) -> dict:
