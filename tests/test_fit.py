@@ -9,6 +9,7 @@ import torch
 from warpavatar import data
 from warpavatar.avatar import Avatar
 from warpavatar.config import preset
+from warpavatar.dynamics import SecondaryDynamics, frame_intervals
 from warpavatar.evaluate import evaluate_avatar
 from warpavatar.trainer import Trainer
 
@@ -96,6 +97,46 @@ def test_resume_matches_uninterrupted(demo_video, tmp_path):
     assert torch.equal(whole.avatar.lighting.directional, resumed.avatar.lighting.directional)
     assert torch.allclose(whole.avatar.secondary_motion.displacement, resumed.avatar.secondary_motion.displacement,
                           atol=1e-6)
+
+
+def test_dynamics_fit_resumes_exactly_and_rolls_out_new_motions(demo_video, tmp_path):
+    config = _tiny_config(iterations=50, densify_from=20, densify_every=20, densify_until=40,
+                          gaussian_only_steps=25, secondary_motion=False, dynamics=True, secondary_from=25,
+                          dynamics_hidden=16, dynamics_window=3, dynamics_refresh_every=10, checkpoint_every=1000)
+    whole = Trainer(demo_video, config, tmp_path / "whole")
+    whole.fit(progress=False)
+    interrupted = Trainer(demo_video, config, tmp_path / "parts")
+    interrupted.fit(progress=False, stop_at=33)  # between two refreshes of the cached rollout
+    resumed = Trainer(demo_video, config, tmp_path / "parts")
+    resumed.fit(resume=True, progress=False)
+    dynamics, resumed_dynamics = whole.avatar.secondary_motion, resumed.avatar.secondary_motion
+    assert isinstance(dynamics, SecondaryDynamics) and isinstance(resumed_dynamics, SecondaryDynamics)
+    for name, parameter in dynamics.named_parameters():
+        assert torch.allclose(parameter, dict(resumed_dynamics.named_parameters())[name], atol=1e-6), name
+    assert torch.allclose(whole.gaussians.means, resumed.gaussians.means, atol=1e-6)
+    # the saved avatar replays the training instants from its table ...
+    avatar = Avatar.load(tmp_path / "whole")
+    table = avatar.secondary_motion.frame_displacement
+    assert table.shape == (len(whole.train_indices), dynamics.node_count, 3)
+    assert float(table[1:].abs().max()) > 0
+    bones = whole.bone_transforms[5]
+    assert torch.equal(avatar.secondary_motion.node_displacement(bones), table[5])
+    # ... and rolls out a motion it never saw (every training frame, at the video's own rate)
+    motion = torch.as_tensor(demo_video.bone_transforms, dtype=torch.float32)
+    avatar.prepare_sequence(motion, frame_intervals(demo_video.frame_ids, demo_video.fps))
+    unseen = [t for t in range(demo_video.frame_count) if t not in set(whole.train_indices.tolist())]
+    assert unseen
+    moved = avatar.secondary_motion.node_displacement(motion[unseen[-1]])
+    assert float(moved.abs().max()) > 0
+    with_dynamics = evaluate_avatar(avatar, demo_video, progress=False)["psnr_masked"]
+    avatar.secondary_motion = None
+    without = evaluate_avatar(avatar, demo_video, progress=False)["psnr_masked"]
+    assert abs(with_dynamics - without) < 1.0, (with_dynamics, without)  # a short fit: small, sane motion
+
+
+def test_dynamics_and_per_frame_displacements_are_exclusive():
+    with pytest.raises(ValueError, match="choose one secondary-motion model"):
+        preset("quick", dynamics=True, secondary_motion=True)
 
 
 def test_resume_refuses_other_config(demo_video, tmp_path):

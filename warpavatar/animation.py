@@ -15,6 +15,8 @@ from typing import Iterator
 import numpy as np
 import torch
 
+from warpavatar.dynamics import frame_intervals
+
 __all__ = ["OrbitCamera", "orbit_cameras", "read_cameras_json", "posed_frames", "parse_frame_range"]
 
 
@@ -108,10 +110,21 @@ def read_cameras_json(path: str | Path, frame_count: int) -> list[OrbitCamera]:
 
 
 @torch.no_grad()
-def posed_frames(avatar, bone_transforms: np.ndarray) -> Iterator[dict]:
-    """Yield the posed Gaussians of each frame (torch tensors on the avatar's device)."""
+def posed_frames(avatar, bone_transforms: np.ndarray, *, frame_ids: np.ndarray | None = None, fps: float = 30.0
+                 ) -> Iterator[dict]:
+    """Yield the posed Gaussians of each frame (torch tensors on the avatar's device).
+
+    Args:
+        avatar: the avatar.
+        bone_transforms: [T,J,4,4] consecutive frames of the motion.
+        frame_ids: [T] frame numbers of the rows (default ``0..T-1``).
+        fps: frames per second of the frame numbers (with them, the time steps of learned secondary dynamics).
+    """
     device = avatar.gaussians.means.device
     grid = avatar.field.grid_weights()
+    if frame_ids is None:
+        frame_ids = np.arange(bone_transforms.shape[0])
+    avatar.prepare_sequence(bone_transforms, frame_intervals(frame_ids, fps))
     for t in range(bone_transforms.shape[0]):
         bones = torch.as_tensor(bone_transforms[t], dtype=torch.float32, device=device)
         yield avatar.pose(bones, frame_index=t, grid=grid)

@@ -2,8 +2,9 @@
 
 Data flows one way: a pose (bone transforms [J,4,4], rest -> posed world, as poses.npz stores them) goes
 through :meth:`Avatar.pose_bones` (where grown joints would extend it), the skinning field gives each canonical
-Gaussian its weights (read at the pose-corrected canonical position), the secondary motion of the training
-instants (:class:`~warpavatar.secondary_motion.SecondaryMotion`, SMAD's graph) displaces the canonical
+Gaussian its weights (read at the pose-corrected canonical position), a secondary-motion model on SMAD's graph
+(per-training-frame displacements, :class:`~warpavatar.secondary_motion.SecondaryMotion`, or learned dynamics,
+:class:`~warpavatar.dynamics.SecondaryDynamics`, after :meth:`Avatar.prepare_sequence`) displaces the canonical
 Gaussians, :func:`warpavatar.ops.lbs` moves positions and rotations, and each deformer in ``Avatar.deformers``
 may then add further per-frame non-rigid offsets before rendering.
 
@@ -32,7 +33,8 @@ from warpavatar.pose_correction import PoseCorrection
 from warpavatar.secondary_motion import SecondaryMotion
 from warpavatar.skinning_field import VoxelSkinningField
 
-__all__ = ["Deformer", "PosedGaussians", "Avatar", "AVATAR_FORMAT", "quat_rotate", "camera_centre"]
+__all__ = ["Deformer", "PosedGaussians", "Avatar", "AVATAR_FORMAT", "quat_rotate", "camera_centre",
+           "secondary_from_file_state"]
 
 AVATAR_FORMAT = "warpavatar-avatar/1"
 
@@ -40,6 +42,15 @@ AVATAR_FORMAT = "warpavatar-avatar/1"
 def camera_centre(world_to_camera: torch.Tensor) -> torch.Tensor:
     """World position [3] of a camera's centre from its [4,4] ``world_to_camera`` (``-R^T t``)."""
     return -world_to_camera[:3, :3].T @ world_to_camera[:3, 3]
+
+
+def secondary_from_file_state(state: dict, *, device="cpu"):
+    """Rebuild a secondary-motion model (per-frame displacements, or learned dynamics) from its saved state."""
+    if state.get("kind") == "dynamics":
+        from warpavatar.dynamics import SecondaryDynamics
+
+        return SecondaryDynamics.from_file_state(state, device=device)
+    return SecondaryMotion.from_file_state(state, device=device)
 
 
 def quat_rotate(quats: torch.Tensor, vectors: torch.Tensor, *, inverse: bool = False) -> torch.Tensor:
@@ -100,8 +111,30 @@ class Avatar(torch.nn.Module):
                              f"skeleton, got {list(bone_transforms.shape)}")
         return bone_transforms
 
+    def prepare_sequence(self, bone_transforms, intervals, *, progress: bool = False) -> None:
+        """Get ready to pose the frames of a motion in which secondary dynamics matter.
+
+        With learned dynamics (:class:`~warpavatar.dynamics.SecondaryDynamics`) this rolls the motion out
+        once, so that :meth:`pose` of any of its frames gets that frame's cloth state; other avatars need
+        nothing and this does nothing.
+
+        Args:
+            bone_transforms: [T,J,4,4] consecutive frames of the motion (numpy or torch).
+            intervals: [T] seconds since the previous frame (:func:`warpavatar.dynamics.frame_intervals`).
+        """
+        secondary = self.secondary_motion
+        if secondary is None or not hasattr(secondary, "prepare_sequence"):
+            return
+        device = self.gaussians.means.device
+        bones = torch.stack([self.pose_bones(torch.as_tensor(b, dtype=torch.float32, device=device))
+                             for b in bone_transforms]) if len(bone_transforms) else None
+        if bones is None:
+            return
+        secondary.prepare_sequence(bones, torch.as_tensor(intervals, dtype=torch.float32, device=device),
+                                   progress=progress)
+
     def pose(self, bone_transforms: torch.Tensor, *, sh_degree: int | None = None, frame_index: int | None = None,
-             grid: torch.Tensor | None = None) -> PosedGaussians:
+             grid: torch.Tensor | None = None, node_displacement: torch.Tensor | None = None) -> PosedGaussians:
         """Pose the canonical Gaussians.
 
         Args:
@@ -109,6 +142,8 @@ class Avatar(torch.nn.Module):
             sh_degree: SH degree to render with (default: all the avatar has).
             frame_index: index of the frame in its sequence, passed to deformers that keep state over time.
             grid: precomputed skinning grid (:meth:`VoxelSkinningField.grid_weights`), to share across calls.
+            node_displacement: [M,3] secondary displacement of the graph nodes to use instead of the one the
+                secondary-motion model looks up for this pose (a fit passes the state it is training).
         """
         gaussians = self.gaussians
         degree = gaussians.sh_degree if sh_degree is None else min(sh_degree, gaussians.sh_degree)
@@ -120,8 +155,10 @@ class Avatar(torch.nn.Module):
         weights = self.field.weights(canonical_means, grid)
         displaced_means = canonical_means
         if self.secondary_motion is not None:
+            if node_displacement is None:
+                node_displacement = self.secondary_motion.node_displacement(bones)
             displaced_means = canonical_means + self.secondary_motion.gaussian_displacement(
-                gaussians.means, self.secondary_motion.node_displacement(bones))
+                gaussians.means, node_displacement)
         means, quats = ops.lbs(displaced_means.contiguous(), weights, bones, quats=canonical_quats)
         posed = PosedGaussians(means=means, quats=quats, scales=scales, opacities=gaussians.opacities,
                                colors=gaussians.sh_coefficients(degree), sh_degree=degree, weights=weights,
@@ -132,19 +169,22 @@ class Avatar(torch.nn.Module):
 
     def render(self, camera, bone_transforms: torch.Tensor, *, background: torch.Tensor | None = None,
                sh_degree: int | None = None, frame_index: int | None = None, grid: torch.Tensor | None = None,
-               densify_grad_out: torch.Tensor | None = None, return_info: bool = False):
+               densify_grad_out: torch.Tensor | None = None, return_info: bool = False,
+               node_displacement: torch.Tensor | None = None):
         """Render the avatar in a pose through a camera.
 
         Args:
             camera: object with ``K`` [3,3], ``world_to_camera`` [4,4] (numpy or torch), ``width``, ``height``.
             bone_transforms: [J,4,4] pose.
             background: [3] colour in 0..1 (default black).
+            node_displacement: see :meth:`pose`.
 
         Returns:
             ``(image [H,W,3], alpha [H,W], depth [H,W])``, plus the rasterizer's info dict when ``return_info``.
         """
         device = self.gaussians.means.device
-        posed = self.pose(bone_transforms, sh_degree=sh_degree, frame_index=frame_index, grid=grid)
+        posed = self.pose(bone_transforms, sh_degree=sh_degree, frame_index=frame_index, grid=grid,
+                          node_displacement=node_displacement)
         K = torch.as_tensor(camera.K, dtype=torch.float32, device=device)
         world_to_camera = torch.as_tensor(camera.world_to_camera, dtype=torch.float32, device=device)
         colors = self.view_colors(posed, world_to_camera, origin=self.shading_origin)
@@ -229,7 +269,7 @@ class Avatar(torch.nn.Module):
             correction.load_state_dict(weights)
             avatar.pose_correction = correction.to(device)
         if state.get("secondary_motion") is not None:
-            avatar.secondary_motion = SecondaryMotion.from_file_state(state["secondary_motion"], device=device)
+            avatar.secondary_motion = secondary_from_file_state(state["secondary_motion"], device=device)
         if state.get("lighting") is not None:
             from warpavatar.lighting import WorldLighting
 

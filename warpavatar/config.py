@@ -62,13 +62,28 @@ class FitConfig:
                                     "the canonical extent are dropped (distant parts touching in the frame)")
     lambda_geo: float = _opt(1000.0, "weight of the geometry cycle loss (mean L1 distance, world units)")
     lambda_skin: float = _opt(10.0, "weight of the skinning cycle loss (mean squared weight difference)")
-    # Secondary motion of the training instants (SMAD's graph, paper 000 Sec. 3.2-3.3)
+    # Secondary motion on SMAD's graph (paper 000 Sec. 3.1-3.3): per-frame displacements or learned dynamics
     secondary_motion: bool = _opt(False, "learn per-training-frame displacements of a voxel-downsampled Gaussian "
                                   "graph (cloth that swings; novel views of training instants and replays use them)")
     secondary_from: int = _opt(2000, "step at which the graph is built from the canonical Gaussians and starts to "
                                "train")
     secondary_voxel: float = _opt(0.03, "graph voxel edge as a fraction of the canonical box's longest side")
     lr_secondary: float = _opt(1e-4, "Adam learning rate of the node displacements, times the canonical extent")
+    dynamics: bool = _opt(False, "learn SMAD's secondary dynamics instead: a message-passing network on the graph "
+                          "predicts forces from the body's motion and a mass-spring-damper step with learned "
+                          "stiffness and damping moves the nodes, so any motion can be rolled out (novel poses, "
+                          "exports); starts at --secondary-from")
+    dynamics_hidden: int = _opt(64, "width of the dynamics network's node features and messages")
+    dynamics_window: int = _opt(4, "frames each step rolls forward with gradients, from a cached state (truncated "
+                                "backpropagation through time)")
+    dynamics_refresh_every: int = _opt(100, "steps between full no-gradient rollouts of the training sequence that "
+                                       "refresh the cached states")
+    dynamics_substeps: int = _opt(2, "semi-implicit Euler steps per frame")
+    dynamics_velocity_history: int = _opt(11, "past skinned velocities in each node's encoding (SMAD: 11)")
+    dynamics_pose_window: int = _opt(4, "frames of bone rotations in the pose-window embedding")
+    lr_dynamics: float = _opt(1e-3, "Adam learning rate of the dynamics network")
+    lr_dynamics_springs: float = _opt(1e-2, "Adam learning rate of the dynamics' stiffness, anchor and damping "
+                                      "(logits of their bounded ranges)")
     lambda_isometry: float = _opt(0.1, "weight of SMAD's isometry loss on the posed graph (per voxel^2)")
     lambda_damping: float = _opt(0.01, "weight of SMAD's damping loss on node velocities (voxels per frame)")
     lambda_displacement: float = _opt(1e-3, "weight of the mean squared node displacement (per voxel^2)")
@@ -118,6 +133,13 @@ class FitConfig:
             raise ValueError(f"backward_threshold must lie in (0, 1), got {self.backward_threshold}")
         if self.backward_every < 1:
             raise ValueError(f"backward_every must be at least 1, got {self.backward_every}")
+        if self.dynamics and self.secondary_motion:
+            raise ValueError("choose one secondary-motion model: --secondary-motion (per-frame displacements) or "
+                             "--dynamics (learned dynamics), not both")
+        for name in ("dynamics_hidden", "dynamics_window", "dynamics_refresh_every", "dynamics_substeps",
+                     "dynamics_velocity_history", "dynamics_pose_window"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

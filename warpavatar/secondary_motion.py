@@ -24,7 +24,7 @@ import torch
 
 from warpavatar import ops
 
-__all__ = ["SecondaryMotion", "voxel_downsample"]
+__all__ = ["NodeGraph", "SecondaryMotion", "voxel_downsample"]
 
 
 class _BlendNodes(torch.autograd.Function):
@@ -77,22 +77,22 @@ def voxel_downsample(points: torch.Tensor, voxel_size: float) -> torch.Tensor:
     return sums / counts[:, None]
 
 
-class SecondaryMotion(torch.nn.Module):
-    """Per-training-frame node displacements on a voxel-downsampled Gaussian graph.
+class NodeGraph(torch.nn.Module):
+    """SMAD's Gaussian graph: voxel-downsampled nodes, their k-NN edges and the Gaussians' binding to them.
+
+    The base of the two secondary-motion models (:class:`SecondaryMotion`, per-frame displacements, and
+    :class:`warpavatar.dynamics.SecondaryDynamics`, learned dynamics): a model gives node displacements [M,3]
+    in the canonical frame, the graph blends them onto the Gaussians and measures their stretch.
 
     Args:
         node_positions: [M,3] canonical node positions [world units] (see :func:`voxel_downsample`).
-        frame_poses: [T,J,4,4] bone transforms of the training frames, in the order of the displacements.
         voxel_size: the voxel edge the nodes were made with [world units]; it sets the kernel width of the
             Gaussian-to-node binding and the unit of the regularizers.
         neighbors: k of the node graph's k-NN edges (SMAD: 16).
         bind_count: nearest nodes each Gaussian blends.
-
-    Velocities in the regularizers are in voxels per training frame (finite differences of consecutive rows).
     """
 
-    def __init__(self, node_positions: torch.Tensor, frame_poses: torch.Tensor, *, voxel_size: float,
-                 neighbors: int = 16, bind_count: int = 4):
+    def __init__(self, node_positions: torch.Tensor, *, voxel_size: float, neighbors: int = 16, bind_count: int = 4):
         super().__init__()
         node_positions = node_positions.detach().float().contiguous()
         node_count = node_positions.shape[0]
@@ -106,19 +106,12 @@ class SecondaryMotion(torch.nn.Module):
         edges = torch.stack([receivers[valid], index[valid]], dim=1).to(torch.int32).contiguous()
         self.register_buffer("edges", edges)
         self.register_buffer("rest_offset", (node_positions[edges[:, 0].long()] - node_positions[edges[:, 1].long()]))
-        self.register_buffer("frame_poses", frame_poses.detach().float().clone())
-        self.displacement = torch.nn.Parameter(torch.zeros(frame_poses.shape[0], node_count, 3,
-                                                           device=node_positions.device))
         self._binding: tuple[torch.Tensor, torch.Tensor] | None = None  # (node index [N,b], weights [N,b])
         self._blend: tuple[torch.Tensor, torch.Tensor] | None = None  # sparse W [N,M] and W^T, built from it
 
     @property
     def node_count(self) -> int:
         return self.nodes.shape[0]
-
-    @property
-    def frame_count(self) -> int:
-        return self.displacement.shape[0]
 
     # ------------------------------------------------------------------------------------------ binding
     @torch.no_grad()
@@ -144,6 +137,64 @@ class SecondaryMotion(torch.nn.Module):
             self.bind(means)
         return self._blend
 
+    def restore_binding(self, binding: dict | None, *, device="cpu") -> None:
+        """Reinstate a binding saved by :meth:`state_for_file` (None: bind on first use)."""
+        self._binding = None
+        self._blend = None
+        if binding is not None:
+            self._set_binding(binding["index"].to(device), binding["weights"].to(device))
+
+    def gaussian_displacement(self, means: torch.Tensor, node_displacement: torch.Tensor) -> torch.Tensor:
+        """Canonical displacement [N,3] of Gaussians at canonical ``means`` [N,3], blended from the nodes'."""
+        blend, blend_transposed = self._bound(means)
+        return _BlendNodes.apply(node_displacement.contiguous(), blend, blend_transposed)
+
+    def isometry(self, node_displacement: torch.Tensor) -> torch.Tensor:
+        """SMAD's isometry term on the displaced graph, in units of the voxel size squared (dimensionless).
+
+        Measured in the canonical frame, where skinning has not acted: it penalizes the stretch the
+        displacement itself makes (cloth bends but hardly stretches), not the stretch linear blend skinning
+        makes at bent joints, which displacements should not be asked to undo.
+
+        Args:
+            node_displacement: [M,3] this frame's canonical displacements.
+        """
+        displaced = (self.nodes + node_displacement).contiguous()
+        return ops.isometry_loss(displaced, self.edges, self.rest_offset) / self.hyper["voxel_size"] ** 2
+
+    def state_for_file(self) -> dict:
+        """Everything to rebuild the module, including the current Gaussian binding (so a reload renders the same)."""
+        binding = (None if self._binding is None
+                   else {"index": self._binding[0].cpu(), "weights": self._binding[1].cpu()})
+        return {"state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()}, "hyper": dict(self.hyper),
+                "binding": binding}
+
+
+class SecondaryMotion(NodeGraph):
+    """Per-training-frame node displacements on a voxel-downsampled Gaussian graph.
+
+    Args:
+        node_positions: [M,3] canonical node positions [world units] (see :func:`voxel_downsample`).
+        frame_poses: [T,J,4,4] bone transforms of the training frames, in the order of the displacements.
+        voxel_size: the voxel edge the nodes were made with [world units]; it sets the kernel width of the
+            Gaussian-to-node binding and the unit of the regularizers.
+        neighbors: k of the node graph's k-NN edges (SMAD: 16).
+        bind_count: nearest nodes each Gaussian blends.
+
+    Velocities in the regularizers are in voxels per training frame (finite differences of consecutive rows).
+    """
+
+    def __init__(self, node_positions: torch.Tensor, frame_poses: torch.Tensor, *, voxel_size: float,
+                 neighbors: int = 16, bind_count: int = 4):
+        super().__init__(node_positions, voxel_size=voxel_size, neighbors=neighbors, bind_count=bind_count)
+        self.register_buffer("frame_poses", frame_poses.detach().float().clone())
+        self.displacement = torch.nn.Parameter(torch.zeros(frame_poses.shape[0], self.node_count, 3,
+                                                           device=self.nodes.device))
+
+    @property
+    def frame_count(self) -> int:
+        return self.displacement.shape[0]
+
     # --------------------------------------------------------------------------------------- frames
     def frame_match(self, bone_transforms: torch.Tensor, *, tolerance: float = 1e-4
                     ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -159,25 +210,6 @@ class SecondaryMotion(torch.nn.Module):
         """Canonical displacement [M,3] of every node for this pose (zeros unless it is a training instant)."""
         best, matched = self.frame_match(bone_transforms)
         return self.displacement[best] * matched
-
-    def gaussian_displacement(self, means: torch.Tensor, node_displacement: torch.Tensor) -> torch.Tensor:
-        """Canonical displacement [N,3] of Gaussians at canonical ``means`` [N,3], blended from the nodes'."""
-        blend, blend_transposed = self._bound(means)
-        return _BlendNodes.apply(node_displacement.contiguous(), blend, blend_transposed)
-
-    # -------------------------------------------------------------------------------------- losses
-    def isometry(self, node_displacement: torch.Tensor) -> torch.Tensor:
-        """SMAD's isometry term on the displaced graph, in units of the voxel size squared (dimensionless).
-
-        Measured in the canonical frame, where skinning has not acted: it penalizes the stretch the
-        displacement itself makes (cloth bends but hardly stretches), not the stretch linear blend skinning
-        makes at bent joints, which displacements should not be asked to undo.
-
-        Args:
-            node_displacement: [M,3] this frame's canonical displacements.
-        """
-        displaced = (self.nodes + node_displacement).contiguous()
-        return ops.isometry_loss(displaced, self.edges, self.rest_offset) / self.hyper["voxel_size"] ** 2
 
     def damping(self, frame: torch.Tensor | int) -> torch.Tensor:
         """SMAD's damping term around training frame ``frame``: mean squared node velocity over the (up to two)
@@ -207,14 +239,6 @@ class SecondaryMotion(torch.nn.Module):
             rows = torch.nonzero(grad.abs().amax(dim=(1, 2)) > 0).squeeze(1)
             self.displacement.grad = torch.sparse_coo_tensor(rows[None], grad[rows], grad.shape).coalesce()
 
-    # ---------------------------------------------------------------------------------------- files
-    def state_for_file(self) -> dict:
-        """Everything to rebuild the module, including the current Gaussian binding (so a reload renders the same)."""
-        binding = (None if self._binding is None
-                   else {"index": self._binding[0].cpu(), "weights": self._binding[1].cpu()})
-        return {"state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()}, "hyper": dict(self.hyper),
-                "binding": binding}
-
     @classmethod
     def from_file_state(cls, state: dict, *, device="cpu") -> "SecondaryMotion":
         weights = state["state_dict"]
@@ -224,11 +248,7 @@ class SecondaryMotion(torch.nn.Module):
         for name in ("nodes", "edges", "rest_offset", "frame_poses"):
             module.register_buffer(name, weights[name].to(device))
         module.displacement = torch.nn.Parameter(weights["displacement"].to(device))
-        module._binding = None
-        module._blend = None
-        binding = state.get("binding")
-        if binding is not None:
-            module._set_binding(binding["index"].to(device), binding["weights"].to(device))
+        module.restore_binding(state.get("binding"), device=device)
         return module
 
     def extra_repr(self) -> str:

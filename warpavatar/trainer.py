@@ -2,8 +2,9 @@
 
 Stages (TAGA appendix C): (1) warm-up: the skinning field alone distils a rigid bone-distance prior;
 (2) Gaussian-only: the Gaussians train under that frozen field; (3) joint: the field trains too, with the bone
-regularization; from ``secondary_from`` on, the secondary motion of the training instants (SMAD's graph, built
-then from the canonical Gaussians) trains with it; between ``backward_from`` and ``backward_until``, TAGA's
+regularization; from ``secondary_from`` on, a secondary-motion model on SMAD's graph (built then from the
+canonical Gaussians) trains with it: per-frame displacements, or learned dynamics rolled out over the training
+sequence (truncated backpropagation through ``dynamics_window`` frames from cached states); between ``backward_from`` and ``backward_until``, TAGA's
 backward mapping (when enabled) adds its cycle losses. Adaptive density control (3DGS) runs with a Gaussian
 budget (ToMiE appendix A.4).
 """
@@ -24,6 +25,7 @@ import tqdm
 from warpavatar.avatar import Avatar, camera_centre
 from warpavatar.backward_mapping import BackwardMapping
 from warpavatar.config import FitConfig
+from warpavatar.dynamics import DynamicsState, SecondaryDynamics, frame_intervals
 from warpavatar.gaussians import GaussianModel
 from warpavatar.metrics import psnr, ssim_map
 from warpavatar.pose_correction import PoseCorrection
@@ -170,6 +172,8 @@ class Trainer:
                       if video.masks is not None else None)
         self.bone_transforms = torch.as_tensor(video.bone_transforms[self.train_indices], dtype=torch.float32,
                                                device=self.device)
+        # seconds from each training frame to the one before it (the secondary dynamics' time steps)
+        self.frame_intervals = frame_intervals(video.frame_ids[self.train_indices], video.fps).to(self.device)
         # cameras with their matrices already on the device (no host-to-device copy per step)
         self.cameras = [
             SimpleNamespace(K=torch.as_tensor(c.K, dtype=torch.float32, device=self.device),
@@ -195,6 +199,10 @@ class Trainer:
         if config.shading == "world":
             self.avatar.shading_origin = torch.stack([camera_centre(c.world_to_camera) for c in self.cameras]).mean(0)
         self.secondary_optimizer: torch.optim.Optimizer | None = None
+        self.dynamics_optimizer: torch.optim.Optimizer | None = None
+        self.dynamics_drive: dict | None = None  # SecondaryDynamics.drive of the training sequence
+        self.dynamics_cache: tuple[torch.Tensor, torch.Tensor] | None = None  # states [T,M,3] (d, u), no grad
+        self._dynamics_refreshed = -1
         self.lighting_optimizer: torch.optim.Optimizer | None = None
         if config.lighting:
             from warpavatar.lighting import WorldLighting
@@ -303,13 +311,19 @@ class Trainer:
         correction = self.avatar.pose_correction
         if correction is not None:
             correction.requires_grad_(train_field)  # trains with the field, from the joint stage on
-        if config.secondary_motion and step >= config.secondary_from and self.avatar.secondary_motion is None:
-            self._build_secondary_motion()
+        if (config.secondary_motion or config.dynamics) and step >= config.secondary_from \
+                and self.avatar.secondary_motion is None:
+            if config.dynamics:
+                self._build_dynamics(grid)
+            else:
+                self._build_secondary_motion()
         secondary = self.avatar.secondary_motion
+        dynamics_state = self._dynamics_state(index, grid) if config.dynamics and secondary is not None else None
         grad_out = torch.zeros(self.gaussians.count, 2, device=self.device)
         image, alpha, _, info = self.avatar.render(
             camera, self.bone_transforms[index], background=self.background,
-            sh_degree=self._active_sh_degree(step), grid=grid, densify_grad_out=grad_out, return_info=True)
+            sh_degree=self._active_sh_degree(step), grid=grid, densify_grad_out=grad_out, return_info=True,
+            node_displacement=None if dynamics_state is None else dynamics_state.displacement)
         l1 = (image - gt).abs().mean()
         ssim_value = ssim_map(image, gt).mean()
         loss = (1.0 - config.lambda_ssim) * l1 + config.lambda_ssim * (1.0 - ssim_value)
@@ -330,7 +344,13 @@ class Trainer:
                 loss = loss + config.lambda_pose_correction * correction.regularization()
             self.field_optimizer.zero_grad(set_to_none=True)
         isometry = torch.zeros((), device=self.device)
-        if secondary is not None:
+        if dynamics_state is not None:
+            isometry = secondary.isometry(dynamics_state.displacement)
+            loss = (loss + config.lambda_isometry * isometry
+                    + config.lambda_damping * secondary.damping(dynamics_state)
+                    + config.lambda_displacement * secondary.magnitude(dynamics_state))
+            self.dynamics_optimizer.zero_grad(set_to_none=True)
+        elif secondary is not None:
             isometry = secondary.isometry(secondary.displacement[index])
             loss = (loss + config.lambda_isometry * isometry + config.lambda_damping * secondary.damping(index)
                     + config.lambda_displacement * secondary.magnitude(index))
@@ -344,7 +364,9 @@ class Trainer:
             self.lighting_optimizer.step()
         if train_field:
             self.field_optimizer.step()
-        if secondary is not None:
+        if dynamics_state is not None:
+            self.dynamics_optimizer.step()
+        elif secondary is not None:
             secondary.sparsify_gradient()
             self.secondary_optimizer.step()
 
@@ -422,6 +444,62 @@ class Trainer:
         self.secondary_optimizer = torch.optim.SparseAdam([secondary.displacement],
                                                           lr=config.lr_secondary * self.extent)
 
+    def _build_dynamics(self, grid: torch.Tensor, state: dict | None = None) -> None:
+        """SMAD's learned dynamics on a graph of the current canonical Gaussians (or from a checkpoint's
+        ``state``), and its optimizer."""
+        config = self.config
+        if state is None:
+            field = self.field
+            voxel = config.secondary_voxel * float((field.bbox_max - field.bbox_min).max())
+            nodes = voxel_downsample(self.gaussians.means.detach(), voxel)
+            with torch.no_grad():
+                node_weights = field.weights(nodes, grid)
+            interval = float(self.frame_intervals.median()) if self.frame_intervals.numel() else 1.0 / 30.0
+            dynamics = SecondaryDynamics(
+                nodes, node_weights, self.video.skeleton.parents, voxel_size=voxel, frame_interval=interval,
+                hidden=config.dynamics_hidden, velocity_history=config.dynamics_velocity_history,
+                pose_window=config.dynamics_pose_window, substeps=config.dynamics_substeps)
+            dynamics.bind(self.gaussians.means)
+        else:
+            dynamics = SecondaryDynamics.from_file_state(state, device=self.device)
+        self.avatar.secondary_motion = dynamics
+        springs = [dynamics.stiffness_raw, dynamics.anchor_raw, dynamics.damping_raw]
+        network = [p for p in dynamics.parameters() if all(p is not q for q in springs)]
+        self.dynamics_optimizer = torch.optim.Adam([{"params": network, "lr": config.lr_dynamics},
+                                                    {"params": springs, "lr": config.lr_dynamics_springs}])
+        self.dynamics_drive = dynamics.drive(self.bone_transforms, self.frame_intervals)
+        self.dynamics_cache = None
+
+    @torch.no_grad()
+    def refresh_dynamics(self, grid: torch.Tensor | None = None) -> None:
+        """Re-read the nodes' skinning weights and roll the whole training sequence out (no gradients): the
+        cached states the training windows start from, and the table novel views of training instants use."""
+        dynamics = self.avatar.secondary_motion
+        if grid is None:
+            grid = self.field.grid_weights()
+        dynamics.set_node_weights(self.field.weights(dynamics.nodes, grid))
+        self.dynamics_drive = dynamics.drive(self.bone_transforms, self.frame_intervals)
+        displacement, velocity = dynamics.rollout(self.bone_transforms, self.frame_intervals)
+        self.dynamics_cache = (displacement, velocity)
+        dynamics.set_training_rollout(self.bone_transforms, displacement)
+        self._dynamics_refreshed = self.step
+
+    def _dynamics_state(self, index: int, grid: torch.Tensor) -> DynamicsState:
+        """The dynamics' state at training frame ``index``, rolled with gradients over the last
+        ``dynamics_window`` frames from the cached state before them (which it then updates)."""
+        dynamics = self.avatar.secondary_motion
+        if self.dynamics_cache is None or self.step - self._dynamics_refreshed >= self.config.dynamics_refresh_every:
+            self.refresh_dynamics(grid)
+        cached_displacement, cached_velocity = self.dynamics_cache
+        start = max(0, index - self.config.dynamics_window)
+        # clones: the cache rows are overwritten below, and autograd may hold on to the start state
+        state = DynamicsState(cached_displacement[start].clone(), cached_velocity[start].clone())
+        for frame in range(start + 1, index + 1):
+            state = dynamics.step(state, self.dynamics_drive, frame, self.frame_intervals[frame])
+            cached_displacement[frame] = state.displacement.detach()
+            cached_velocity[frame] = state.velocity.detach()
+        return state
+
     # ------------------------------------------------------------------------------------------- checkpoints
     def checkpoint_state(self) -> dict:
         return {
@@ -437,6 +515,11 @@ class Trainer:
                                  if self.avatar.secondary_motion is not None else None),
             "secondary_optimizer": (self.secondary_optimizer.state_dict()
                                     if self.secondary_optimizer is not None else None),
+            "dynamics_optimizer": (self.dynamics_optimizer.state_dict()
+                                   if self.dynamics_optimizer is not None else None),
+            "dynamics_cache": (None if self.dynamics_cache is None
+                               else [tensor.cpu() for tensor in self.dynamics_cache]),
+            "dynamics_refreshed": self._dynamics_refreshed,
             "lighting": (self.avatar.lighting.state_dict() if self.avatar.lighting is not None else None),
             "lighting_optimizer": (self.lighting_optimizer.state_dict() if self.lighting_optimizer is not None
                                    else None),
@@ -475,8 +558,15 @@ class Trainer:
         self._frozen_grid = None
         self.field_optimizer.load_state_dict(state["field_optimizer"])
         if state.get("secondary_motion") is not None:
-            self._build_secondary_motion(state["secondary_motion"])
-            self.secondary_optimizer.load_state_dict(state["secondary_optimizer"])
+            if state["secondary_motion"].get("kind") == "dynamics":
+                self._build_dynamics(None, state["secondary_motion"])
+                self.dynamics_optimizer.load_state_dict(state["dynamics_optimizer"])
+                if state.get("dynamics_cache") is not None:
+                    self.dynamics_cache = tuple(tensor.to(self.device) for tensor in state["dynamics_cache"])
+                self._dynamics_refreshed = int(state.get("dynamics_refreshed", -1))
+            else:
+                self._build_secondary_motion(state["secondary_motion"])
+                self.secondary_optimizer.load_state_dict(state["secondary_optimizer"])
         if self.avatar.lighting is not None:
             self.avatar.lighting.load_state_dict(state["lighting"])
             self.lighting_optimizer.load_state_dict(state["lighting_optimizer"])
@@ -536,6 +626,8 @@ class Trainer:
         """Avatar file, canonical .ply, previews of a few training frames; the last checkpoint stays."""
         from warpavatar.io.ply import write_gaussian_ply
 
+        if isinstance(self.avatar.secondary_motion, SecondaryDynamics):
+            self.refresh_dynamics()  # the saved table of the training instants comes from the final model
         self.avatar.save(self.output_dir / "avatar.pt", config=self.config.to_dict())
         g = self.gaussians
         write_gaussian_ply(self.output_dir / "canonical.ply", means=g.means.detach().cpu().numpy(),

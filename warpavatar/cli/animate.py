@@ -70,7 +70,7 @@ def main(argv=None) -> int:
                            opacities=g.opacities.detach().cpu().numpy(),
                            sh_coeffs=g.sh_coefficients().detach().cpu().numpy(), fps=fps, up_axis=up_axis,
                            meters_per_unit=1.0, skeleton=skeleton if args.skeleton else None) as writer:
-        frames = posed_frames(avatar, motion.bone_transforms)
+        frames = posed_frames(avatar, motion.bone_transforms, frame_ids=motion.frame_ids, fps=motion.fps)
         for t, posed in enumerate(tqdm.tqdm(frames, total=frame_count, disable=args.no_progress, desc="animate")):
             writer.write_frame(t, positions=posed["means"].cpu().numpy(), orientations=posed["quats"].cpu().numpy(),
                                scales=posed["scales"].detach().cpu().numpy(),

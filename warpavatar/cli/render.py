@@ -53,6 +53,7 @@ def main(argv=None) -> int:
 
     from warpavatar.animation import orbit_cameras, parse_frame_range, read_cameras_json
     from warpavatar.avatar import Avatar
+    from warpavatar.dynamics import frame_intervals
     from warpavatar.io.motion import load_motion
 
     device = resolve_device(args.device)
@@ -73,6 +74,8 @@ def main(argv=None) -> int:
     fps = args.fps or motion.fps
     background = torch.tensor(args.background, dtype=torch.float32, device=device)
     grid = avatar.field.grid_weights()
+    avatar.prepare_sequence(motion.bone_transforms, frame_intervals(motion.frame_ids, motion.fps),
+                            progress=not args.no_progress)
 
     output = args.output
     to_video = output.suffix.lower() in (".mp4", ".avi", ".mov")
