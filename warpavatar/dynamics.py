@@ -173,7 +173,10 @@ class SecondaryDynamics(NodeGraph):
         self.edges = edges
         self.rest_offset = self.nodes[edges[:, 0].long()] - self.nodes[edges[:, 1].long()]
         self.register_buffer("edge_pair", pair_index[order].contiguous())
-        degree = int(torch.bincount(edges[:, 0].long(), minlength=node_count).max())
+        in_degree = torch.bincount(edges[:, 0].long(), minlength=node_count)
+        degree = int(in_degree.max())
+        # 1 / edges per receiver [M,1], for the mean aggregation of messages
+        self.register_buffer("inverse_degree", 1.0 / in_degree.clamp_min(1).float()[:, None])
 
         # stability bounds of the explicit step (unit masses), for the substep interval: by Gershgorin, the
         # spring matrix's eigenvalues lie below 2 * degree * max_stiffness + max_anchor = 2 / step^2
@@ -324,12 +327,10 @@ class SecondaryDynamics(NodeGraph):
         relative_velocity = (velocity.index_select(0, senders) - velocity.index_select(0, receivers)) / speed
         geometry = torch.cat([offset, relative_velocity, offset.norm(dim=-1, keepdim=True),
                               torch.ones_like(offset[:, :1])], dim=-1)
-        counts = torch.zeros(self.node_count, device=hidden.device).index_add_(
-            0, receivers, torch.ones_like(receivers, dtype=hidden.dtype)).clamp_min(1.0)[:, None]
         for _ in range(self.hyper["message_passes"]):
             messages = self.edge_mlp(torch.cat([hidden.index_select(0, receivers), hidden.index_select(0, senders),
                                                 geometry], dim=-1))
-            aggregated = torch.zeros_like(hidden).index_add_(0, receivers, messages) / counts
+            aggregated = torch.zeros_like(hidden).index_add_(0, receivers, messages) * self.inverse_degree
             hidden = self.node_update(aggregated, hidden)
         # bounded (tanh): a learned force that feeds back on the state cannot drive the stable spring-damper
         # system beyond a bounded response
@@ -441,7 +442,7 @@ class SecondaryDynamics(NodeGraph):
                      force_limit=hyper["force_limit"])
         # the saved graph, whatever order a k-NN search on another device would give its ties
         module.hyper = hyper
-        for name in ("edges", "rest_offset", "edge_pair", "frame_poses", "frame_displacement"):
+        for name in ("edges", "rest_offset", "edge_pair", "inverse_degree", "frame_poses", "frame_displacement"):
             setattr(module, name, weights[name].clone())
         module.stiffness_raw = torch.nn.Parameter(weights["stiffness_raw"].clone())
         module.load_state_dict(weights)

@@ -4,9 +4,9 @@ Stages (TAGA appendix C): (1) warm-up: the skinning field alone distils a rigid 
 (2) Gaussian-only: the Gaussians train under that frozen field; (3) joint: the field trains too, with the bone
 regularization; from ``secondary_from`` on, a secondary-motion model on SMAD's graph (built then from the
 canonical Gaussians) trains with it: per-frame displacements, or learned dynamics rolled out over the training
-sequence (truncated backpropagation through ``dynamics_window`` frames from cached states); between ``backward_from`` and ``backward_until``, TAGA's
-backward mapping (when enabled) adds its cycle losses. Adaptive density control (3DGS) runs with a Gaussian
-budget (ToMiE appendix A.4).
+sequence (truncated backpropagation through ``dynamics_window`` frames from cached states); between
+``backward_from`` and ``backward_until``, TAGA's backward mapping (when enabled) adds its cycle losses.
+Adaptive density control (3DGS) runs with a Gaussian budget (ToMiE appendix A.4).
 """
 
 from __future__ import annotations
