@@ -69,10 +69,10 @@ class FitConfig:
                                "train")
     secondary_voxel: float = _opt(0.03, "graph voxel edge as a fraction of the canonical box's longest side")
     lr_secondary: float = _opt(1e-4, "Adam learning rate of the node displacements, times the canonical extent")
-    dynamics: bool = _opt(False, "learn SMAD's secondary dynamics instead: a message-passing network on the graph "
-                          "predicts forces from the body's motion and a mass-spring-damper step with learned "
-                          "stiffness and damping moves the nodes, so any motion can be rolled out (novel poses, "
-                          "exports); starts at --secondary-from")
+    dynamics: bool = _opt(False, "learn SMAD's secondary dynamics on the graph (the alternative to "
+                          "--secondary-motion): a message-passing network predicts forces from the body's motion and "
+                          "a mass-spring-damper step with learned stiffness and damping moves the nodes, so any "
+                          "motion can be rolled out (novel poses, exports); starts at --secondary-from")
     dynamics_hidden: int = _opt(64, "width of the dynamics network's node features and messages")
     dynamics_window: int = _opt(4, "frames each step rolls forward with gradients, from a cached state (truncated "
                                 "backpropagation through time)")
