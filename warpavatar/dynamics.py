@@ -327,9 +327,17 @@ class SecondaryDynamics(NodeGraph):
         relative_velocity = (velocity.index_select(0, senders) - velocity.index_select(0, receivers)) / speed
         geometry = torch.cat([offset, relative_velocity, offset.norm(dim=-1, keepdim=True),
                               torch.ones_like(offset[:, :1])], dim=-1)
+        # The edge MLP's first layer on [h_i, h_j, geometry] is split by columns: the two node blocks act on
+        # the M node features before the gather (not on E = k M gathered rows), the geometry block once per
+        # step. Same function and parameters as applying the layer to the concatenation, ~k times fewer FLOPs.
+        first, rest = self.edge_mlp[0], self.edge_mlp[1:]
+        width = self.hyper["hidden"]
+        receiver_block, sender_block = first.weight[:, :width], first.weight[:, width: 2 * width]
+        geometry_term = torch.nn.functional.linear(geometry, first.weight[:, 2 * width:], first.bias)
         for _ in range(self.hyper["message_passes"]):
-            messages = self.edge_mlp(torch.cat([hidden.index_select(0, receivers), hidden.index_select(0, senders),
-                                                geometry], dim=-1))
+            pre_activation = (hidden.matmul(receiver_block.t()).index_select(0, receivers)
+                              + hidden.matmul(sender_block.t()).index_select(0, senders) + geometry_term)
+            messages = rest(pre_activation)
             aggregated = torch.zeros_like(hidden).index_add_(0, receivers, messages) * self.inverse_degree
             hidden = self.node_update(aggregated, hidden)
         # bounded (tanh): a learned force that feeds back on the state cannot drive the stable spring-damper
