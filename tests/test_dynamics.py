@@ -114,7 +114,7 @@ def test_step_is_the_spring_damper_euler_step_when_the_network_is_silent(device)
     state = DynamicsState(0.02 * torch.randn(module.node_count, 3, generator=generator).to(device),
                           0.1 * torch.randn(module.node_count, 3, generator=generator).to(device))
     with torch.no_grad():
-        result = module.step(state, drive, 3, intervals[3])
+        result = module.step(state, drive, 3, float(intervals[3]))
     d, u = state.displacement.double(), state.velocity.double()
     k, anchor, gamma = module.stiffness.double(), module.anchor.double(), module.damping_coefficient.double()
     receivers, senders = module.edges[:, 0].long(), module.edges[:, 1].long()
@@ -166,7 +166,7 @@ def test_step_matches_the_torch_reference_values_and_gradients(device, monkeypat
         module.zero_grad(set_to_none=True)
         state = module.rest_state()
         for frame in range(1, 5):
-            state = module.step(state, drive, frame, intervals[frame])
+            state = module.step(state, drive, frame, float(intervals[frame]))
         loss = (state.displacement * weights).sum() + (state.velocity * weights).sum() * 0.1
         loss.backward()
         return state, {name: p.grad.clone() for name, p in module.named_parameters()}
@@ -195,7 +195,7 @@ def test_gradients_match_finite_differences(device):
     def loss_value():
         state = module.rest_state()
         for frame in range(1, 5):
-            state = module.step(state, drive, frame, intervals[frame])
+            state = module.step(state, drive, frame, float(intervals[frame]))
         return (state.displacement * weights).sum() * 100.0
 
     module.zero_grad(set_to_none=True)

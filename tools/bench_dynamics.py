@@ -59,11 +59,12 @@ def run(device: str, quick: bool) -> list[dict]:
         poses[:, :, 0, 3] = torch.linspace(0.0, 1.0, FRAMES, device=device)[:, None] ** 2
         intervals = frame_intervals(torch.arange(FRAMES), 30.0).to(device)
         drive = dynamics.drive(poses, intervals)
+        seconds = intervals.tolist()
 
         def window():
             state = dynamics.rest_state()
             for frame in range(50, 50 + WINDOW):
-                state = dynamics.step(state, drive, frame, intervals[frame])
+                state = dynamics.step(state, drive, frame, seconds[frame])
             (state.displacement.square().sum() + dynamics.damping(state)).backward()
 
         rollout_ms = _mean_ms(lambda: dynamics.rollout(poses, intervals), device, 1, max(1, repeats // 5))

@@ -293,15 +293,15 @@ class SecondaryDynamics(NodeGraph):
         return DynamicsState(zeros, zeros.clone())
 
     # ----------------------------------------------------------------------------------------- step
-    def step(self, state: DynamicsState, drive: dict, frame: int, interval: float | torch.Tensor
-             ) -> DynamicsState:
+    def step(self, state: DynamicsState, drive: dict, frame: int, interval: float) -> DynamicsState:
         """Advance the secondary state to frame ``frame`` of a sequence whose :meth:`drive` is ``drive``.
 
         Args:
             state: the state at frame ``frame - 1``.
             drive: :meth:`drive` of the sequence.
             frame: index of the frame being reached.
-            interval: seconds from frame ``frame - 1`` to ``frame``.
+            interval: seconds from frame ``frame - 1`` to ``frame`` (a Python number: a device scalar would
+                cost a host synchronization per call).
         """
         voxel = self.hyper["voxel_size"]
         speed = self.speed_unit
@@ -376,13 +376,14 @@ class SecondaryDynamics(NodeGraph):
         state = self.rest_state()
         displacements = [state.displacement]
         velocities = [state.velocity]
+        seconds = intervals.tolist()  # one host copy, not a device sync per frame
         frames = range(1, bone_transforms.shape[0])
         if progress:
             import tqdm
 
             frames = tqdm.tqdm(frames, desc="dynamics", unit="frame")
         for frame in frames:
-            state = self.step(state, drive, frame, intervals[frame])
+            state = self.step(state, drive, frame, seconds[frame])
             displacements.append(state.displacement)
             velocities.append(state.velocity)
         return torch.stack(displacements), torch.stack(velocities)

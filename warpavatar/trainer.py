@@ -174,6 +174,7 @@ class Trainer:
                                                device=self.device)
         # seconds from each training frame to the one before it (the secondary dynamics' time steps)
         self.frame_intervals = frame_intervals(video.frame_ids[self.train_indices], video.fps).to(self.device)
+        self.frame_seconds = self.frame_intervals.tolist()  # the same on the host
         # cameras with their matrices already on the device (no host-to-device copy per step)
         self.cameras = [
             SimpleNamespace(K=torch.as_tensor(c.K, dtype=torch.float32, device=self.device),
@@ -495,7 +496,7 @@ class Trainer:
         # clones: the cache rows are overwritten below, and autograd may hold on to the start state
         state = DynamicsState(cached_displacement[start].clone(), cached_velocity[start].clone())
         for frame in range(start + 1, index + 1):
-            state = dynamics.step(state, self.dynamics_drive, frame, self.frame_intervals[frame])
+            state = dynamics.step(state, self.dynamics_drive, frame, self.frame_seconds[frame])
             cached_displacement[frame] = state.displacement.detach()
             cached_velocity[frame] = state.velocity.detach()
         return state
