@@ -4,7 +4,8 @@ message-passing network predicts from the body's motion.
 
 Where :class:`~warpavatar.secondary_motion.SecondaryMotion` learns one free displacement per training frame
 (so it replays the training instants and gives nothing for a new motion), this model is a function of the
-motion: any pose sequence can be rolled out, so a skirt keeps swinging in a dance it never saw.
+motion: any pose sequence can be rolled out, so cloth responds to a dance it never saw (as far as the fit
+loosened its springs).
 
 State and frames. Each graph node ``i`` has a canonical (rest) position ``x_i`` and a secondary state, its
 displacement ``d_i`` and velocity ``u_i`` [world units, world units / s], both in the node's canonical frame.
@@ -20,13 +21,14 @@ skinning weights, so the displacement turns with the body. Between frames ``t - 
   edges and a GRU cell; a decoder MLP and a linear head give a force per node.
 * **Mass-spring-damper step** (SMAD Eq. 2-4): unit masses; the external force is the network's (bounded) force
   plus the inertial force of the accelerating body frame (``-R_i^T a_i``: cloth that is not held stays behind)
-  and a learnable anchor spring ``-k^a_i d_i`` towards the skinned shape; learnable edge stiffness ``k_ij`` on the
-  k-NN edges with their canonical rest offsets and learnable damping ``gamma_i``.
+  and a learnable anchor spring ``-k^a_i d_i`` towards the skinned shape; learnable stiffness ``k_ij`` on the
+  k-NN pairs (both directions of an undirected pair share it) with their canonical rest offsets, and
+  learnable damping ``gamma_i``.
   :func:`warpavatar.ops.spring_step` (Warp kernels with a hand-written backward) integrates ``substeps``
   semi-implicit Euler steps.
 
 Stiffness, anchor and damping are squashed into ranges that keep the explicit step stable for any parameter
-values (Gershgorin bound of the spring system with ``neighbors`` edges per node), frames farther apart than the
+values (Gershgorin bound of the symmetric spring system with its largest node degree), frames farther apart than the
 training ones take more substeps, and the network's force is bounded: the rollout cannot blow up.
 SMAD's decoder also predicts colour, covariance and a velocity refinement; here the dynamics move positions
 only (the Gaussians' own colours and shapes stay the avatar's).
