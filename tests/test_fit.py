@@ -9,7 +9,7 @@ import torch
 from warpavatar import data
 from warpavatar.avatar import Avatar
 from warpavatar.config import preset
-from warpavatar.dynamics import SecondaryDynamics, frame_intervals
+from warpavatar.dynamics import SecondaryDynamics
 from warpavatar.evaluate import evaluate_avatar
 from warpavatar.trainer import Trainer
 
@@ -123,7 +123,7 @@ def test_dynamics_fit_resumes_exactly_and_rolls_out_new_motions(demo_video, tmp_
     assert torch.equal(avatar.secondary_motion.node_displacement(bones), table[5])
     # ... and rolls out a motion it never saw (every training frame, at the video's own rate)
     motion = torch.as_tensor(demo_video.bone_transforms, dtype=torch.float32)
-    avatar.prepare_sequence(motion, frame_intervals(demo_video.frame_ids, demo_video.fps))
+    avatar.prepare_sequence(motion, frame_ids=demo_video.frame_ids, fps=demo_video.fps)
     unseen = [t for t in range(demo_video.frame_count) if t not in set(whole.train_indices.tolist())]
     assert unseen
     moved = avatar.secondary_motion.node_displacement(motion[unseen[-1]])

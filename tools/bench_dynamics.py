@@ -10,7 +10,8 @@ points in a unit box, 19 bones, default network sizes (hidden 64, 3 message pass
   pass of a loss on the last state.
 
 Times are the mean of 10 calls after 3 warm-up calls (``--quick``: 3 after 1). Both are dominated by the
-number of small launches (about 100 torch operations and 6 Warp launches per frame forward), not by M.
+number of small launches (about 110 top-level torch operations and 4 Warp launches per frame forward), not
+by M.
 """
 
 from __future__ import annotations

@@ -11,11 +11,10 @@ import sys, time, numpy as np, torch
 from warpavatar.avatar import Avatar
 from warpavatar.io.usd import read_gaussian_usd
 from warpavatar import data
-from warpavatar.dynamics import frame_intervals
 avatar = Avatar.load(sys.argv[1])
 video = data.load_video_folder(sys.argv[2])
 motion = video.bone_transforms
-avatar.prepare_sequence(motion, frame_intervals(video.frame_ids, video.fps))  # as warpavatar-animate does
+avatar.prepare_sequence(motion, frame_ids=video.frame_ids, fps=video.fps)  # as warpavatar-animate does
 for path in sys.argv[3:]:
     t0 = time.time(); usd = read_gaussian_usd(path)
     worst_pos = worst_quat = worst_scale = 0.0

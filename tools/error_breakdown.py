@@ -20,7 +20,6 @@ import torch
 
 from warpavatar import data
 from warpavatar.avatar import Avatar
-from warpavatar.dynamics import frame_intervals
 
 
 def _masked_psnr(prediction: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
@@ -35,7 +34,7 @@ def breakdown(avatar: Avatar, video, *, stride: int = 1) -> dict:
     device = avatar.gaussians.means.device
     background = torch.as_tensor(video.background, dtype=torch.float32, device=device)
     grid = avatar.field.grid_weights()
-    avatar.prepare_sequence(video.bone_transforms, frame_intervals(video.frame_ids, video.fps))
+    avatar.prepare_sequence(video.bone_transforms, frame_ids=video.frame_ids, fps=video.fps)
     rows = {"masked": [], "gain": [], "inner": [], "gain+inner": []}
     kernel = np.ones((5, 5), np.uint8)
     for t in range(0, video.frame_count, stride):

@@ -15,8 +15,6 @@ from typing import Iterator
 import numpy as np
 import torch
 
-from warpavatar.dynamics import frame_intervals
-
 __all__ = ["OrbitCamera", "orbit_cameras", "read_cameras_json", "posed_frames", "parse_frame_range"]
 
 
@@ -122,9 +120,7 @@ def posed_frames(avatar, bone_transforms: np.ndarray, *, frame_ids: np.ndarray |
     """
     device = avatar.gaussians.means.device
     grid = avatar.field.grid_weights()
-    if frame_ids is None:
-        frame_ids = np.arange(bone_transforms.shape[0])
-    avatar.prepare_sequence(bone_transforms, frame_intervals(frame_ids, fps))
+    avatar.prepare_sequence(bone_transforms, frame_ids=frame_ids, fps=fps)
     for t in range(bone_transforms.shape[0]):
         bones = torch.as_tensor(bone_transforms[t], dtype=torch.float32, device=device)
         yield avatar.pose(bones, frame_index=t, grid=grid)

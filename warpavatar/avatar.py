@@ -30,6 +30,7 @@ from warpavatar import ops
 from warpavatar._torch_impl.splat import sh_basis
 from warpavatar.gaussians import SH_C0, GaussianModel
 from warpavatar.pose_correction import PoseCorrection
+from warpavatar.dynamics import SecondaryDynamics, frame_intervals
 from warpavatar.secondary_motion import SecondaryMotion
 from warpavatar.skinning_field import VoxelSkinningField
 
@@ -47,8 +48,6 @@ def camera_centre(world_to_camera: torch.Tensor) -> torch.Tensor:
 def secondary_from_file_state(state: dict, *, device="cpu"):
     """Rebuild a secondary-motion model (per-frame displacements, or learned dynamics) from its saved state."""
     if state.get("kind") == "dynamics":
-        from warpavatar.dynamics import SecondaryDynamics
-
         return SecondaryDynamics.from_file_state(state, device=device)
     return SecondaryMotion.from_file_state(state, device=device)
 
@@ -111,7 +110,8 @@ class Avatar(torch.nn.Module):
                              f"skeleton, got {list(bone_transforms.shape)}")
         return bone_transforms
 
-    def prepare_sequence(self, bone_transforms, intervals, *, progress: bool = False) -> None:
+    def prepare_sequence(self, bone_transforms, *, frame_ids=None, fps: float = 30.0,
+                         progress: bool = False) -> None:
         """Get ready to pose the frames of a motion in which secondary dynamics matter.
 
         With learned dynamics (:class:`~warpavatar.dynamics.SecondaryDynamics`) this rolls the motion out
@@ -120,18 +120,19 @@ class Avatar(torch.nn.Module):
 
         Args:
             bone_transforms: [T,J,4,4] consecutive frames of the motion (numpy or torch).
-            intervals: [T] seconds since the previous frame (:func:`warpavatar.dynamics.frame_intervals`).
+            frame_ids: [T] frame numbers of the rows (default ``0..T-1``); with ``fps`` they give the time steps.
+            fps: frames per second of the frame numbers.
+            progress: show a progress bar over the frames.
         """
-        secondary = self.secondary_motion
-        if secondary is None or not hasattr(secondary, "prepare_sequence"):
+        if not isinstance(self.secondary_motion, SecondaryDynamics) or len(bone_transforms) == 0:
             return
         device = self.gaussians.means.device
-        bones = torch.stack([self.pose_bones(torch.as_tensor(b, dtype=torch.float32, device=device))
-                             for b in bone_transforms]) if len(bone_transforms) else None
-        if bones is None:
-            return
-        secondary.prepare_sequence(bones, torch.as_tensor(intervals, dtype=torch.float32, device=device),
-                                   progress=progress)
+        bones = torch.stack([self.pose_bones(b) for b in
+                             torch.as_tensor(bone_transforms, dtype=torch.float32, device=device)])
+        if frame_ids is None:
+            frame_ids = range(bones.shape[0])
+        intervals = frame_intervals(frame_ids, fps).to(device)
+        self.secondary_motion.prepare_sequence(bones, intervals, progress=progress)
 
     def pose(self, bone_transforms: torch.Tensor, *, sh_degree: int | None = None, frame_index: int | None = None,
              grid: torch.Tensor | None = None, node_displacement: torch.Tensor | None = None) -> PosedGaussians:

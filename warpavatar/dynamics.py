@@ -46,7 +46,7 @@ import math
 import torch
 
 from warpavatar import ops
-from warpavatar.secondary_motion import NodeGraph
+from warpavatar.secondary_motion import NodeGraph, match_pose
 
 __all__ = ["SecondaryDynamics", "DynamicsState", "frame_intervals"]
 
@@ -81,9 +81,6 @@ class DynamicsState:
     def __init__(self, displacement: torch.Tensor, velocity: torch.Tensor):
         self.displacement = displacement
         self.velocity = velocity
-
-    def detach(self) -> "DynamicsState":
-        return DynamicsState(self.displacement.detach(), self.velocity.detach())
 
 
 def _mlp(sizes: list[int], *, norm: bool = False) -> torch.nn.Sequential:
@@ -363,18 +360,20 @@ class SecondaryDynamics(NodeGraph):
         return DynamicsState(displacement, velocity)
 
     @torch.no_grad()
-    def rollout(self, bone_transforms: torch.Tensor, intervals: torch.Tensor, *, progress: bool = False
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+    def rollout(self, bone_transforms: torch.Tensor, intervals: torch.Tensor, *, drive: dict | None = None,
+                progress: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """Roll a pose sequence out from rest (no gradients).
 
         Args:
             bone_transforms: [T,J,4,4] consecutive frames.
             intervals: [T] seconds since the previous frame (see :func:`frame_intervals`).
+            drive: :meth:`drive` of the sequence, when the caller has it already.
 
         Returns:
             ``(displacement, velocity)``, [T,M,3] each; frame 0 is at rest.
         """
-        drive = self.drive(bone_transforms, intervals)
+        if drive is None:
+            drive = self.drive(bone_transforms, intervals)
         state = self.rest_state()
         displacements = [state.displacement]
         velocities = [state.velocity]
@@ -407,11 +406,8 @@ class SecondaryDynamics(NodeGraph):
     def _match(self, poses: torch.Tensor, displacement: torch.Tensor, bone_transforms: torch.Tensor,
                tolerance: float) -> tuple[torch.Tensor, torch.Tensor]:
         if poses.shape[0] == 0:
-            zero = torch.zeros((), device=self.nodes.device)
-            return torch.zeros_like(self.nodes), zero
-        difference = (poses - bone_transforms[: poses.shape[1]]).abs().amax(dim=(1, 2, 3))
-        best = torch.argmin(difference)
-        matched = (difference[best] <= tolerance).to(self.nodes.dtype)
+            return torch.zeros_like(self.nodes), torch.zeros((), device=self.nodes.device)
+        best, matched = match_pose(poses, bone_transforms, tolerance=tolerance)
         return displacement[best], matched
 
     def node_displacement(self, bone_transforms: torch.Tensor, *, tolerance: float = 1e-4) -> torch.Tensor:

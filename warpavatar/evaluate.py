@@ -17,7 +17,6 @@ import torch
 import tqdm
 
 from warpavatar import metrics
-from warpavatar.dynamics import frame_intervals
 
 __all__ = ["evaluate_avatar", "write_json_atomic"]
 
@@ -55,7 +54,7 @@ def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = N
     grid = avatar.field.grid_weights()
     # learned secondary dynamics roll the folder's motion out first (frames equal to training instants keep
     # the training rollout's state)
-    avatar.prepare_sequence(video.bone_transforms, frame_intervals(video.frame_ids, video.fps))
+    avatar.prepare_sequence(video.bone_transforms, frame_ids=video.frame_ids, fps=video.fps)
     if save_renders is not None:
         save_renders = Path(save_renders)
         save_renders.mkdir(parents=True, exist_ok=True)

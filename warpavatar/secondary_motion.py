@@ -24,7 +24,7 @@ import torch
 
 from warpavatar import ops
 
-__all__ = ["NodeGraph", "SecondaryMotion", "voxel_downsample"]
+__all__ = ["NodeGraph", "SecondaryMotion", "voxel_downsample", "match_pose"]
 
 
 class _BlendNodes(torch.autograd.Function):
@@ -57,6 +57,18 @@ def _blend_matrices(index: torch.Tensor, weights: torch.Tensor, node_count: int
         transposed = torch.sparse_coo_tensor(torch.stack([columns, rows]), values,
                                              shape[::-1]).coalesce().to_sparse_csr()
     return blend, transposed
+
+
+def match_pose(frame_poses: torch.Tensor, bone_transforms: torch.Tensor, *, tolerance: float = 1e-4
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(index of the row of ``frame_poses`` [T,J,4,4] closest to ``bone_transforms`` [J',4,4] (J' >= J), 1.0 if
+    every entry is within ``tolerance`` else 0.0), both device tensors: no host synchronization.
+
+    ``T`` must be at least 1.
+    """
+    difference = (frame_poses - bone_transforms[: frame_poses.shape[1]]).abs().amax(dim=(1, 2, 3))
+    best = torch.argmin(difference)
+    return best, (difference[best] <= tolerance).to(frame_poses.dtype)
 
 
 def voxel_downsample(points: torch.Tensor, voxel_size: float) -> torch.Tensor:
@@ -202,9 +214,7 @@ class SecondaryMotion(NodeGraph):
 
         Both are device tensors: no host synchronization.
         """
-        difference = (self.frame_poses - bone_transforms[: self.frame_poses.shape[1]]).abs().amax(dim=(1, 2, 3))
-        best = torch.argmin(difference)
-        return best, (difference[best] <= tolerance).to(self.displacement.dtype)
+        return match_pose(self.frame_poses, bone_transforms, tolerance=tolerance)
 
     def node_displacement(self, bone_transforms: torch.Tensor) -> torch.Tensor:
         """Canonical displacement [M,3] of every node for this pose (zeros unless it is a training instant)."""

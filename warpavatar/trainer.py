@@ -315,7 +315,7 @@ class Trainer:
         if (config.secondary_motion or config.dynamics) and step >= config.secondary_from \
                 and self.avatar.secondary_motion is None:
             if config.dynamics:
-                self._build_dynamics(grid)
+                self._build_dynamics(grid=grid)
             else:
                 self._build_secondary_motion()
         secondary = self.avatar.secondary_motion
@@ -445,7 +445,7 @@ class Trainer:
         self.secondary_optimizer = torch.optim.SparseAdam([secondary.displacement],
                                                           lr=config.lr_secondary * self.extent)
 
-    def _build_dynamics(self, grid: torch.Tensor, state: dict | None = None) -> None:
+    def _build_dynamics(self, *, grid: torch.Tensor | None = None, state: dict | None = None) -> None:
         """SMAD's learned dynamics on a graph of the current canonical Gaussians (or from a checkpoint's
         ``state``), and its optimizer."""
         config = self.config
@@ -455,9 +455,9 @@ class Trainer:
             nodes = voxel_downsample(self.gaussians.means.detach(), voxel)
             with torch.no_grad():
                 node_weights = field.weights(nodes, grid)
-            interval = float(self.frame_intervals.median()) if self.frame_intervals.numel() else 1.0 / 30.0
             dynamics = SecondaryDynamics(
-                nodes, node_weights, self.video.skeleton.parents, voxel_size=voxel, frame_interval=interval,
+                nodes, node_weights, self.video.skeleton.parents, voxel_size=voxel,
+                frame_interval=float(self.frame_intervals.median()),
                 hidden=config.dynamics_hidden, velocity_history=config.dynamics_velocity_history,
                 pose_window=config.dynamics_pose_window, substeps=config.dynamics_substeps)
             dynamics.bind(self.gaussians.means)
@@ -468,7 +468,7 @@ class Trainer:
         network = [p for p in dynamics.parameters() if all(p is not q for q in springs)]
         self.dynamics_optimizer = torch.optim.Adam([{"params": network, "lr": config.lr_dynamics},
                                                     {"params": springs, "lr": config.lr_dynamics_springs}])
-        self.dynamics_drive = dynamics.drive(self.bone_transforms, self.frame_intervals)
+        self.dynamics_drive = None  # computed with the cache (refresh) or, after a resume, on first use
         self.dynamics_cache = None
 
     @torch.no_grad()
@@ -480,7 +480,8 @@ class Trainer:
             grid = self.field.grid_weights()
         dynamics.set_node_weights(self.field.weights(dynamics.nodes, grid))
         self.dynamics_drive = dynamics.drive(self.bone_transforms, self.frame_intervals)
-        displacement, velocity = dynamics.rollout(self.bone_transforms, self.frame_intervals)
+        displacement, velocity = dynamics.rollout(self.bone_transforms, self.frame_intervals,
+                                                  drive=self.dynamics_drive)
         self.dynamics_cache = (displacement, velocity)
         dynamics.set_training_rollout(self.bone_transforms, displacement)
         self._dynamics_refreshed = self.step
@@ -491,6 +492,8 @@ class Trainer:
         dynamics = self.avatar.secondary_motion
         if self.dynamics_cache is None or self.step - self._dynamics_refreshed >= self.config.dynamics_refresh_every:
             self.refresh_dynamics(grid)
+        elif self.dynamics_drive is None:  # resumed with a cache: the drive of the saved node weights
+            self.dynamics_drive = dynamics.drive(self.bone_transforms, self.frame_intervals)
         cached_displacement, cached_velocity = self.dynamics_cache
         start = max(0, index - self.config.dynamics_window)
         # clones: the cache rows are overwritten below, and autograd may hold on to the start state
@@ -560,7 +563,7 @@ class Trainer:
         self.field_optimizer.load_state_dict(state["field_optimizer"])
         if state.get("secondary_motion") is not None:
             if state["secondary_motion"].get("kind") == "dynamics":
-                self._build_dynamics(None, state["secondary_motion"])
+                self._build_dynamics(state=state["secondary_motion"])
                 self.dynamics_optimizer.load_state_dict(state["dynamics_optimizer"])
                 if state.get("dynamics_cache") is not None:
                     self.dynamics_cache = tuple(tensor.to(self.device) for tensor in state["dynamics_cache"])

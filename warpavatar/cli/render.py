@@ -53,7 +53,6 @@ def main(argv=None) -> int:
 
     from warpavatar.animation import orbit_cameras, parse_frame_range, read_cameras_json
     from warpavatar.avatar import Avatar
-    from warpavatar.dynamics import frame_intervals
     from warpavatar.io.motion import load_motion
 
     device = resolve_device(args.device)
@@ -74,7 +73,7 @@ def main(argv=None) -> int:
     fps = args.fps or motion.fps
     background = torch.tensor(args.background, dtype=torch.float32, device=device)
     grid = avatar.field.grid_weights()
-    avatar.prepare_sequence(motion.bone_transforms, frame_intervals(motion.frame_ids, motion.fps),
+    avatar.prepare_sequence(motion.bone_transforms, frame_ids=motion.frame_ids, fps=motion.fps,
                             progress=not args.no_progress)
 
     output = args.output
