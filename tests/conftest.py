@@ -18,3 +18,36 @@ def pytest_generate_tests(metafunc):
 def _deterministic_seed():
     torch.manual_seed(0)
     yield
+
+
+def small_avatar(skeleton, *, seed: int, per_bone: int, cells: int, distill_steps: int, random_frames: bool = False):
+    """An avatar with Gaussians scattered around a skeleton's bone midpoints and a briefly distilled field.
+
+    ``random_frames`` also randomizes the Gaussians' higher SH coefficients and orientations.
+    """
+    from warpavatar.avatar import Avatar
+    from warpavatar.gaussians import GaussianModel
+    from warpavatar.skinning_field import VoxelSkinningField, bone_distance_prior
+
+    generator = torch.Generator().manual_seed(seed)
+    heads = torch.as_tensor(skeleton.heads)
+    tails = torch.as_tensor(skeleton.tails)
+    mid = (heads + tails) * 0.5
+    means = (mid[:, None] + 0.03 * torch.randn(len(mid), per_bone, 3, generator=generator)).reshape(-1, 3)
+    colours = torch.rand(means.shape[0], 3, generator=generator)
+    scales = 0.01 + 0.02 * torch.rand(means.shape[0], 3, generator=generator)
+    gaussians = GaussianModel(means, colours, scales, sh_degree=1, opacity=0.7)
+    if random_frames:
+        with torch.no_grad():
+            gaussians.sh_rest.normal_(0.0, 0.1, generator=generator)
+            gaussians.quats.normal_(generator=generator)
+    lo = torch.minimum(heads.min(0).values, tails.min(0).values) - 0.2
+    hi = torch.maximum(heads.max(0).values, tails.max(0).values) + 0.2
+    field = VoxelSkinningField(lo, hi, skeleton.joint_count, cells=cells, min_cells=4, hidden=16, layers=1)
+    prior = bone_distance_prior(field.grid_points.reshape(-1, 3), heads, tails, temperature=0.05)
+    optimizer = torch.optim.Adam(field.parameters(), lr=1e-2)
+    for _ in range(distill_steps):
+        optimizer.zero_grad()
+        field.distillation_loss(prior).backward()
+        optimizer.step()
+    return Avatar(skeleton, gaussians, field)

@@ -9,40 +9,20 @@ import torch
 
 pytest.importorskip("pxr")  # usd-core is a dependency; skip cleanly where it is absent (the GPU machine)
 
+from conftest import small_avatar
 from warpavatar import data
 from warpavatar.avatar import Avatar
 from warpavatar.cli import animate, render
-from warpavatar.gaussians import GaussianModel
 from warpavatar.io.usd import read_gaussian_usd
-from warpavatar.skinning_field import VoxelSkinningField, bone_distance_prior
 
 
 @pytest.fixture(scope="module")
 def avatar_dir(tmp_path_factory):
     """An avatar with Gaussians scattered around the demo skeleton's bones and a field distilled briefly."""
     skeleton = data.load_video_folder(data.demo_subject_path() / "train", max_frames=2).skeleton
-    generator = torch.Generator().manual_seed(3)
-    heads = torch.as_tensor(skeleton.heads)
-    tails = torch.as_tensor(skeleton.tails)
-    mid = (heads + tails) * 0.5
-    means = (mid[:, None] + 0.03 * torch.randn(len(mid), 8, 3, generator=generator)).reshape(-1, 3)
-    colours = torch.rand(means.shape[0], 3, generator=generator)
-    scales = 0.01 + 0.02 * torch.rand(means.shape[0], 3, generator=generator)
-    gaussians = GaussianModel(means, colours, scales, sh_degree=1, opacity=0.7)
-    with torch.no_grad():
-        gaussians.sh_rest.normal_(0.0, 0.1, generator=generator)
-        gaussians.quats.normal_(generator=generator)
-    lo = torch.minimum(heads.min(0).values, tails.min(0).values) - 0.2
-    hi = torch.maximum(heads.max(0).values, tails.max(0).values) + 0.2
-    field = VoxelSkinningField(lo, hi, skeleton.joint_count, cells=12, min_cells=4, hidden=16, layers=1)
-    prior = bone_distance_prior(field.grid_points.reshape(-1, 3), heads, tails, temperature=0.05)
-    optimizer = torch.optim.Adam(field.parameters(), lr=1e-2)
-    for _ in range(30):
-        optimizer.zero_grad()
-        field.distillation_loss(prior).backward()
-        optimizer.step()
+    avatar = small_avatar(skeleton, seed=3, per_bone=8, cells=12, distill_steps=30, random_frames=True)
     folder = tmp_path_factory.mktemp("avatar")
-    Avatar(skeleton, gaussians, field).save(folder / "avatar.pt")
+    avatar.save(folder / "avatar.pt")
     return folder
 
 

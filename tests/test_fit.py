@@ -1,6 +1,7 @@
 """End-to-end fitting on the built-in demo subject: the fit learns, resumes exactly, and its outputs load back."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -132,6 +133,71 @@ def test_dynamics_fit_resumes_exactly_and_rolls_out_new_motions(demo_video, tmp_
     avatar.secondary_motion = None
     without = evaluate_avatar(avatar, demo_video, progress=False)["psnr_masked"]
     assert abs(with_dynamics - without) < 1.0, (with_dynamics, without)  # a short fit: small, sane motion
+
+
+def test_joint_growth_fit_grows_replays_and_resumes_exactly(demo_video, tmp_path):
+    """ToMiE's growth in a fit: joints grow at grow_at, train, replay their rotations at training instants only,
+    and a fit interrupted after the growth resumes to the same result."""
+    config = _tiny_config(iterations=60, densify_from=10, densify_every=10, densify_until=40,
+                          gaussian_only_steps=25, secondary_motion=True, secondary_from=25, grow_joints=True,
+                          grow_at=30, grow_threshold=0.5, grow_max_joints=2, grow_kernel_frames=6,
+                          checkpoint_every=1000, log_every=10)
+    whole = Trainer(demo_video, config, tmp_path / "whole")
+    whole.fit(progress=False)
+    extra = whole.avatar.extra_joints
+    assert extra is not None and extra.count == 2
+    assert whole.field.joint_count == demo_video.skeleton.joint_count + 2
+    log = [json.loads(line) for line in (tmp_path / "whole" / "train_log.jsonl").read_text().splitlines()]
+    growth = [entry for entry in log if entry.get("stage") == "grow_joints"]
+    assert len(growth) == 1 and growth[0]["step"] == 30
+    # densification renumbered the Gaussians before the growth: the pooled statistics had to follow
+    counts = [entry["gaussians"] for entry in log if "step" in entry and "loss" in entry and entry["step"] <= 30]
+    assert len(set(counts)) > 1, counts
+    names = demo_video.skeleton.names
+    assert growth[0]["grown_parents"] == [names[j] for j in extra.parents.tolist()]
+    gradients = growth[0]["joint_gradient"]
+    assert min(gradients[name] for name in growth[0]["grown_parents"]) >= growth[0]["threshold"] > 0
+
+    interrupted = Trainer(demo_video, config, tmp_path / "parts")
+    interrupted.fit(progress=False, stop_at=45)  # the checkpoint holds the grown joints
+    resumed = Trainer(demo_video, config, tmp_path / "parts")
+    resumed.fit(resume=True, progress=False)
+    for name, parameter in extra.named_parameters():
+        assert torch.allclose(parameter, dict(resumed.avatar.extra_joints.named_parameters())[name], atol=1e-6), name
+    for name, parameter in whole.field.named_parameters():
+        assert torch.allclose(parameter, dict(resumed.field.named_parameters())[name], atol=1e-6), name
+    assert torch.allclose(whole.gaussians.means, resumed.gaussians.means, atol=1e-6)
+
+    # the saved avatar replays each training instant's learned rotations; other poses keep the joints at rest
+    avatar = Avatar.load(tmp_path / "whole")
+    rotations = avatar.extra_joints.rotations_for_pose(whole.bone_transforms[4])
+    assert torch.allclose(rotations, extra.frame_rotations(torch.tensor(4)))
+    assert float(rotations[:, 1:].detach().abs().max()) > 0
+    unseen = [t for t in range(demo_video.frame_count) if t not in set(whole.train_indices.tolist())][0]
+    rest = avatar.extra_joints.rotations_for_pose(torch.as_tensor(demo_video.bone_transforms[unseen],
+                                                                  dtype=torch.float32))
+    assert torch.equal(rest, torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2))
+    frame = int(whole.train_indices[4])
+    with torch.no_grad():
+        replayed, _, _ = avatar.render(demo_video.cameras[frame], whole.bone_transforms[4])
+        trained, _, _ = whole.avatar.render(demo_video.cameras[frame], whole.bone_transforms[4])
+        at_rest, _, _ = avatar.render(demo_video.cameras[frame], whole.bone_transforms[4],
+                                      extra_rotations=torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2))
+    assert (replayed - trained).abs().max() < 1e-5
+    assert (replayed - at_rest).abs().max() > 1e-4
+
+
+def test_history_criterion_locates_the_joint_with_the_largest_code_offsets(demo_video, tmp_path):
+    config = _tiny_config(iterations=45, densify_from=20, densify_every=20, densify_until=40,
+                          gaussian_only_steps=25, secondary_motion=False, grow_joints=True, grow_at=40,
+                          grow_criterion="history", grow_threshold=0.5, grow_max_joints=1, grow_kernel_frames=6)
+    trainer = Trainer(demo_video, config, tmp_path / "fit")
+    trainer.fit(progress=False, stop_at=41)
+    report = trainer.growth_report
+    values = report["joint_gradient"]
+    assert all(math.isfinite(v) and v > 0 for v in values.values())
+    assert report["grown_parents"] == [max(values, key=values.get)]
+    assert trainer.avatar.extra_joints.count == 1
 
 
 def test_dynamics_and_per_frame_displacements_are_exclusive():

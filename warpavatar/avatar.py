@@ -1,7 +1,8 @@
 """The animatable avatar: canonical Gaussians + voxel skinning field + skeleton, posed by linear blend skinning.
 
 Data flows one way: a pose (bone transforms [J,4,4], rest -> posed world, as poses.npz stores them) goes
-through :meth:`Avatar.pose_bones` (where grown joints would extend it), the skinning field gives each canonical
+through :meth:`Avatar.pose_bones` (which appends the transforms of joints grown by ToMiE's skeleton growth,
+:class:`~warpavatar.joint_growth.ExtraJoints`), the skinning field gives each canonical
 Gaussian its weights (read at the pose-corrected canonical position), a secondary-motion model on SMAD's graph
 (per-training-frame displacements, :class:`~warpavatar.secondary_motion.SecondaryMotion`, or learned dynamics,
 :class:`~warpavatar.dynamics.SecondaryDynamics`, after :meth:`Avatar.prepare_sequence`) displaces the canonical
@@ -29,6 +30,7 @@ import torch
 from warpavatar import ops
 from warpavatar._torch_impl.splat import sh_basis
 from warpavatar.gaussians import SH_C0, GaussianModel
+from warpavatar.joint_growth import ExtraJoints
 from warpavatar.pose_correction import PoseCorrection
 from warpavatar.dynamics import SecondaryDynamics, frame_intervals
 from warpavatar.secondary_motion import SecondaryMotion
@@ -94,6 +96,8 @@ class Avatar(torch.nn.Module):
         self.deformers: list[Deformer] = []
         self.pose_correction: PoseCorrection | None = None
         self.secondary_motion: SecondaryMotion | None = None
+        #: joints grown on the skeleton (ToMiE); the skinning field has one output per skeleton and grown joint
+        self.extra_joints: ExtraJoints | None = None
         #: optional global world-frame irradiance (:class:`warpavatar.lighting.WorldLighting`)
         self.lighting: torch.nn.Module | None = None
         #: world point [3] the SH colours are evaluated from (``shading="world"``); None: the render camera
@@ -103,12 +107,47 @@ class Avatar(torch.nn.Module):
     def joint_count(self) -> int:
         return len(self.skeleton.names)
 
-    def pose_bones(self, bone_transforms: torch.Tensor) -> torch.Tensor:
-        """Full set of skinning transforms [J',4,4] for the skeleton's [J,4,4] (J' = J until joints are grown)."""
+    def pose_bones(self, bone_transforms: torch.Tensor, *, extra_rotations: torch.Tensor | None = None
+                   ) -> torch.Tensor:
+        """Full set of skinning transforms [J+E,4,4] for the skeleton's [J,4,4]: the skeleton's, then those of
+        the E grown joints (E = 0 without growth).
+
+        Args:
+            bone_transforms: [J,4,4] rest-to-posed transforms.
+            extra_rotations: [E,4] (w, x, y, z) rotations of the grown joints in their parents' rest frames, to
+                animate them explicitly; by default a training instant's pose gets its learned rotations and any
+                other pose the identity (see :class:`~warpavatar.joint_growth.ExtraJoints`).
+        """
         if bone_transforms.shape != (self.joint_count, 4, 4):
             raise ValueError(f"bone_transforms must have shape [{self.joint_count}, 4, 4] for this avatar's "
                              f"skeleton, got {list(bone_transforms.shape)}")
-        return bone_transforms
+        if self.extra_joints is None:
+            if extra_rotations is not None:
+                raise ValueError("extra_rotations given but this avatar has no grown joints")
+            return bone_transforms
+        return torch.cat([bone_transforms, self.extra_joints.transforms(bone_transforms, extra_rotations)])
+
+    def rig(self):
+        """The skeleton with the grown joints appended (names ``grown_<parent>_<k>``, heads at their canonical
+        positions, tails 10 % of the parent's length further along the parent), for exports (UsdSkel)."""
+        from warpavatar.data import Skeleton
+
+        skeleton = self.skeleton
+        if self.extra_joints is None:
+            return skeleton
+        import numpy as np
+
+        extra = self.extra_joints
+        parents = extra.parents.cpu().numpy()
+        heads = extra.positions().detach().cpu().numpy().astype(np.float32)
+        direction = skeleton.tails[parents] - skeleton.heads[parents]
+        names = list(skeleton.names)
+        for k, parent in enumerate(parents):
+            names.append(f"grown_{skeleton.names[parent]}_{k}")
+        return Skeleton(names=names, parents=np.concatenate([skeleton.parents, parents]).astype(np.int32),
+                        heads=np.concatenate([skeleton.heads, heads]).astype(np.float32),
+                        tails=np.concatenate([skeleton.tails, heads + 0.1 * direction]).astype(np.float32),
+                        up=skeleton.up)
 
     def prepare_sequence(self, bone_transforms, *, frame_ids=None, fps: float = 30.0,
                          progress: bool = False) -> None:
@@ -135,7 +174,8 @@ class Avatar(torch.nn.Module):
         self.secondary_motion.prepare_sequence(bones, intervals, progress=progress)
 
     def pose(self, bone_transforms: torch.Tensor, *, sh_degree: int | None = None, frame_index: int | None = None,
-             grid: torch.Tensor | None = None, node_displacement: torch.Tensor | None = None) -> PosedGaussians:
+             grid: torch.Tensor | None = None, node_displacement: torch.Tensor | None = None,
+             extra_rotations: torch.Tensor | None = None) -> PosedGaussians:
         """Pose the canonical Gaussians.
 
         Args:
@@ -145,14 +185,16 @@ class Avatar(torch.nn.Module):
             grid: precomputed skinning grid (:meth:`VoxelSkinningField.grid_weights`), to share across calls.
             node_displacement: [M,3] secondary displacement of the graph nodes to use instead of the one the
                 secondary-motion model looks up for this pose (a fit passes the state it is training).
+            extra_rotations: see :meth:`pose_bones`.
         """
         gaussians = self.gaussians
         degree = gaussians.sh_degree if sh_degree is None else min(sh_degree, gaussians.sh_degree)
-        bones = self.pose_bones(bone_transforms)
+        bones = self.pose_bones(bone_transforms, extra_rotations=extra_rotations)
+        skeleton_bones = bones[: self.joint_count]
         canonical_means, canonical_quats, scales = gaussians.means, gaussians.normalized_quats, gaussians.scales
         if self.pose_correction is not None:
             canonical_means, canonical_quats, scales = self.pose_correction(
-                canonical_means, canonical_quats, scales, bones)
+                canonical_means, canonical_quats, scales, skeleton_bones)
         weights = self.field.weights(canonical_means, grid)
         displaced_means = canonical_means
         if self.secondary_motion is not None:
@@ -171,7 +213,7 @@ class Avatar(torch.nn.Module):
     def render(self, camera, bone_transforms: torch.Tensor, *, background: torch.Tensor | None = None,
                sh_degree: int | None = None, frame_index: int | None = None, grid: torch.Tensor | None = None,
                densify_grad_out: torch.Tensor | None = None, return_info: bool = False,
-               node_displacement: torch.Tensor | None = None):
+               node_displacement: torch.Tensor | None = None, extra_rotations: torch.Tensor | None = None):
         """Render the avatar in a pose through a camera.
 
         Args:
@@ -179,13 +221,14 @@ class Avatar(torch.nn.Module):
             bone_transforms: [J,4,4] pose.
             background: [3] colour in 0..1 (default black).
             node_displacement: see :meth:`pose`.
+            extra_rotations: see :meth:`pose_bones`.
 
         Returns:
             ``(image [H,W,3], alpha [H,W], depth [H,W])``, plus the rasterizer's info dict when ``return_info``.
         """
         device = self.gaussians.means.device
         posed = self.pose(bone_transforms, sh_degree=sh_degree, frame_index=frame_index, grid=grid,
-                          node_displacement=node_displacement)
+                          node_displacement=node_displacement, extra_rotations=extra_rotations)
         K = torch.as_tensor(camera.K, dtype=torch.float32, device=device)
         world_to_camera = torch.as_tensor(camera.world_to_camera, dtype=torch.float32, device=device)
         colors = self.view_colors(posed, world_to_camera, origin=self.shading_origin)
@@ -234,6 +277,7 @@ class Avatar(torch.nn.Module):
                 "hyper": dict(self.pose_correction.hyper),
             },
             "secondary_motion": None if self.secondary_motion is None else self.secondary_motion.state_for_file(),
+            "extra_joints": None if self.extra_joints is None else self.extra_joints.state_for_file(),
             "shading_origin": None if self.shading_origin is None else self.shading_origin.detach().cpu(),
             "lighting": None if self.lighting is None else {
                 k: v.detach().cpu() for k, v in self.lighting.state_dict().items()},
@@ -271,6 +315,11 @@ class Avatar(torch.nn.Module):
             avatar.pose_correction = correction.to(device)
         if state.get("secondary_motion") is not None:
             avatar.secondary_motion = secondary_from_file_state(state["secondary_motion"], device=device)
+        if state.get("extra_joints") is not None:
+            avatar.extra_joints = ExtraJoints.from_file_state(state["extra_joints"], device=device)
+            if avatar.field.joint_count != avatar.joint_count + avatar.extra_joints.count:
+                raise ValueError(f"avatar file: the skinning field has {avatar.field.joint_count} outputs but the "
+                                 f"skeleton {avatar.joint_count} joints and {avatar.extra_joints.count} grown ones")
         if state.get("lighting") is not None:
             from warpavatar.lighting import WorldLighting
 

@@ -87,6 +87,32 @@ class FitConfig:
     lambda_isometry: float = _opt(0.1, "weight of SMAD's isometry loss on the posed graph (per voxel^2)")
     lambda_damping: float = _opt(0.01, "weight of SMAD's damping loss on node velocities (voxels per frame)")
     lambda_displacement: float = _opt(1e-3, "weight of the mean squared node displacement (per voxel^2)")
+    # ToMiE's skeleton growth (paper 003 Sec. 4)
+    grow_joints: bool = _opt(False, "grow extra joints on the skeleton where garments or held objects do not follow "
+                             "the body (ToMiE): at --grow-at, joints whose Gaussians carry the largest position "
+                             "gradients (assigned by skinning weights and motion kernels) each grow a child whose "
+                             "per-frame rotation is learned; novel views of training instants replay it, other "
+                             "poses keep it at rest unless animated explicitly")
+    grow_at: int = _opt(1500, "step at which joints grow (the position gradients of every step before it are "
+                        "pooled); growing when the field starts to train (as here) measured better than at step "
+                        "3000 on cesium_skirt with named parents")
+    grow_threshold: float = _opt(1.1, "a joint grows a child when its gradient is at least this many times the "
+                                 "median joint's (ToMiE thresholds an absolute value, which depends on the loss "
+                                 "scale)")
+    grow_max_joints: int = _opt(4, "at most this many located joints grow a child")
+    grow_criterion: str = _opt("gradient", "what locates the parent joints: 'gradient' (ToMiE: each joint's "
+                               "assigned Gaussians' mean position-gradient norm) or 'history' (their RMS offset, "
+                               "over the training frames, that the pose correction's per-frame codes add to its "
+                               "pose-only correction: shape no function of the pose explains, as cloth that "
+                               "lags; needs --pose-correction and --frame-codes, and --grow-at after "
+                               "--gaussian-only-steps so that the correction has trained)")
+    grow_parents: str = _opt("", "comma-separated skeleton joint names that grow a child at --grow-at instead of "
+                             "those the gradients locate (e.g. the hips a skirt hangs from; a name given twice "
+                             "grows two children); the gradients are still logged")
+    grow_motion_mix: float = _opt(0.4, "share of the motion kernel in the assignment of Gaussians to joints "
+                                  "(ToMiE's lambda)")
+    grow_kernel_frames: int = _opt(64, "training frames (evenly spaced) the motion kernels are computed over")
+    lr_extra_joints: float = _opt(1e-3, "Adam learning rate of the grown joints' position and rotation MLPs")
     # Colours
     lighting: bool = _opt(False, "multiply colours by a global first-order irradiance of each Gaussian's world "
                           "normal (lights fixed in the world; extrapolates to sides never facing the camera)")
@@ -136,6 +162,23 @@ class FitConfig:
         if self.dynamics and self.secondary_motion:
             raise ValueError("choose one secondary-motion model: --secondary-motion (per-frame displacements) or "
                              "--dynamics (learned dynamics), not both")
+        if self.grow_joints and (self.dynamics or self.backward_mapping):
+            raise ValueError("--grow-joints cannot yet be combined with --dynamics or --backward-mapping (both read "
+                             "the skeleton's bones only); use --secondary-motion for per-frame cloth displacements")
+        if self.grow_criterion not in ("gradient", "history"):
+            raise ValueError(f"grow_criterion must be 'gradient' or 'history', got {self.grow_criterion!r}")
+        if self.grow_joints and self.grow_criterion == "history" and not self.grow_parents and not (
+                self.pose_correction and self.frame_codes and self.grow_at > self.gaussian_only_steps):
+            raise ValueError("--grow-criterion history reads the pose correction's per-frame codes: it needs "
+                             "--pose-correction, --frame-codes and --grow-at later than --gaussian-only-steps")
+        if self.grow_parents and not self.grow_joints:
+            raise ValueError("--grow-parents names the joints that grow: it needs --grow-joints")
+        if self.grow_threshold <= 0 or not 0.0 <= self.grow_motion_mix <= 1.0:
+            raise ValueError(f"grow_threshold must be positive and grow_motion_mix lie in [0, 1], got "
+                             f"{self.grow_threshold} and {self.grow_motion_mix}")
+        if self.grow_kernel_frames < 2 or self.grow_max_joints < 1:
+            raise ValueError(f"grow_kernel_frames must be at least 2 and grow_max_joints at least 1, got "
+                             f"{self.grow_kernel_frames} and {self.grow_max_joints}")
         for name in ("dynamics_hidden", "dynamics_window", "dynamics_refresh_every", "dynamics_substeps",
                      "dynamics_velocity_history", "dynamics_pose_window"):
             if getattr(self, name) < 1:
@@ -180,6 +223,7 @@ PRESETS: dict[str, dict] = {
         max_gaussians=10000,
         pose_correction=False,
         secondary_from=800,
+        grow_at=600,
         backward_from=1000,
         backward_until=1700,
         opacity_reset_every=0,

@@ -89,11 +89,8 @@ class PoseCorrection(torch.nn.Module):
     def forward(self, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, bone_transforms: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Corrected canonical (means [N,3], unit quats [N,4], scales [N,3]) for this pose."""
-        pose = self.pose_encoder(relative_rotations_6d(bone_transforms, self.parents))
-        if self.frame_codes.shape[0]:
-            pose = torch.cat([pose, self.frame_code(bone_transforms)])
-        features = torch.cat([self._encode(means.detach()), pose.expand(means.shape[0], -1)], dim=-1)
-        outputs = self.head(self.trunk(features))
+        code = self.frame_code(bone_transforms) if self.frame_codes.shape[0] else None
+        outputs = self._outputs(means, bone_transforms, code)
         self.last_outputs = outputs
         extent = (self.bbox_max - self.bbox_min).norm()
         offset = outputs[:, :3] * (0.1 * extent)
@@ -104,6 +101,26 @@ class PoseCorrection(torch.nn.Module):
         rotated = torch.cat([w1 * w2 - (v1 * v2).sum(-1, keepdim=True),
                              w1 * v2 + w2 * v1 + torch.cross(v1, v2, dim=-1)], dim=-1)
         return means + offset, rotated, scales * torch.exp(outputs[:, 6:9].clamp(-3.0, 3.0))
+
+    def _outputs(self, means: torch.Tensor, bone_transforms: torch.Tensor, code: torch.Tensor | None
+                 ) -> torch.Tensor:
+        """Raw network outputs [N,9] for a pose and a frame code (None without codes)."""
+        pose = self.pose_encoder(relative_rotations_6d(bone_transforms, self.parents))
+        if code is not None:
+            pose = torch.cat([pose, code])
+        features = torch.cat([self._encode(means.detach()), pose.expand(means.shape[0], -1)], dim=-1)
+        return self.head(self.trunk(features))
+
+    def history_offsets(self, means: torch.Tensor, frame: int) -> torch.Tensor:
+        """Position offsets [N,3] [world units] that training frame ``frame``'s code adds to the pose-only
+        correction of canonical points [N,3]: the part of the frame's shape no function of the pose explains
+        (cloth that lags or swings). Zeros without frame codes."""
+        if not self.frame_codes.shape[0]:
+            return torch.zeros_like(means)
+        pose = self.frame_poses[frame]
+        with_code = self._outputs(means, pose, self.frame_codes[frame])[:, :3]
+        without = self._outputs(means, pose, torch.zeros_like(self.frame_codes[frame]))[:, :3]
+        return (with_code - without) * (0.1 * (self.bbox_max - self.bbox_min).norm())
 
     def set_frame_poses(self, bone_transforms: torch.Tensor) -> None:
         """Record the training frames' poses [T,J,4,4] (T = frame_count), in the order of the codes."""

@@ -142,9 +142,46 @@ class VoxelSkinningField(torch.nn.Module):
         logits = self.mlp(self.grid_encoding)
         return -(prior * torch.log_softmax(logits, dim=-1)).sum(-1).mean()
 
-    def bone_loss(self, sample_points: torch.Tensor, sample_bones: torch.Tensor, grid: torch.Tensor | None = None
-                  ) -> torch.Tensor:
-        """TAGA's bone regularization: squared distance of the weights at bone samples from one-hot vectors."""
+    @torch.no_grad()
+    def add_joints(self, parents: torch.Tensor) -> None:
+        """Add one output per grown joint (ToMiE Sec. 4.4), each starting as a copy of its parent's.
+
+        The parent's logit and the copy are both lowered by log(2) per share, so the parent's weight is split
+        evenly between itself and its children: the summed weight of the group, and so any pose in which the
+        children move with the parent, is unchanged. Training then decides where the children take over.
+
+        Args:
+            parents: [E] index of each new joint's parent among the current outputs.
+        """
+        parents = torch.as_tensor(parents).long().reshape(-1).cpu()
+        if parents.numel() == 0:
+            return
+        if int(parents.min()) < 0 or int(parents.max()) >= self.joint_count:
+            raise ValueError(f"parents must index the field's {self.joint_count} joints, got {parents.tolist()}")
+        old = self.mlp[-1]
+        weight, bias = old.weight.detach().clone(), old.bias.detach().clone()
+        shares = torch.ones(self.joint_count) + torch.bincount(parents, minlength=self.joint_count).float()
+        bias = bias - torch.log(shares).to(bias)
+        new = torch.nn.Linear(old.in_features, self.joint_count + parents.numel()).to(weight)
+        new.weight.copy_(torch.cat([weight, weight[parents.to(weight.device)]]))
+        new.bias.copy_(torch.cat([bias, bias[parents.to(bias.device)]]))
+        self.mlp[-1] = new
+        self.joint_count += int(parents.numel())
+
+    def bone_loss(self, sample_points: torch.Tensor, sample_bones: torch.Tensor, grid: torch.Tensor | None = None,
+                  *, groups: torch.Tensor | None = None) -> torch.Tensor:
+        """TAGA's bone regularization: squared distance of the weights at bone samples from one-hot vectors.
+
+        Args:
+            sample_points: [S,3] canonical sample points (:func:`bone_sample_points`).
+            sample_bones: [S] bone whose one-hot weight is expected at each sample.
+            grid: precomputed grid of weights.
+            groups: [J',J] 0/1 matrix, for grown joints (ToMiE): row j' marks the skeleton joint output j'
+                counts towards (a grown joint's parent, itself for the others). The weights of a group are
+                summed before comparing, so how a parent shares its region with its children is left free.
+        """
         weights = self.weights(sample_points, grid)
-        target = torch.nn.functional.one_hot(sample_bones, self.joint_count).to(weights)
+        if groups is not None:
+            weights = weights @ groups.to(weights)
+        target = torch.nn.functional.one_hot(sample_bones, weights.shape[1]).to(weights)
         return ((weights - target) ** 2).sum(-1).mean()

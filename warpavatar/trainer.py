@@ -5,7 +5,8 @@ Stages (TAGA appendix C): (1) warm-up: the skinning field alone distils a rigid 
 regularization; from ``secondary_from`` on, a secondary-motion model on SMAD's graph (built then from the
 canonical Gaussians) trains with it: per-frame displacements, or learned dynamics rolled out over the training
 sequence (truncated backpropagation through ``dynamics_window`` frames from cached states); between
-``backward_from`` and ``backward_until``, TAGA's backward mapping (when enabled) adds its cycle losses.
+``backward_from`` and ``backward_until``, TAGA's backward mapping (when enabled) adds its cycle losses; at
+``grow_at``, ToMiE's skeleton growth (when enabled) adds joints where the position gradients stay large.
 Adaptive density control (3DGS) runs with a Gaussian budget (ToMiE appendix A.4).
 """
 
@@ -22,11 +23,14 @@ import numpy as np
 import torch
 import tqdm
 
+from warpavatar import ops
 from warpavatar.avatar import Avatar, camera_centre
 from warpavatar.backward_mapping import BackwardMapping
 from warpavatar.config import FitConfig
 from warpavatar.dynamics import DynamicsState, SecondaryDynamics, frame_intervals
 from warpavatar.gaussians import GaussianModel
+from warpavatar.joint_growth import (ExtraJoints, assignment_weights, joint_gradient_sums, joint_gradients,
+                                     locate_parents, motion_kernel)
 from warpavatar.metrics import psnr, ssim_map
 from warpavatar.pose_correction import PoseCorrection
 from warpavatar.secondary_motion import SecondaryMotion, voxel_downsample
@@ -213,7 +217,9 @@ class Trainer:
             self.lighting_optimizer = torch.optim.Adam(self.avatar.lighting.parameters(), lr=config.lr_lighting)
         self.gaussians = gaussians
         self.field = field
-        network_parameters = list(field.parameters())
+        self.extra_joints_optimizer: torch.optim.Optimizer | None = None
+        self.grown = False  # ToMiE's growth has run (whether or not any joint grew)
+        self.growth_report: dict | None = None
         if config.pose_correction:
             self.avatar.pose_correction = PoseCorrection(
                 bbox_min, bbox_max, torch.as_tensor(skeleton.parents), hidden=config.pose_correction_hidden,
@@ -221,15 +227,20 @@ class Trainer:
             ).to(self.device)
             if config.frame_codes:
                 self.avatar.pose_correction.set_frame_poses(self.bone_transforms)
-            network_parameters += list(self.avatar.pose_correction.parameters())
         gaussians.make_optimizer(lr_position=config.lr_position * self.extent, lr_scale=config.lr_scale,
                                  lr_rotation=config.lr_rotation, lr_opacity=config.lr_opacity, lr_color=config.lr_color)
         # the networks (skinning field, pose correction) train together from the joint stage on
-        self.field_optimizer = torch.optim.Adam(network_parameters, lr=config.field_lr)
+        self.field_optimizer = torch.optim.Adam(self._network_parameters(), lr=config.field_lr)
         heads = torch.as_tensor(skeleton.heads, dtype=torch.float32, device=self.device)
         tails = torch.as_tensor(skeleton.tails, dtype=torch.float32, device=self.device)
         parents = torch.as_tensor(skeleton.parents, device=self.device)
         self.bone_samples, self.bone_sample_index = bone_sample_points(heads, tails, parents)
+        self.bone_groups: torch.Tensor | None = None  # [J+E, J] once joints have grown
+        # ToMiE's per-joint gradient statistics (Eq. 4), pooled over the densification rounds before growth
+        self.joint_grad_sum = torch.zeros(skeleton.joint_count, device=self.device)
+        self.joint_grad_seen = torch.zeros(skeleton.joint_count, device=self.device)
+        if config.grow_joints:
+            self._named_parents()  # a misspelt --grow-parents fails now, not thousands of steps in
         self.backward: BackwardMapping | None = None
         if config.backward_mapping:
             self.backward = BackwardMapping(heads, tails, parents, threshold=config.backward_threshold,
@@ -246,10 +257,19 @@ class Trainer:
         self.log_path = self.output_dir / "train_log.jsonl"
 
     # ---------------------------------------------------------------------------------------------- helpers
+    def _network_parameters(self) -> list[torch.nn.Parameter]:
+        """The parameters the network optimizer trains: the skinning field's, then the pose correction's."""
+        parameters = list(self.field.parameters())
+        if self.avatar.pose_correction is not None:
+            parameters += list(self.avatar.pose_correction.parameters())
+        return parameters
+
     def _reset_densify_stats(self) -> None:
         count = self.gaussians.count
         self.grad_accum = torch.zeros(count, 2, device=self.device)
         self.visible_count = torch.zeros(count, device=self.device)
+        # canonical position-gradient norms, for ToMiE's parent-joint localization
+        self.position_grad_accum = torch.zeros(count, device=self.device)
 
     def _next_frame(self) -> int:
         if not self.frame_order:
@@ -297,6 +317,8 @@ class Trainer:
         config = self.config
         step = self.step
         train_field = step >= config.gaussian_only_steps
+        if config.grow_joints and not self.grown and step >= config.grow_at:
+            self.grow_joints()
         index = self._next_frame()
         gt, mask = self.target(index)
         camera = self.cameras[index]
@@ -335,7 +357,7 @@ class Trainer:
         bone = torch.zeros((), device=self.device)
         geo = skin = torch.zeros((), device=self.device)
         if train_field:
-            bone = self.field.bone_loss(self.bone_samples, self.bone_sample_index, grid)
+            bone = self.field.bone_loss(self.bone_samples, self.bone_sample_index, grid, groups=self.bone_groups)
             loss = loss + config.lambda_bone * bone
             if self.backward is not None and config.backward_from <= step <= config.backward_until:
                 self._refresh_backward(step, index, grid)
@@ -359,10 +381,17 @@ class Trainer:
         self.gaussians.optimizer.zero_grad(set_to_none=True)
         if self.lighting_optimizer is not None:
             self.lighting_optimizer.zero_grad(set_to_none=True)
+        if self.extra_joints_optimizer is not None:
+            self.extra_joints_optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        if config.grow_joints and not self.grown and self.gaussians.means.grad is not None:
+            with torch.no_grad():
+                self.position_grad_accum += self.gaussians.means.grad.norm(dim=-1)
         self.gaussians.optimizer.step()
         if self.lighting_optimizer is not None:
             self.lighting_optimizer.step()
+        if self.extra_joints_optimizer is not None:
+            self.extra_joints_optimizer.step()
         if train_field:
             self.field_optimizer.step()
         if dynamics_state is not None:
@@ -397,6 +426,8 @@ class Trainer:
             if count > budget:  # ToMiE A.4: raise the threshold as the count passes the budget
                 threshold *= 2.0 + (count - budget) / (budget / 6.0)
             grad_norm = (self.grad_accum / self.visible_count.clamp_min(1)[:, None]).norm(dim=-1)
+            if config.grow_joints and not self.grown:  # before cloning and pruning renumber the Gaussians
+                self._fold_growth_statistics()
             if count < 1.5 * budget:
                 self.gaussians.densify(grad_norm, threshold=threshold,
                                        size_split=config.densify_percent_dense * self.extent,
@@ -417,6 +448,121 @@ class Trainer:
         keep = (opacities > self.config.prune_opacity) & (max_scale < self.config.prune_max_scale * self.extent)
         if not bool(keep.all()):
             self.gaussians.prune(keep)
+
+    # ------------------------------------------------------------------------------------- skeleton growth
+    @torch.no_grad()
+    def _growth_assignment(self) -> torch.Tensor:
+        """ToMiE's assignment [N,J] of the current Gaussians to the skeleton's joints (Eq. 6-8)."""
+        config = self.config
+        means = self.gaussians.means.detach()
+        weights = self.field.weights(means)[:, : self.avatar.joint_count]
+        frames = self._kernel_frames()
+        heads = torch.as_tensor(self.video.skeleton.heads, dtype=torch.float32, device=self.device)
+        posed_means = torch.stack([ops.lbs(means, weights, self.bone_transforms[t])[0] for t in frames])
+        bones = self.bone_transforms[frames]
+        posed_joints = torch.einsum("tjab,jb->tja", bones[:, :, :3, :3], heads) + bones[:, :, :3, 3]
+        kernel = motion_kernel(posed_means, posed_joints)
+        return assignment_weights(kernel, weights, mix=config.grow_motion_mix, floor=(0.01 * self.extent) ** 2)
+
+    @torch.no_grad()
+    def _fold_growth_statistics(self) -> None:
+        """Add this densification round's per-Gaussian gradient sums to the per-joint sums (before the
+        Gaussians are renumbered)."""
+        numerator, denominator = joint_gradient_sums(self.position_grad_accum, self.visible_count,
+                                                     self._growth_assignment())
+        self.joint_grad_sum += numerator
+        self.joint_grad_seen += denominator
+
+    @torch.no_grad()
+    def joint_growth_statistics(self) -> dict:
+        """ToMiE's parent-joint localization on the current model (Sec. 4.1-4.2), without growing anything.
+
+        Returns:
+            dict with ``joint_gradient`` [J] (Eq. 4: mean position-gradient norm per step a Gaussian was seen,
+            pooled since the start of the fit), ``parents`` [P] (the joints that would grow, largest gradient
+            first) and ``threshold``.
+        """
+        config = self.config
+        assignment = self._growth_assignment()
+        if config.grow_criterion == "history":
+            gradient = joint_gradients(self._history_offsets(), assignment)
+        else:
+            numerator, denominator = joint_gradient_sums(self.position_grad_accum, self.visible_count, assignment)
+            gradient = (self.joint_grad_sum + numerator) / (self.joint_grad_seen + denominator).clamp_min(1e-12)
+        parents = locate_parents(gradient, ratio=config.grow_threshold, max_count=config.grow_max_joints)
+        return {"joint_gradient": gradient, "parents": parents,
+                "threshold": float(config.grow_threshold * gradient.median())}
+
+    @torch.no_grad()
+    def _history_offsets(self) -> torch.Tensor:
+        """RMS over the kernel frames [N] of the offsets the pose correction's frame codes add to the current
+        Gaussians (the ``history`` growth criterion) [world units]."""
+        correction = self.avatar.pose_correction
+        means = self.gaussians.means.detach()
+        frames = self._kernel_frames()
+        total = torch.zeros(means.shape[0], device=self.device)
+        for frame in frames:
+            total += correction.history_offsets(means, int(frame)).square().sum(-1)
+        return (total / len(frames)).sqrt()
+
+    def _kernel_frames(self) -> np.ndarray:
+        """Training-frame indices (evenly spaced, at most ``grow_kernel_frames``) the growth statistics use."""
+        count = len(self.train_indices)
+        return np.unique(np.linspace(0, count - 1, min(self.config.grow_kernel_frames, count)).round().astype(int))
+
+    def grow_joints(self) -> None:
+        """Run ToMiE's growth once: locate the parent joints and give each a child (see
+        :mod:`warpavatar.joint_growth`); the field gains the children's outputs and the optimizers their
+        parameters. Logged to the training log either way."""
+        statistics = self.joint_growth_statistics()
+        parents = statistics["parents"]
+        names = self.video.skeleton.names
+        if self.config.grow_parents:
+            parents = torch.as_tensor([names.index(name) for name in self._named_parents()], device=self.device)
+        self.growth_report = {
+            "stage": "grow_joints", "step": self.step,
+            "joint_gradient": {names[j]: float(g) for j, g in enumerate(statistics["joint_gradient"].tolist())},
+            "threshold": statistics["threshold"], "grown_parents": [names[j] for j in parents.tolist()]}
+        self._log(self.growth_report)
+        self.grown = True
+        if parents.numel():
+            self._add_extra_joints(parents)
+
+    def _named_parents(self) -> list[str]:
+        """The joint names of ``--grow-parents``, checked against the skeleton."""
+        names = self.video.skeleton.names
+        requested = [name.strip() for name in self.config.grow_parents.split(",") if name.strip()]
+        unknown = [name for name in requested if name not in names]
+        if unknown:
+            raise ValueError(f"--grow-parents names joints the skeleton does not have: {', '.join(unknown)} "
+                             f"(its joints: {', '.join(names)})")
+        return requested
+
+    def _add_extra_joints(self, parents: torch.Tensor, state: dict | None = None) -> None:
+        """Attach grown joints (``parents`` [E]) to the avatar, or the saved ones from ``state``."""
+        config = self.config
+        heads = torch.as_tensor(self.video.skeleton.heads, dtype=torch.float32, device=self.device)
+        if state is None:
+            frame_times = torch.as_tensor(self.video.frame_ids[self.train_indices], dtype=torch.float32,
+                                          device=self.device) / float(self.video.fps)
+            extra = ExtraJoints(parents, heads[parents], self.bone_transforms, frame_times,
+                                extent=self.extent).to(self.device)
+        else:
+            extra = ExtraJoints.from_file_state(state, device=self.device)
+        old_parameters = self._network_parameters()
+        self.field.add_joints(extra.parents)
+        self.avatar.extra_joints = extra
+        self.bone_groups = extra.group_matrix()
+        self._frozen_grid = None
+        # the network optimizer keeps its moments for every parameter but the field's replaced last layer
+        parameters = self._network_parameters()
+        optimizer = torch.optim.Adam(parameters, lr=config.field_lr)
+        kept = {id(parameter) for parameter in parameters}
+        for parameter in old_parameters:
+            if id(parameter) in kept and parameter in self.field_optimizer.state:
+                optimizer.state[parameter] = self.field_optimizer.state[parameter]
+        self.field_optimizer = optimizer
+        self.extra_joints_optimizer = torch.optim.Adam(extra.parameters(), lr=config.lr_extra_joints)
 
     def _refresh_backward(self, step: int, index: int, grid: torch.Tensor) -> None:
         """Re-detect and correct ambiguous Gaussians on training frame ``index`` when the cache is stale."""
@@ -525,6 +671,14 @@ class Trainer:
                                else [tensor.cpu() for tensor in self.dynamics_cache]),
             "dynamics_refreshed": self._dynamics_refreshed,
             "lighting": (self.avatar.lighting.state_dict() if self.avatar.lighting is not None else None),
+            "grown": self.grown,
+            "extra_joints": (self.avatar.extra_joints.state_for_file() if self.avatar.extra_joints is not None
+                             else None),
+            "extra_joints_optimizer": (self.extra_joints_optimizer.state_dict()
+                                       if self.extra_joints_optimizer is not None else None),
+            "position_grad_accum": self.position_grad_accum.cpu(),
+            "joint_grad_sum": self.joint_grad_sum.cpu(),
+            "joint_grad_seen": self.joint_grad_seen.cpu(),
             "lighting_optimizer": (self.lighting_optimizer.state_dict() if self.lighting_optimizer is not None
                                    else None),
             "backward": (dict(self.backward.state() or {}, refreshed=self._backward_refreshed)
@@ -556,6 +710,10 @@ class Trainer:
                                  lr_rotation=self.config.lr_rotation, lr_opacity=self.config.lr_opacity,
                                  lr_color=self.config.lr_color)
         gaussians.optimizer.load_state_dict(state["gaussian_optimizer"])
+        self.grown = bool(state.get("grown", False))
+        if state.get("extra_joints") is not None:
+            self._add_extra_joints(None, state=state["extra_joints"])
+            self.extra_joints_optimizer.load_state_dict(state["extra_joints_optimizer"])
         self.field.load_state_dict(state["field"])
         if self.avatar.pose_correction is not None:
             self.avatar.pose_correction.load_state_dict(state["pose_correction"])
@@ -582,6 +740,9 @@ class Trainer:
         self.frame_order = list(state["frame_order"])
         self.grad_accum = state["grad_accum"].to(self.device)
         self.visible_count = state["visible_count"].to(self.device)
+        self.position_grad_accum = state["position_grad_accum"].to(self.device)
+        self.joint_grad_sum = state["joint_grad_sum"].to(self.device)
+        self.joint_grad_seen = state["joint_grad_seen"].to(self.device)
         self.step = int(state["step"])
 
     # ------------------------------------------------------------------------------------------------ run

@@ -33,7 +33,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--frames", default=None, metavar="A:B", help="only motion frames A..B-1 (default: all)")
     parser.add_argument("--fps", type=float, default=None, help="time codes per second (default: the motion's)")
     parser.add_argument("--skeleton", action="store_true",
-                        help="also write the skeleton and its animation as UsdSkel (Skeleton + SkelAnimation)")
+                        help="also write the skeleton and its animation as UsdSkel (Skeleton + SkelAnimation), "
+                             "including joints grown by --grow-joints (named grown_<parent>_<k>)")
     parser.add_argument("--name-map", type=Path, default=None,
                         help="BVH only: JSON file mapping avatar joint names to BVH joint names "
                              "(default: same names, case-insensitive); unmapped joints keep their rest pose")
@@ -49,6 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     import json
+
+    import torch
 
     from warpavatar.animation import parse_frame_range, posed_frames
     from warpavatar.avatar import Avatar
@@ -69,12 +72,19 @@ def main(argv=None) -> int:
     with GaussianUsdWriter(args.output, layout=args.layout, gaussian_count=g.count, sh_degree=g.sh_degree,
                            opacities=g.opacities.detach().cpu().numpy(),
                            sh_coeffs=g.sh_coefficients().detach().cpu().numpy(), fps=fps, up_axis=up_axis,
-                           meters_per_unit=1.0, skeleton=skeleton if args.skeleton else None) as writer:
+                           meters_per_unit=1.0, skeleton=avatar.rig() if args.skeleton else None) as writer:
         frames = posed_frames(avatar, motion.bone_transforms, frame_ids=motion.frame_ids, fps=motion.fps)
+
+        def rig_transforms(t: int):
+            # the skeleton's transforms, then those of any grown joints (ToMiE) for this pose
+            bones = torch.as_tensor(motion.bone_transforms[t], dtype=torch.float32, device=device)
+            with torch.no_grad():
+                return avatar.pose_bones(bones).cpu().numpy()
+
         for t, posed in enumerate(tqdm.tqdm(frames, total=frame_count, disable=args.no_progress, desc="animate")):
             writer.write_frame(t, positions=posed["means"].cpu().numpy(), orientations=posed["quats"].cpu().numpy(),
                                scales=posed["scales"].detach().cpu().numpy(),
-                               joint_transforms=motion.bone_transforms[t] if args.skeleton else None)
+                               joint_transforms=rig_transforms(t) if args.skeleton else None)
     size = args.output.stat().st_size / 2**20
     print(f"wrote {args.output} ({args.layout}, {frame_count} frames at {fps:g} fps, {g.count} Gaussians, "
           f"{size:.1f} MiB) in {time.time() - start:.1f} s")
