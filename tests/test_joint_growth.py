@@ -312,7 +312,7 @@ def test_grown_avatar_file_round_trip_and_rig(demo_skeleton, device, tmp_path):
                          extra_rotations=torch.ones(1, 4, device=device))
 
 
-def test_grown_skeleton_exports_to_usd(demo_skeleton, tmp_path):
+def test_grown_skeleton_exports_to_usd(demo_skeleton, tmp_path, capsys):
     pytest.importorskip("pxr")
     from warpavatar.cli import animate
     from warpavatar.io.usd import read_gaussian_usd
@@ -336,6 +336,53 @@ def test_grown_skeleton_exports_to_usd(demo_skeleton, tmp_path):
             expected = avatar.pose_bones(bones).numpy()
         assert np.abs(result["joint_transforms"][t] - expected).max() < 1e-4
         assert np.abs(expected[-1] - expected[4]).max() > 1e-2  # it does turn away from its parent
+
+    # explicit rotations from a file animate the grown joint instead (animate and render take the same file)
+    chosen = np.stack([_axis_quaternion([1.0, 0.0, 0.0], 0.3 * (t + 1)).numpy() for t in range(3)])[:, None]
+    np.save(tmp_path / "grown.npy", 2.0 * chosen)  # not unit length: normalized on reading
+    explicit = tmp_path / "explicit.usdc"
+    assert animate.main([str(tmp_path), "--motion", str(data.demo_subject_path() / "train"), "--frames", "0:3",
+                         "-o", str(explicit), "--skeleton", "--device", "cpu", "--no-progress",
+                         "--grown-rotations", str(tmp_path / "grown.npy")]) == 0
+    result = read_gaussian_usd(explicit)
+    for t in range(3):
+        bones = torch.as_tensor(video.bone_transforms[t], dtype=torch.float32)
+        with torch.no_grad():
+            expected = avatar.pose_bones(bones, extra_rotations=torch.as_tensor(chosen[t])).numpy()
+            posed = avatar.pose(bones, extra_rotations=torch.as_tensor(chosen[t]))["means"].numpy()
+        assert np.abs(result["joint_transforms"][t] - expected).max() < 1e-4
+        assert np.abs(result["positions"][t] - posed).max() < 1e-5
+    np.save(tmp_path / "short.npy", chosen[:2])
+    # the CLI reports the file and the expected shape (no traceback) and writes nothing
+    assert animate.main([str(tmp_path), "--motion", str(data.demo_subject_path() / "train"), "--frames", "0:3",
+                         "-o", str(tmp_path / "bad.usdc"), "--device", "cpu", "--no-progress",
+                         "--grown-rotations", str(tmp_path / "short.npy")]) != 0
+    assert "short.npy: rotations must have shape [3, 1, 4]" in capsys.readouterr().err
+    assert not (tmp_path / "bad.usdc").exists()
+
+
+def test_grown_rotation_files_are_checked(tmp_path):
+    from warpavatar.animation import read_grown_rotations
+
+    good = np.tile(np.array([0.0, 0.0, 2.0, 0.0]), (5, 2, 1))
+    np.savez(tmp_path / "good.npz", rotations=good)
+    loaded = read_grown_rotations(tmp_path / "good.npz", frame_count=5, joint_count=2)
+    assert np.allclose(loaded, good / 2.0)
+    np.savez(tmp_path / "other.npz", quats=good)
+    with pytest.raises(ValueError, match="other.npz.*no 'rotations' array"):
+        read_grown_rotations(tmp_path / "other.npz", frame_count=5, joint_count=2)
+    with pytest.raises(ValueError, match=r"shape \[4, 2, 4\]"):
+        read_grown_rotations(tmp_path / "good.npz", frame_count=4, joint_count=2)
+    bad = good.copy()
+    bad[1, 0] = 0.0
+    np.save(tmp_path / "zero.npy", bad)
+    with pytest.raises(ValueError, match="zero.npy.*non-zero"):
+        read_grown_rotations(tmp_path / "zero.npy", frame_count=5, joint_count=2)
+    with pytest.raises(ValueError, match="no grown joints"):
+        read_grown_rotations(tmp_path / "good.npz", frame_count=5, joint_count=0)
+    (tmp_path / "junk.npy").write_text("not an array")
+    with pytest.raises(ValueError, match="junk.npy: not a usable"):
+        read_grown_rotations(tmp_path / "junk.npy", frame_count=5, joint_count=2)
 
 
 def test_config_rejects_unsupported_combinations():

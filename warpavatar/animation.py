@@ -15,7 +15,8 @@ from typing import Iterator
 import numpy as np
 import torch
 
-__all__ = ["OrbitCamera", "orbit_cameras", "read_cameras_json", "posed_frames", "parse_frame_range"]
+__all__ = ["OrbitCamera", "orbit_cameras", "read_cameras_json", "posed_frames", "parse_frame_range",
+           "read_grown_rotations"]
 
 
 @dataclass
@@ -107,9 +108,37 @@ def read_cameras_json(path: str | Path, frame_count: int) -> list[OrbitCamera]:
     return cameras[:frame_count]
 
 
+def read_grown_rotations(path: str | Path, *, frame_count: int, joint_count: int) -> np.ndarray:
+    """Rotations of an avatar's grown joints for every motion frame, from a ``.npy`` array or a ``.npz`` with
+    a ``rotations`` array: float [T,E,4], (w, x, y, z) in each grown joint's parent rest frame (normalized here).
+
+    Raises:
+        ValueError: an unreadable file, or one whose shape or values do not fit (named in the message).
+    """
+    path = Path(path)
+    try:
+        loaded = np.load(path, allow_pickle=False)
+        if isinstance(loaded, np.lib.npyio.NpzFile):
+            if "rotations" not in loaded:
+                raise ValueError(f"has no 'rotations' array (it has {', '.join(loaded.files) or 'none'})")
+            loaded = loaded["rotations"]
+        rotations = np.asarray(loaded, dtype=np.float64)
+    except (OSError, ValueError) as error:
+        raise ValueError(f"{path}: not a usable grown-joint rotation file ({error})") from error
+    if joint_count == 0:
+        raise ValueError(f"{path}: rotations given but the avatar has no grown joints")
+    if rotations.shape != (frame_count, joint_count, 4):
+        raise ValueError(f"{path}: rotations must have shape [{frame_count}, {joint_count}, 4] (frames, grown "
+                         f"joints, w x y z), got {list(rotations.shape)}")
+    norms = np.linalg.norm(rotations, axis=-1)
+    if not np.isfinite(rotations).all() or (norms < 1e-8).any():
+        raise ValueError(f"{path}: rotations must be finite, non-zero quaternions")
+    return (rotations / norms[..., None]).astype(np.float32)
+
+
 @torch.no_grad()
-def posed_frames(avatar, bone_transforms: np.ndarray, *, frame_ids: np.ndarray | None = None, fps: float = 30.0
-                 ) -> Iterator[dict]:
+def posed_frames(avatar, bone_transforms: np.ndarray, *, frame_ids: np.ndarray | None = None, fps: float = 30.0,
+                 grown_rotations: np.ndarray | None = None) -> Iterator[dict]:
     """Yield the posed Gaussians of each frame (torch tensors on the avatar's device).
 
     Args:
@@ -117,10 +146,13 @@ def posed_frames(avatar, bone_transforms: np.ndarray, *, frame_ids: np.ndarray |
         bone_transforms: [T,J,4,4] consecutive frames of the motion.
         frame_ids: [T] frame numbers of the rows (default ``0..T-1``).
         fps: frames per second of the frame numbers (with them, the time steps of learned secondary dynamics).
+        grown_rotations: [T,E,4] explicit rotations of the avatar's grown joints (:func:`read_grown_rotations`);
+            by default a training instant replays its learned rotations and other poses rest.
     """
     device = avatar.gaussians.means.device
     grid = avatar.field.grid_weights()
     avatar.prepare_sequence(bone_transforms, frame_ids=frame_ids, fps=fps)
     for t in range(bone_transforms.shape[0]):
         bones = torch.as_tensor(bone_transforms[t], dtype=torch.float32, device=device)
-        yield avatar.pose(bones, frame_index=t, grid=grid)
+        rotations = None if grown_rotations is None else torch.as_tensor(grown_rotations[t], device=device)
+        yield avatar.pose(bones, frame_index=t, grid=grid, extra_rotations=rotations)

@@ -25,6 +25,7 @@ import os
 from pathlib import Path
 from typing import Protocol
 
+import numpy as np
 import torch
 
 from warpavatar import ops
@@ -135,8 +136,6 @@ class Avatar(torch.nn.Module):
         skeleton = self.skeleton
         if self.extra_joints is None:
             return skeleton
-        import numpy as np
-
         extra = self.extra_joints
         parents = extra.parents.cpu().numpy()
         heads = extra.positions().detach().cpu().numpy().astype(np.float32)

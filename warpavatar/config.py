@@ -167,7 +167,7 @@ class FitConfig:
                              "the skeleton's bones only); use --secondary-motion for per-frame cloth displacements")
         if self.grow_criterion not in ("gradient", "history"):
             raise ValueError(f"grow_criterion must be 'gradient' or 'history', got {self.grow_criterion!r}")
-        if self.grow_joints and self.grow_criterion == "history" and not self.grow_parents and not (
+        if self.grow_joints and self.grow_criterion == "history" and not (
                 self.pose_correction and self.frame_codes and self.grow_at > self.gaussian_only_steps):
             raise ValueError("--grow-criterion history reads the pose correction's per-frame codes: it needs "
                              "--pose-correction, --frame-codes and --grow-at later than --gaussian-only-steps")

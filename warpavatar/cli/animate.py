@@ -41,6 +41,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--bvh-scale", type=float, default=None,
                         help="BVH only: metres per BVH unit (default: from the ratio of skeleton heights)")
     parser.add_argument("--bvh-up", choices=("X", "Y", "Z"), default=None, help="BVH only: its up axis (default Y)")
+    parser.add_argument("--grown-rotations", type=Path, default=None, metavar="FILE",
+                        help="explicit rotations of the joints grown by --grow-joints, one row per motion frame: a .npy "
+                             "[T, E, 4] or a .npz with a 'rotations' array, (w, x, y, z) in each grown joint's "
+                             "parent rest frame (default: training instants replay their learned rotations, other "
+                             "poses keep the grown joints at rest)")
     parser.add_argument("--device", default=default_device(), help="torch device (default: %(default)s)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return parser
@@ -53,7 +58,7 @@ def main(argv=None) -> int:
 
     import torch
 
-    from warpavatar.animation import parse_frame_range, posed_frames
+    from warpavatar.animation import parse_frame_range, posed_frames, read_grown_rotations
     from warpavatar.avatar import Avatar
     from warpavatar.io.motion import load_motion
     from warpavatar.io.usd import GaussianUsdWriter
@@ -64,6 +69,10 @@ def main(argv=None) -> int:
     motion = load_motion(args.motion, avatar.skeleton, name_map=name_map, frames=parse_frame_range(args.frames),
                          bvh_scale=args.bvh_scale, bvh_up=args.bvh_up)
     fps = args.fps or motion.fps
+    grown = None
+    if args.grown_rotations is not None:
+        grown = read_grown_rotations(args.grown_rotations, frame_count=motion.bone_transforms.shape[0],
+                                     joint_count=0 if avatar.extra_joints is None else avatar.extra_joints.count)
     skeleton = avatar.skeleton
     up_axis = "XYZ"[int(abs(skeleton.up).argmax())]
     g = avatar.gaussians
@@ -73,13 +82,15 @@ def main(argv=None) -> int:
                            opacities=g.opacities.detach().cpu().numpy(),
                            sh_coeffs=g.sh_coefficients().detach().cpu().numpy(), fps=fps, up_axis=up_axis,
                            meters_per_unit=1.0, skeleton=avatar.rig() if args.skeleton else None) as writer:
-        frames = posed_frames(avatar, motion.bone_transforms, frame_ids=motion.frame_ids, fps=motion.fps)
+        frames = posed_frames(avatar, motion.bone_transforms, frame_ids=motion.frame_ids, fps=motion.fps,
+                              grown_rotations=grown)
 
         def rig_transforms(t: int):
             # the skeleton's transforms, then those of any grown joints (ToMiE) for this pose
             bones = torch.as_tensor(motion.bone_transforms[t], dtype=torch.float32, device=device)
+            rotations = None if grown is None else torch.as_tensor(grown[t], device=device)
             with torch.no_grad():
-                return avatar.pose_bones(bones).cpu().numpy()
+                return avatar.pose_bones(bones, extra_rotations=rotations).cpu().numpy()
 
         for t, posed in enumerate(tqdm.tqdm(frames, total=frame_count, disable=args.no_progress, desc="animate")):
             writer.write_frame(t, positions=posed["means"].cpu().numpy(), orientations=posed["quats"].cpu().numpy(),

@@ -38,6 +38,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--background", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("R", "G", "B"),
                         help="background colour in 0..1 (default black)")
     parser.add_argument("--name-map", type=Path, default=None, help="BVH only: JSON avatar-joint -> BVH-joint names")
+    parser.add_argument("--grown-rotations", type=Path, default=None, metavar="FILE",
+                        help="explicit rotations of the joints grown by --grow-joints, one row per motion frame: a .npy "
+                             "[T, E, 4] or a .npz with a 'rotations' array, (w, x, y, z) in each grown joint's "
+                             "parent rest frame (default: training instants replay their learned rotations, other "
+                             "poses keep the grown joints at rest)")
     parser.add_argument("--device", default=default_device(), help="torch device (default: %(default)s)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return parser
@@ -51,7 +56,7 @@ def main(argv=None) -> int:
 
     import cv2
 
-    from warpavatar.animation import orbit_cameras, parse_frame_range, read_cameras_json
+    from warpavatar.animation import orbit_cameras, parse_frame_range, read_cameras_json, read_grown_rotations
     from warpavatar.avatar import Avatar
     from warpavatar.io.motion import load_motion
 
@@ -71,6 +76,10 @@ def main(argv=None) -> int:
     else:
         cameras = orbit_cameras(avatar.skeleton, count, width=args.size, height=args.size)
     fps = args.fps or motion.fps
+    grown = None
+    if args.grown_rotations is not None:
+        grown = read_grown_rotations(args.grown_rotations, frame_count=count,
+                                     joint_count=0 if avatar.extra_joints is None else avatar.extra_joints.count)
     background = torch.tensor(args.background, dtype=torch.float32, device=device)
     grid = avatar.field.grid_weights()
     avatar.prepare_sequence(motion.bone_transforms, frame_ids=motion.frame_ids, fps=motion.fps,
@@ -86,7 +95,9 @@ def main(argv=None) -> int:
     try:
         for t in tqdm.trange(count, disable=args.no_progress, desc="render"):
             bones = torch.as_tensor(motion.bone_transforms[t], dtype=torch.float32, device=device)
-            image, _, _ = avatar.render(cameras[t], bones, background=background, frame_index=t, grid=grid)
+            rotations = None if grown is None else torch.as_tensor(grown[t], device=device)
+            image, _, _ = avatar.render(cameras[t], bones, background=background, frame_index=t, grid=grid,
+                                        extra_rotations=rotations)
             pixels = cv2.cvtColor((image.clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR)
             if to_video:
                 if writer is None:
