@@ -384,7 +384,7 @@ class Trainer:
         if self.extra_joints_optimizer is not None:
             self.extra_joints_optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        if config.grow_joints and not self.grown and self.gaussians.means.grad is not None:
+        if self._pooling_gradients() and self.gaussians.means.grad is not None:
             with torch.no_grad():
                 self.position_grad_accum += self.gaussians.means.grad.norm(dim=-1)
         self.gaussians.optimizer.step()
@@ -426,7 +426,7 @@ class Trainer:
             if count > budget:  # ToMiE A.4: raise the threshold as the count passes the budget
                 threshold *= 2.0 + (count - budget) / (budget / 6.0)
             grad_norm = (self.grad_accum / self.visible_count.clamp_min(1)[:, None]).norm(dim=-1)
-            if config.grow_joints and not self.grown:  # before cloning and pruning renumber the Gaussians
+            if self._pooling_gradients():  # before cloning and pruning renumber the Gaussians
                 self._fold_growth_statistics()
             if count < 1.5 * budget:
                 self.gaussians.densify(grad_norm, threshold=threshold,
@@ -463,6 +463,10 @@ class Trainer:
         posed_joints = torch.einsum("tjab,jb->tja", bones[:, :, :3, :3], heads) + bones[:, :, :3, 3]
         kernel = motion_kernel(posed_means, posed_joints)
         return assignment_weights(kernel, weights, mix=config.grow_motion_mix, floor=(0.01 * self.extent) ** 2)
+
+    def _pooling_gradients(self) -> bool:
+        """Whether position gradients are being pooled for ToMiE's gradient criterion (until growth)."""
+        return self.config.grow_joints and not self.grown and self.config.grow_criterion == "gradient"
 
     @torch.no_grad()
     def _fold_growth_statistics(self) -> None:
