@@ -158,15 +158,18 @@ def test_joint_growth_fit_grows_replays_and_resumes_exactly(demo_video, tmp_path
     gradients = growth[0]["joint_gradient"]
     assert min(gradients[name] for name in growth[0]["grown_parents"]) >= growth[0]["threshold"] > 0
 
-    interrupted = Trainer(demo_video, config, tmp_path / "parts")
-    interrupted.fit(progress=False, stop_at=45)  # the checkpoint holds the grown joints
-    resumed = Trainer(demo_video, config, tmp_path / "parts")
-    resumed.fit(resume=True, progress=False)
-    for name, parameter in extra.named_parameters():
-        assert torch.allclose(parameter, dict(resumed.avatar.extra_joints.named_parameters())[name], atol=1e-6), name
-    for name, parameter in whole.field.named_parameters():
-        assert torch.allclose(parameter, dict(resumed.field.named_parameters())[name], atol=1e-6), name
-    assert torch.allclose(whole.gaussians.means, resumed.gaussians.means, atol=1e-6)
+    # interrupted after the growth (the checkpoint holds the grown joints) and before it (the pooled statistics)
+    for stop in (45, 25):
+        interrupted = Trainer(demo_video, config, tmp_path / f"parts{stop}")
+        interrupted.fit(progress=False, stop_at=stop)
+        resumed = Trainer(demo_video, config, tmp_path / f"parts{stop}")
+        resumed.fit(resume=True, progress=False)
+        for name, parameter in extra.named_parameters():
+            assert torch.allclose(parameter, dict(resumed.avatar.extra_joints.named_parameters())[name],
+                                  atol=1e-6), (stop, name)
+        for name, parameter in whole.field.named_parameters():
+            assert torch.allclose(parameter, dict(resumed.field.named_parameters())[name], atol=1e-6), (stop, name)
+        assert torch.allclose(whole.gaussians.means, resumed.gaussians.means, atol=1e-6), stop
 
     # the saved avatar replays each training instant's learned rotations; other poses keep the joints at rest
     avatar = Avatar.load(tmp_path / "whole")

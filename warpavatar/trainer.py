@@ -549,8 +549,12 @@ class Trainer:
         if state is None:
             frame_times = torch.as_tensor(self.video.frame_ids[self.train_indices], dtype=torch.float32,
                                           device=self.device) / float(self.video.fps)
-            extra = ExtraJoints(parents, heads[parents], self.bone_transforms, frame_times,
-                                extent=self.extent).to(self.device)
+            # the decoders' initial weights depend on the seed only, not on how many random numbers the fit
+            # drew before (a fit resumed before the growth grows the same joints)
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(config.seed)
+                extra = ExtraJoints(parents, heads[parents], self.bone_transforms, frame_times,
+                                    extent=self.extent).to(self.device)
         else:
             extra = ExtraJoints.from_file_state(state, device=self.device)
         old_parameters = self._network_parameters()
