@@ -208,6 +208,21 @@ def test_dynamics_and_per_frame_displacements_are_exclusive():
         preset("quick", dynamics=True, secondary_motion=True)
 
 
+def test_resume_accepts_a_checkpoint_from_before_skeleton_growth(demo_video, tmp_path):
+    """A checkpoint written by an earlier version (no growth statistics in it) still resumes."""
+    config = _tiny_config(iterations=30, checkpoint_every=1000, secondary_motion=False)
+    Trainer(demo_video, config, tmp_path / "run").fit(progress=False, stop_at=15)
+    path = tmp_path / "run" / "checkpoint.pt"
+    state = torch.load(path, weights_only=False)
+    for key in ("grown", "extra_joints", "extra_joints_optimizer", "position_grad_accum", "joint_grad_sum",
+                "joint_grad_seen"):
+        del state[key]
+    torch.save(state, path)
+    resumed = Trainer(demo_video, config, tmp_path / "run")
+    resumed.fit(resume=True, progress=False)
+    assert resumed.step == 30
+
+
 def test_resume_refuses_other_config(demo_video, tmp_path):
     config = _tiny_config(iterations=20, checkpoint_every=1000)
     Trainer(demo_video, config, tmp_path / "run").fit(progress=False, stop_at=10)

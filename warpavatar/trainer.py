@@ -748,9 +748,13 @@ class Trainer:
         self.frame_order = list(state["frame_order"])
         self.grad_accum = state["grad_accum"].to(self.device)
         self.visible_count = state["visible_count"].to(self.device)
-        self.position_grad_accum = state["position_grad_accum"].to(self.device)
-        self.joint_grad_sum = state["joint_grad_sum"].to(self.device)
-        self.joint_grad_seen = state["joint_grad_seen"].to(self.device)
+        # checkpoints written before skeleton growth existed have no growth statistics: start them empty
+        if "position_grad_accum" in state:
+            self.position_grad_accum = state["position_grad_accum"].to(self.device)
+            self.joint_grad_sum = state["joint_grad_sum"].to(self.device)
+            self.joint_grad_seen = state["joint_grad_seen"].to(self.device)
+        else:
+            self.position_grad_accum = torch.zeros(self.gaussians.count, device=self.device)
         self.step = int(state["step"])
 
     # ------------------------------------------------------------------------------------------------ run

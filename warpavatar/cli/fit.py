@@ -69,6 +69,12 @@ def main(argv=None) -> int:
     trainer.fit(resume=args.resume, progress=not args.no_progress)
     minutes = (time.time() - start) / 60
     print(f"done in {minutes:.1f} min: {trainer.gaussians.count} Gaussians; avatar at {output / 'avatar.pt'}")
+    if trainer.avatar.extra_joints is not None:
+        rig = trainer.avatar.rig()
+        grown = rig.names[trainer.avatar.joint_count:]
+        print(f"grown joints ({len(grown)}): {', '.join(grown)} (per-joint statistics in train_log.jsonl)")
+    elif config.grow_joints and trainer.grown:
+        print("no joint grew: none passed --grow-threshold (per-joint statistics in train_log.jsonl)")
     if args.demo:
         subject = data.load_subject(subject_root)
         results = {}
