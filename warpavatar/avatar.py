@@ -68,9 +68,10 @@ class PosedGaussians(dict):
     """Posed Gaussians ready for :func:`warpavatar.ops.rasterize_gaussians`.
 
     Keys: ``means`` [N,3], ``quats`` [N,4] (w,x,y,z), ``scales`` [N,3], ``opacities`` [N],
-    ``colors`` [N,(d+1)^2,3] SH coefficients, ``sh_degree`` (int), ``weights`` [N,J] skinning weights,
+    ``colors`` [N,(d+1)^2,3] SH coefficients, ``sh_degree`` (int), ``weights`` [N,J+E] skinning weights,
     ``canonical_quats`` [N,4] and ``canonical_means`` [N,3]: the (pose-corrected) rest-pose orientations and
-    centres, before secondary motion.
+    centres, before secondary motion; ``bone_transforms`` [J+E,4,4]: the skinning transforms used (the
+    skeleton's, then any grown joints', :meth:`Avatar.pose_bones`).
     """
 
 
@@ -107,6 +108,11 @@ class Avatar(torch.nn.Module):
     @property
     def joint_count(self) -> int:
         return len(self.skeleton.names)
+
+    @property
+    def grown_joint_count(self) -> int:
+        """Number of joints grown on the skeleton (ToMiE), 0 without growth."""
+        return 0 if self.extra_joints is None else self.extra_joints.count
 
     def pose_bones(self, bone_transforms: torch.Tensor, *, extra_rotations: torch.Tensor | None = None
                    ) -> torch.Tensor:
@@ -204,7 +210,8 @@ class Avatar(torch.nn.Module):
         means, quats = ops.lbs(displaced_means.contiguous(), weights, bones, quats=canonical_quats)
         posed = PosedGaussians(means=means, quats=quats, scales=scales, opacities=gaussians.opacities,
                                colors=gaussians.sh_coefficients(degree), sh_degree=degree, weights=weights,
-                               canonical_quats=canonical_quats, canonical_means=canonical_means)
+                               canonical_quats=canonical_quats, canonical_means=canonical_means,
+                               bone_transforms=bones)
         for deformer in self.deformers:
             posed = deformer(posed, frame_index=frame_index)
         return posed
@@ -316,9 +323,9 @@ class Avatar(torch.nn.Module):
             avatar.secondary_motion = secondary_from_file_state(state["secondary_motion"], device=device)
         if state.get("extra_joints") is not None:
             avatar.extra_joints = ExtraJoints.from_file_state(state["extra_joints"], device=device)
-            if avatar.field.joint_count != avatar.joint_count + avatar.extra_joints.count:
+            if avatar.field.joint_count != avatar.joint_count + avatar.grown_joint_count:
                 raise ValueError(f"avatar file: the skinning field has {avatar.field.joint_count} outputs but the "
-                                 f"skeleton {avatar.joint_count} joints and {avatar.extra_joints.count} grown ones")
+                                 f"skeleton {avatar.joint_count} joints and {avatar.grown_joint_count} grown ones")
         if state.get("lighting") is not None:
             from warpavatar.lighting import WorldLighting
 

@@ -16,8 +16,8 @@ fit:
    threshold is absolute (3.5e-6 for its loss); here it is relative to the median joint gradient, as the
    scale of a position gradient depends on the loss, the image size and the units.
 
-On the supplied subjects this criterion separates the joints weakly (largest over median 1.3-1.4 for the
-skirted subject and the garment-free one alike) and tends to pick extremities. Two alternatives exist: the
+On the supplied subjects this criterion separates the joints weakly (largest over median 1.1-1.4 for the
+skirted subject, 1.4-1.9 for the garment-free one) and often picks extremities. Two alternatives exist: the
 trainer's ``history`` criterion, which ranks joints by the offsets that the pose correction's per-frame codes
 add (see :meth:`warpavatar.pose_correction.PoseCorrection.history_offsets`), or parents named by the user.
 

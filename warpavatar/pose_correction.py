@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import torch
 
+from warpavatar.secondary_motion import match_pose
 from warpavatar.skinning_field import box_encoding
 
 __all__ = ["PoseCorrection", "relative_rotations_6d"]
@@ -92,8 +93,7 @@ class PoseCorrection(torch.nn.Module):
         code = self.frame_code(bone_transforms) if self.frame_codes.shape[0] else None
         outputs = self._outputs(means, bone_transforms, code)
         self.last_outputs = outputs
-        extent = (self.bbox_max - self.bbox_min).norm()
-        offset = outputs[:, :3] * (0.1 * extent)
+        offset = outputs[:, :3] * self._offset_scale()
         delta = torch.cat([torch.ones_like(outputs[:, :1]), outputs[:, 3:6]], dim=-1)
         delta = delta / delta.norm(dim=-1, keepdim=True)
         w1, v1 = delta[:, :1], delta[:, 1:]
@@ -101,6 +101,10 @@ class PoseCorrection(torch.nn.Module):
         rotated = torch.cat([w1 * w2 - (v1 * v2).sum(-1, keepdim=True),
                              w1 * v2 + w2 * v1 + torch.cross(v1, v2, dim=-1)], dim=-1)
         return means + offset, rotated, scales * torch.exp(outputs[:, 6:9].clamp(-3.0, 3.0))
+
+    def _offset_scale(self) -> torch.Tensor:
+        """World length of a unit position output: a tenth of the canonical box's diagonal."""
+        return 0.1 * (self.bbox_max - self.bbox_min).norm()
 
     def _outputs(self, means: torch.Tensor, bone_transforms: torch.Tensor, code: torch.Tensor | None
                  ) -> torch.Tensor:
@@ -120,7 +124,7 @@ class PoseCorrection(torch.nn.Module):
         pose = self.frame_poses[frame]
         with_code = self._outputs(means, pose, self.frame_codes[frame])[:, :3]
         without = self._outputs(means, pose, torch.zeros_like(self.frame_codes[frame]))[:, :3]
-        return (with_code - without) * (0.1 * (self.bbox_max - self.bbox_min).norm())
+        return (with_code - without) * self._offset_scale()
 
     def set_frame_poses(self, bone_transforms: torch.Tensor) -> None:
         """Record the training frames' poses [T,J,4,4] (T = frame_count), in the order of the codes."""
@@ -131,9 +135,7 @@ class PoseCorrection(torch.nn.Module):
 
         Runs on the device without a host synchronization.
         """
-        difference = (self.frame_poses - bone_transforms).abs().amax(dim=(1, 2, 3))
-        best = torch.argmin(difference)
-        matched = (difference[best] <= tolerance).to(self.frame_codes.dtype)
+        best, matched = match_pose(self.frame_poses, bone_transforms, tolerance=tolerance)
         return self.frame_codes[best] * matched
 
     def regularization(self) -> torch.Tensor:

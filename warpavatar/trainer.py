@@ -91,8 +91,13 @@ def initial_gaussians(skeleton, video, config: FitConfig, *, generator: torch.Ge
     return positions.to(device), colours.to(device), bbox_min.to(device), bbox_max.to(device)
 
 
+def _evenly_spaced(total: int, count: int) -> np.ndarray:
+    """At most ``count`` distinct indices spread evenly over ``0..total-1`` (first and last included)."""
+    return np.unique(np.linspace(0, total - 1, min(count, total)).round().astype(int))
+
+
 def _frames_for_init(video, count: int = 24) -> np.ndarray:
-    return np.unique(np.linspace(0, video.frame_count - 1, min(count, video.frame_count)).round().astype(int))
+    return _evenly_spaced(video.frame_count, count)
 
 
 def _rigid_pixels(points: torch.Tensor, weights: torch.Tensor, video, t: int
@@ -169,8 +174,7 @@ class Trainer:
         frame_count = video.frame_count
         self.train_indices = np.arange(frame_count)
         if config.max_train_frames and config.max_train_frames < frame_count:
-            self.train_indices = np.unique(
-                np.linspace(0, frame_count - 1, config.max_train_frames).round().astype(int))
+            self.train_indices = _evenly_spaced(frame_count, config.max_train_frames)
         self.images = torch.as_tensor(video.images[self.train_indices], device=self.device)  # uint8 [T,H,W,3]
         self.masks = (torch.as_tensor(video.masks[self.train_indices], device=self.device)
                       if video.masks is not None else None)
@@ -511,8 +515,7 @@ class Trainer:
 
     def _kernel_frames(self) -> np.ndarray:
         """Training-frame indices (evenly spaced, at most ``grow_kernel_frames``) the growth statistics use."""
-        count = len(self.train_indices)
-        return np.unique(np.linspace(0, count - 1, min(self.config.grow_kernel_frames, count)).round().astype(int))
+        return _evenly_spaced(len(self.train_indices), self.config.grow_kernel_frames)
 
     def grow_joints(self) -> None:
         """Run ToMiE's growth once: locate the parent joints and give each a child (see
@@ -820,7 +823,7 @@ class Trainer:
 
         preview_dir = self.output_dir / "previews"
         preview_dir.mkdir(exist_ok=True)
-        picks = np.unique(np.linspace(0, len(self.train_indices) - 1, self.config.preview_frames).round().astype(int))
+        picks = _evenly_spaced(len(self.train_indices), self.config.preview_frames)
         for index in picks:
             image, _, _ = self.avatar.render(self.cameras[index], self.bone_transforms[index],
                                              background=self.background)

@@ -56,8 +56,6 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     import json
 
-    import torch
-
     from warpavatar.animation import parse_frame_range, posed_frames, read_grown_rotations
     from warpavatar.avatar import Avatar
     from warpavatar.io.motion import load_motion
@@ -72,7 +70,7 @@ def main(argv=None) -> int:
     grown = None
     if args.grown_rotations is not None:
         grown = read_grown_rotations(args.grown_rotations, frame_count=motion.bone_transforms.shape[0],
-                                     joint_count=0 if avatar.extra_joints is None else avatar.extra_joints.count)
+                                     joint_count=avatar.grown_joint_count)
     skeleton = avatar.skeleton
     up_axis = "XYZ"[int(abs(skeleton.up).argmax())]
     g = avatar.gaussians
@@ -84,18 +82,11 @@ def main(argv=None) -> int:
                            meters_per_unit=1.0, skeleton=avatar.rig() if args.skeleton else None) as writer:
         frames = posed_frames(avatar, motion.bone_transforms, frame_ids=motion.frame_ids, fps=motion.fps,
                               grown_rotations=grown)
-
-        def rig_transforms(t: int):
-            # the skeleton's transforms, then those of any grown joints (ToMiE) for this pose
-            bones = torch.as_tensor(motion.bone_transforms[t], dtype=torch.float32, device=device)
-            rotations = None if grown is None else torch.as_tensor(grown[t], device=device)
-            with torch.no_grad():
-                return avatar.pose_bones(bones, extra_rotations=rotations).cpu().numpy()
-
         for t, posed in enumerate(tqdm.tqdm(frames, total=frame_count, disable=args.no_progress, desc="animate")):
             writer.write_frame(t, positions=posed["means"].cpu().numpy(), orientations=posed["quats"].cpu().numpy(),
                                scales=posed["scales"].detach().cpu().numpy(),
-                               joint_transforms=rig_transforms(t) if args.skeleton else None)
+                               # the skeleton's transforms, then any grown joints' (ToMiE), as posed
+                               joint_transforms=posed["bone_transforms"].cpu().numpy() if args.skeleton else None)
     size = args.output.stat().st_size / 2**20
     print(f"wrote {args.output} ({args.layout}, {frame_count} frames at {fps:g} fps, {g.count} Gaussians, "
           f"{size:.1f} MiB) in {time.time() - start:.1f} s")

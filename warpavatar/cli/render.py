@@ -79,7 +79,7 @@ def main(argv=None) -> int:
     grown = None
     if args.grown_rotations is not None:
         grown = read_grown_rotations(args.grown_rotations, frame_count=count,
-                                     joint_count=0 if avatar.extra_joints is None else avatar.extra_joints.count)
+                                     joint_count=avatar.grown_joint_count)
     background = torch.tensor(args.background, dtype=torch.float32, device=device)
     grid = avatar.field.grid_weights()
     avatar.prepare_sequence(motion.bone_transforms, frame_ids=motion.frame_ids, fps=motion.fps,
