@@ -266,3 +266,25 @@ def test_training_target_keeps_edge_pixels_of_flat_background_frames(demo_video,
 def test_bad_target_is_a_clear_error():
     with pytest.raises(ValueError, match="target must be"):
         preset("quick", target="alpha")
+
+
+def test_skinning_prior_temperature_blends_neighbouring_bones(demo_video, tmp_path):
+    from warpavatar.skinning_field import bone_distance_prior
+
+    sharp = Trainer(demo_video, _tiny_config(iterations=1), tmp_path / "sharp")
+    smooth = Trainer(demo_video, _tiny_config(iterations=1, skinning_prior_temperature=0.1), tmp_path / "smooth")
+    # the field's warm-up target is the bone-distance prior at the configured temperature, per grid point
+    heads, tails = (torch.as_tensor(a, dtype=torch.float32) for a in (demo_video.skeleton.heads,
+                                                                      demo_video.skeleton.tails))
+    for trainer, temperature in ((sharp, 0.02), (smooth, 0.1)):
+        points = trainer.avatar.field.grid_points.reshape(-1, 3)
+        expected = bone_distance_prior(points, heads, tails, temperature=temperature * trainer.extent)
+        assert torch.allclose(trainer.field_prior, expected, atol=1e-6)
+
+    # a higher temperature spreads each point's weight over more bones
+    def entropy(weights):
+        return float(-(weights * weights.clamp_min(1e-12).log()).sum(-1).mean())
+
+    assert entropy(smooth.field_prior) > 1.5 * entropy(sharp.field_prior)
+    with pytest.raises(ValueError, match="skinning_prior_temperature must be positive"):
+        preset("quick", skinning_prior_temperature=0.0)

@@ -1,6 +1,8 @@
-"""Where a fitted avatar's masked error comes from: overall colour, silhouette edges, or the rest.
+"""Where a fitted avatar's masked error comes from: overall colour, silhouette edges, a body region, or the rest.
 
     python tools/error_breakdown.py AVATAR_DIR VIDEO_FOLDER [VIDEO_FOLDER ...] [--device cuda] [--stride N]
+        [--height-band LOW HIGH]
+    python tools/error_breakdown.py --reference blur VIDEO_FOLDER [...] [--height-band LOW HIGH]
 
 For every folder, the mean over frames of four masked PSNRs (dB):
 
@@ -9,17 +11,31 @@ For every folder, the mean over frames of four masked PSNRs (dB):
   mask (least squares, one gain per frame): what a perfect global colour/brightness correction would give;
 * ``inner``: inside the mask eroded by 2 pixels (the silhouette band left out): what perfect edges would give;
 * ``gain+inner``: both.
+
+With ``--height-band LOW HIGH`` (world units along the skeleton's up axis) the masked error is also split in
+two regions, pooled over the folder's frames: ``band``, the mask pixels whose camera ray passes between the
+two heights where it crosses the depth of the root joint (on the supplied subjects, a horizontal slab such as
+the one a skirt occupies), and ``outside``, the other mask pixels. It also prints ``band share`` (the band's
+fraction of the mask pixels) and two ``needed`` columns: the band PSNR that would bring the pooled masked
+PSNR to ``--target`` dB with a perfect outside region (``needed, outside perfect``) or with the outside as
+measured (``needed, outside as is``; ``-`` when the outside alone already misses the target).
+
+``--reference blur`` or ``--reference mean`` scores the ground truth itself instead of an avatar: blurred by a
+Gaussian of ``--blur-sigma`` pixels (2), or its mask filled with the frame's mean colour inside it. These are
+the baselines of ``../shared/data/README.md``.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 
 import numpy as np
 import torch
 
 from warpavatar import data
-from warpavatar.avatar import Avatar
+
+__all__ = ["breakdown", "height_band_mask", "reference_image", "band_needed"]
 
 
 def _masked_psnr(prediction: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
@@ -27,24 +43,80 @@ def _masked_psnr(prediction: np.ndarray, truth: np.ndarray, mask: np.ndarray) ->
     return -10.0 * np.log10(max(mse, 1e-12))
 
 
-def breakdown(avatar: Avatar, video, *, stride: int = 1) -> dict:
-    """The four mean masked PSNRs (see the module docstring) of ``avatar`` on ``video``."""
+def height_band_mask(camera: data.Camera, root_position: np.ndarray, up: np.ndarray, *, low: float, high: float
+                     ) -> np.ndarray:
+    """Pixels [H,W] (bool) whose ray crosses the root joint's camera depth between heights ``low`` and ``high``.
+
+    Args:
+        camera: the frame's camera (OpenCV convention, pixel centres at integers).
+        root_position: [3] posed root joint [world units].
+        up: [3] the world's up direction (normalized here).
+        low: lower height along ``up`` [world units].
+        high: upper height.
+    """
+    world_to_camera = np.asarray(camera.world_to_camera, dtype=np.float64)
+    intrinsics = np.asarray(camera.K, dtype=np.float64)
+    depth = float((world_to_camera[:3, :3] @ root_position + world_to_camera[:3, 3])[2])
+    rows, columns = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
+    camera_points = np.stack([(columns - intrinsics[0, 2]) / intrinsics[0, 0] * depth,
+                              (rows - intrinsics[1, 2]) / intrinsics[1, 1] * depth,
+                              np.full_like(rows, depth)], axis=-1)
+    camera_to_world = np.linalg.inv(world_to_camera)
+    world = camera_points @ camera_to_world[:3, :3].T + camera_to_world[:3, 3]
+    height = world @ (np.asarray(up, dtype=np.float64) / np.linalg.norm(up))
+    return (height > low) & (height < high)
+
+
+def reference_image(truth: np.ndarray, mask: np.ndarray, kind: str, *, blur_sigma: float = 2.0) -> np.ndarray:
+    """A baseline built from the ground truth [H,W,3] in 0..1: ``blur`` (Gaussian blur of ``blur_sigma`` pixels)
+    or ``mean`` (the mask [H,W] filled with the mean colour inside it, zero elsewhere)."""
     import cv2
 
-    device = avatar.gaussians.means.device
-    background = torch.as_tensor(video.background, dtype=torch.float32, device=device)
-    grid = avatar.field.grid_weights()
-    avatar.prepare_sequence(video.bone_transforms, frame_ids=video.frame_ids, fps=video.fps)
+    if kind == "blur":
+        return cv2.GaussianBlur(truth, (0, 0), blur_sigma)
+    if kind == "mean":
+        weight = mask[..., None]
+        mean = (truth * weight).sum((0, 1)) / max(float(weight.sum()), 1.0)
+        return np.where(weight > 0.5, mean, 0.0)
+    raise ValueError(f"unknown reference {kind!r} (expected 'blur' or 'mean')")
+
+
+def band_needed(band_share: float, target_db: float, *, outside_db: float = math.inf) -> float:
+    """PSNR [dB] a region covering ``band_share`` of the mask pixels must reach for the pooled masked PSNR to
+    reach ``target_db`` when the rest scores ``outside_db`` (infinite: no error there); NaN when no band PSNR
+    can (the rest alone already misses the target, or the share is zero)."""
+    if band_share <= 0.0:
+        return math.nan
+    budget = 10.0 ** (-target_db / 10.0) - (1.0 - band_share) * 10.0 ** (-outside_db / 10.0)
+    if budget <= 0.0:
+        return math.nan
+    return -10.0 * math.log10(budget / band_share)
+
+
+def breakdown(avatar, video, *, stride: int = 1, band: tuple[float, float] | None = None,
+              reference: str | None = None, blur_sigma: float = 2.0) -> dict:
+    """The mean masked PSNRs of the module docstring for ``avatar`` (or, with ``reference``, a ground-truth
+    baseline) on ``video``; with ``band``, also the pooled ``band``, ``outside`` and ``band share`` values."""
+    import cv2
+
     rows = {"masked": [], "gain": [], "inner": [], "gain+inner": []}
+    pooled = {"band": [0.0, 0.0], "outside": [0.0, 0.0]}
     kernel = np.ones((5, 5), np.uint8)
+    if avatar is not None:
+        device = avatar.gaussians.means.device
+        background = torch.as_tensor(video.background, dtype=torch.float32, device=device)
+        grid = avatar.field.grid_weights()
+        avatar.prepare_sequence(video.bone_transforms, frame_ids=video.frame_ids, fps=video.fps)
     for t in range(0, video.frame_count, stride):
-        with torch.no_grad():
-            image, _, _ = avatar.render(video.cameras[t],
-                                        torch.as_tensor(video.bone_transforms[t], dtype=torch.float32, device=device),
-                                        background=background, grid=grid)
-        prediction = image.clamp(0, 1).cpu().numpy().astype(np.float64)
         truth = video.images[t].astype(np.float64) / 255.0
         mask = video.masks[t].astype(np.float64) / 255.0
+        if avatar is None:
+            prediction = reference_image(truth, mask, reference, blur_sigma=blur_sigma)
+        else:
+            with torch.no_grad():
+                bones = torch.as_tensor(video.bone_transforms[t], dtype=torch.float32, device=device)
+                image, _, _ = avatar.render(video.cameras[t], bones, background=background, grid=grid)
+            prediction = image.clamp(0, 1).cpu().numpy().astype(np.float64)
         weight = mask[..., None]
         gain = (prediction * truth * weight).sum((0, 1)) / np.maximum((prediction**2 * weight).sum((0, 1)), 1e-12)
         corrected = np.clip(prediction * gain, 0.0, 1.0)
@@ -53,25 +125,68 @@ def breakdown(avatar: Avatar, video, *, stride: int = 1) -> dict:
         rows["gain"].append(_masked_psnr(corrected, truth, mask))
         rows["inner"].append(_masked_psnr(prediction, truth, inner))
         rows["gain+inner"].append(_masked_psnr(corrected, truth, inner))
-    return {key: float(np.mean(values)) for key, values in rows.items()}
+        if band is not None:
+            root = video.bone_transforms[t][0].astype(np.float64) @ np.append(video.skeleton.heads[0], 1.0)
+            inside = height_band_mask(video.cameras[t], root[:3], video.skeleton.up, low=band[0], high=band[1])
+            error = ((prediction - truth) ** 2).sum(-1) * mask
+            for name, region in (("band", inside), ("outside", ~inside)):
+                pooled[name][0] += float(error[region].sum())
+                pooled[name][1] += float(mask[region].sum()) * 3
+    result = {key: float(np.mean(values)) for key, values in rows.items()}
+    if band is not None:
+        for name, (total, count) in pooled.items():
+            result[name] = -10.0 * math.log10(max(total / max(count, 1.0), 1e-12))
+        result["band share"] = pooled["band"][1] / max(pooled["band"][1] + pooled["outside"][1], 1.0)
+    return result
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("avatar", help="fit output folder (or avatar.pt)")
-    parser.add_argument("folders", nargs="+", help="video folders with masks (novel views, novel poses, train)")
+    parser.add_argument("paths", nargs="+", metavar="PATH",
+                        help="fit output folder (or avatar.pt) followed by video folders with masks; with "
+                             "--reference, video folders only")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="torch device")
     parser.add_argument("--stride", type=int, default=1, help="use every N-th frame of each folder")
+    parser.add_argument("--height-band", type=float, nargs=2, metavar=("LOW", "HIGH"), default=None,
+                        help="also split the masked error into the pixels whose ray passes between these world "
+                             "heights at the root joint's depth, and the rest (see above)")
+    parser.add_argument("--target", type=float, default=23.0,
+                        help="masked PSNR [dB] the 'needed' columns are computed for (default 23)")
+    parser.add_argument("--reference", choices=("blur", "mean"), default=None,
+                        help="score a baseline made from the ground truth instead of an avatar")
+    parser.add_argument("--blur-sigma", type=float, default=2.0, help="blur of --reference blur [pixels]")
     args = parser.parse_args(argv)
-    avatar = Avatar.load(args.avatar, device=args.device)
-    print("| folder | masked | gain | inner | gain+inner |\n|---|---|---|---|---|")
-    for folder in args.folders:
+    if args.stride < 1:
+        parser.error("--stride must be at least 1")
+    if args.height_band is not None and not args.height_band[0] < args.height_band[1]:
+        parser.error("--height-band LOW HIGH needs LOW < HIGH")
+    avatar = None
+    folders = args.paths
+    if args.reference is None:
+        if len(args.paths) < 2:
+            parser.error("give an avatar and at least one video folder (or --reference)")
+        from warpavatar.avatar import Avatar
+
+        avatar = Avatar.load(args.paths[0], device=args.device)
+        folders = args.paths[1:]
+    columns = ["masked", "gain", "inner", "gain+inner"]
+    if args.height_band is not None:
+        columns += ["band", "outside", "band share", "needed, outside perfect", "needed, outside as is"]
+    print("| folder | " + " | ".join(columns) + " |\n|" + "---|" * (len(columns) + 1))
+    for folder in folders:
         video = data.load_video_folder(folder)
         if video.masks is None:
             raise SystemExit(f"{folder}: has no masks/, so no masked PSNR can be measured")
-        values = breakdown(avatar, video, stride=args.stride)
-        print(f"| {folder} | " + " | ".join(f"{values[k]:.2f}" for k in ("masked", "gain", "inner", "gain+inner"))
-              + " |")
+        values = breakdown(avatar, video, stride=args.stride,
+                           band=tuple(args.height_band) if args.height_band is not None else None,
+                           reference=args.reference, blur_sigma=args.blur_sigma)
+        cells = [f"{values[k]:.2f}" for k in ("masked", "gain", "inner", "gain+inner")]
+        if args.height_band is not None:
+            needed = [band_needed(values["band share"], args.target),
+                      band_needed(values["band share"], args.target, outside_db=values["outside"])]
+            cells += [f"{values['band']:.2f}", f"{values['outside']:.2f}", f"{values['band share']:.2f}"]
+            cells += [f"{value:.2f}" if math.isfinite(value) else "-" for value in needed]
+        print(f"| {folder} | " + " | ".join(cells) + " |")
     return 0
 
 

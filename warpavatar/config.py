@@ -39,6 +39,10 @@ class FitConfig:
     field_hidden: int = _opt(128, "hidden width of the skinning-field MLP")
     field_layers: int = _opt(4, "hidden layers of the skinning-field MLP")
     field_frequencies: int = _opt(6, "positional-encoding frequencies of the skinning-field MLP input")
+    skinning_prior_temperature: float = _opt(0.02, "temperature of the rigid bone-distance skinning prior that the "
+                                             "field's warm-up distils and carving poses points with, as a fraction "
+                                             "of the skeleton's size: small values give each point its nearest "
+                                             "bone, larger ones blend neighbouring bones (loose garments)")
     field_warmup_steps: int = _opt(600, "warm-up steps that distil a rigid bone-distance prior into the field")
     gaussian_only_steps: int = _opt(1500, "steps after warm-up where only the Gaussians train (field frozen)")
     field_lr: float = _opt(1e-3, "Adam learning rate of the skinning-field MLP")
@@ -157,6 +161,8 @@ class FitConfig:
             raise ValueError(f"target must be 'auto', 'frame' or 'masked', got {self.target!r}")
         if not 0.0 < self.backward_threshold < 1.0:
             raise ValueError(f"backward_threshold must lie in (0, 1), got {self.backward_threshold}")
+        if not self.skinning_prior_temperature > 0.0:
+            raise ValueError(f"skinning_prior_temperature must be positive, got {self.skinning_prior_temperature}")
         if self.backward_every < 1:
             raise ValueError(f"backward_every must be at least 1, got {self.backward_every}")
         if self.dynamics and self.secondary_motion:

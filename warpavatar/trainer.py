@@ -71,7 +71,7 @@ def initial_gaussians(skeleton, video, config: FitConfig, *, generator: torch.Ge
 
     margin = 0.25 * height
     box_min, box_max = skeleton_min - margin, skeleton_max + margin
-    temperature = 0.02 * height
+    temperature = config.skinning_prior_temperature * height
     if config.init_carve and video.masks is not None:
         candidates = box_min + torch.rand(config.init_carve_candidates, 3, generator=generator) * (box_max - box_min)
         carved = _carve(candidates, heads, tails, video, temperature=temperature)
@@ -253,7 +253,7 @@ class Trainer:
                                             max_move=config.backward_max_move * self.extent)
         self._backward_refreshed = -1
         self.field_prior = bone_distance_prior(field.grid_points.reshape(-1, 3), heads, tails,
-                                               temperature=0.02 * self.extent)
+                                               temperature=config.skinning_prior_temperature * self.extent)
         self.step = 0
         self._frozen_grid: torch.Tensor | None = None
         self.frame_order: list[int] = []

@@ -1,0 +1,90 @@
+"""tools/error_breakdown.py: the height-band region split, the ground-truth baselines and the needed-PSNR arithmetic."""
+
+import importlib.util
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from warpavatar import data
+
+_TOOL = Path(__file__).resolve().parents[1] / "tools" / "error_breakdown.py"
+
+
+@pytest.fixture(scope="module")
+def tool():
+    spec = importlib.util.spec_from_file_location("error_breakdown", _TOOL)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _camera(width=40, height=30, rotation=np.eye(3), translation=(0.1, -0.2, 3.0)):
+    world_to_camera = np.eye(4, dtype=np.float32)
+    world_to_camera[:3, :3] = rotation
+    world_to_camera[:3, 3] = translation
+    intrinsics = np.array([[50.0, 0, 19.5], [0, 55.0, 14.5], [0, 0, 1]], np.float32)
+    return data.Camera(K=intrinsics, world_to_camera=world_to_camera, width=width, height=height)
+
+
+def test_height_band_holds_the_pixels_whose_ray_crosses_the_slab_at_the_root_depth(tool):
+    # a camera looking along world +y, with world z up (image rows grow downwards, so height falls with the row)
+    rotation = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+    camera = _camera(rotation=rotation, translation=(0.0, 0.3, 2.5))
+    root = np.array([0.05, 0.4, 0.2])
+    up = np.array([0.0, 0.0, 2.0])  # not normalized on purpose
+    band = tool.height_band_mask(camera, root, up, low=0.1, high=0.25)
+    # brute force: unproject each pixel centre to the root's camera depth, read its world height
+    world_to_camera = camera.world_to_camera.astype(np.float64)
+    depth = (world_to_camera[:3, :3] @ root + world_to_camera[:3, 3])[2]
+    expected = np.zeros_like(band)
+    inverse = np.linalg.inv(world_to_camera)
+    for row in range(camera.height):
+        for column in range(camera.width):
+            point = np.array([(column - 19.5) / 50.0 * depth, (row - 14.5) / 55.0 * depth, depth, 1.0])
+            height = (inverse @ point)[2]
+            expected[row, column] = 0.1 < height < 0.25
+    assert np.array_equal(band, expected)
+    assert 0 < band.sum() < band.size
+    # whole rows: the slab is horizontal and the camera level
+    assert np.array_equal(band.all(axis=1), band.any(axis=1))
+
+
+def test_references_blur_and_mean_fill(tool):
+    rng = np.random.default_rng(3)
+    truth = rng.uniform(0.1, 0.9, size=(24, 32, 3))
+    mask = np.zeros((24, 32))
+    mask[5:20, 8:25] = 1.0
+    mean = tool.reference_image(truth, mask, "mean")
+    assert np.allclose(mean[mask > 0.5], truth[mask > 0.5].mean(0))
+    assert np.all(mean[mask < 0.5] == 0.0)
+    blurred = tool.reference_image(truth, mask, "blur", blur_sigma=2.0)
+    assert blurred.shape == truth.shape and blurred.std() < 0.5 * truth.std()
+    with pytest.raises(ValueError, match="unknown reference"):
+        tool.reference_image(truth, mask, "median")
+
+
+def test_band_needed_inverts_the_pooled_psnr(tool):
+    share, target = 0.45, 23.0
+    needed = tool.band_needed(share, target)
+    pooled = -10 * math.log10(share * 10 ** (-needed / 10))
+    assert pooled == pytest.approx(target)
+    outside = 27.0
+    needed = tool.band_needed(share, target, outside_db=outside)
+    pooled = -10 * math.log10(share * 10 ** (-needed / 10) + (1 - share) * 10 ** (-outside / 10))
+    assert pooled == pytest.approx(target)
+    # an outside region that alone already misses the target leaves no band PSNR that reaches it
+    assert math.isnan(tool.band_needed(share, target, outside_db=19.0))
+    assert math.isnan(tool.band_needed(0.0, target))
+
+
+def test_breakdown_of_the_mean_fill_reference_on_the_demo(tool):
+    video = data.load_video_folder(data.demo_subject_path() / "train", scale=0.5)
+    values = tool.breakdown(None, video, stride=7, band=(0.3, 0.8), reference="mean")
+    assert 0.0 < values["band share"] < 1.0
+    # the pooled masked MSE is the share-weighted mean of the two regions' MSEs
+    mse = {key: 10 ** (-values[key] / 10) for key in ("band", "outside")}
+    pooled = values["band share"] * mse["band"] + (1 - values["band share"]) * mse["outside"]
+    assert 8.0 < -10 * math.log10(pooled) < 25.0
+    assert all(math.isfinite(values[key]) for key in ("masked", "gain", "inner", "gain+inner"))
