@@ -83,8 +83,17 @@ def test_breakdown_of_the_mean_fill_reference_on_the_demo(tool):
     video = data.load_video_folder(data.demo_subject_path() / "train", scale=0.5)
     values = tool.breakdown(None, video, stride=7, band=(0.3, 0.8), reference="mean")
     assert 0.0 < values["band share"] < 1.0
-    # the pooled masked MSE is the share-weighted mean of the two regions' MSEs
+    # the two regions partition the mask: their share-weighted MSEs add up to the MSE pooled over every
+    # masked pixel of the frames used, computed here directly
+    error = count = 0.0
+    for t in range(0, video.frame_count, 7):
+        truth = video.images[t].astype(np.float64) / 255.0
+        mask = video.masks[t].astype(np.float64) / 255.0
+        prediction = tool.reference_image(truth, mask, "mean")
+        error += float((((prediction - truth) ** 2).sum(-1) * mask).sum())
+        count += float(mask.sum()) * 3
     mse = {key: 10 ** (-values[key] / 10) for key in ("band", "outside")}
     pooled = values["band share"] * mse["band"] + (1 - values["band share"]) * mse["outside"]
+    assert -10 * math.log10(pooled) == pytest.approx(-10 * math.log10(error / count), abs=1e-6)
     assert 8.0 < -10 * math.log10(pooled) < 25.0
     assert all(math.isfinite(values[key]) for key in ("masked", "gain", "inner", "gain+inner"))

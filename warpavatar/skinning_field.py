@@ -146,8 +146,8 @@ class VoxelSkinningField(torch.nn.Module):
     def add_joints(self, parents: torch.Tensor) -> None:
         """Add one output per grown joint (ToMiE Sec. 4.4), each starting as a copy of its parent's.
 
-        The parent's logit and the copy are both lowered by log(2) per share, so the parent's weight is split
-        evenly between itself and its children: the summed weight of the group, and so any pose in which the
+        The parent's logit and its copies are all lowered by log(1 + number of children), so the parent's
+        weight is split evenly between itself and its children: the summed weight of the group, and so any pose in which the
         children move with the parent, is unchanged. Training then decides where the children take over.
 
         Args:
