@@ -25,9 +25,9 @@ def small_avatar(skeleton, *, seed: int, per_bone: int, cells: int, distill_step
 
     ``random_frames`` also randomizes the Gaussians' higher SH coefficients and orientations.
     """
-    from warpavatar.avatar import Avatar
-    from warpavatar.gaussians import GaussianModel
-    from warpavatar.skinning_field import VoxelSkinningField, bone_distance_prior
+    from warpavatar.model import Avatar
+    from warpavatar.model import GaussianModel
+    from warpavatar.model.skinning_field import VoxelSkinningField, bone_distance_prior
 
     generator = torch.Generator().manual_seed(seed)
     heads = torch.as_tensor(skeleton.heads)

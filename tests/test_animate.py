@@ -11,7 +11,7 @@ pytest.importorskip("pxr")  # usd-core is a dependency; skip cleanly where it is
 
 from conftest import small_avatar
 from warpavatar import data
-from warpavatar.avatar import Avatar
+from warpavatar.model import Avatar
 from warpavatar.cli import animate, render
 from warpavatar.io.usd import read_gaussian_usd
 

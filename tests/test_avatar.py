@@ -4,8 +4,9 @@ import math
 
 import torch
 
-from warpavatar.avatar import Avatar, PosedGaussians, quat_rotate
-from warpavatar.pose_correction import PoseCorrection, relative_rotations_6d
+from warpavatar.geometry import quat_rotate
+from warpavatar.model import Avatar, PosedGaussians
+from warpavatar.extensions.pose_correction import PoseCorrection, relative_rotations_6d
 
 
 def _random_unit_quats(count, generator):
@@ -80,6 +81,28 @@ def test_frame_code_is_used_only_for_training_poses():
     other = poses[2].clone()
     other[1, :3, 3] += 0.01
     assert torch.equal(correction.frame_code(other), torch.zeros(5))
+
+
+def test_pose_correction_regularizer_keeps_the_training_pose_gradient():
+    """A pose without gradients in the middle of a step (the backward mapping's refresh) must not replace the
+    outputs the regularizer differentiates."""
+    generator = torch.Generator().manual_seed(4)
+    parents = torch.tensor([-1, 0, 1])
+    correction = PoseCorrection(torch.zeros(3) - 1, torch.ones(3), parents, hidden=8, layers=1)
+    with torch.no_grad():
+        correction.head.weight.normal_(generator=generator)
+    means = torch.rand(20, 3, generator=generator)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(20, 1)
+    scales = torch.full((20, 3), 0.05)
+    pose = torch.eye(4).repeat(3, 1, 1)
+    pose[1, :3, :3] = _rotation_z(0.4)
+    correction(means, quats, scales, pose)
+    with torch.no_grad():
+        correction(means, quats, scales, torch.eye(4).repeat(3, 1, 1))
+    regularizer = correction.regularization()
+    assert regularizer.requires_grad and float(regularizer.detach()) > 0
+    regularizer.backward()
+    assert float(correction.head.weight.grad.abs().max()) > 0
 
 
 def test_relative_rotations_ignore_global_heading():

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from warpavatar import ops
-from warpavatar.backward_mapping import BackwardMapping, BoneGMM, bone_axes, jensen_shannon
-from warpavatar.skinning_field import VoxelSkinningField
+from warpavatar.extensions.backward_mapping import BackwardMapping, BoneGMM, bone_axes, jensen_shannon
+from warpavatar.model.skinning_field import VoxelSkinningField
 
 
 def _random_distributions(rows, columns, generator, *, sparse=False):

@@ -7,7 +7,8 @@ import torch
 
 from warpavatar import ops
 from warpavatar._torch_impl.springs import spring_step as reference_spring_step
-from warpavatar.dynamics import DynamicsState, SecondaryDynamics, frame_intervals
+from warpavatar.extensions.dynamics import DynamicsState, SecondaryDynamics
+from warpavatar.model import frame_intervals
 
 PARENTS = [-1, 0, 1, 0]
 

@@ -8,11 +8,11 @@ import pytest
 import torch
 
 from warpavatar import data
-from warpavatar.avatar import Avatar
-from warpavatar.config import preset
-from warpavatar.dynamics import SecondaryDynamics
+from warpavatar.model import Avatar
+from warpavatar.fit import preset
+from warpavatar.extensions.dynamics import SecondaryDynamics
 from warpavatar.evaluate import evaluate_avatar
-from warpavatar.trainer import Trainer
+from warpavatar.fit import Trainer
 
 
 def _tiny_config(**overrides):
@@ -35,10 +35,10 @@ def demo_video():
 def _mean_train_psnr(trainer):
     with torch.no_grad():
         values = []
-        for index in range(len(trainer.train_indices)):
-            image, _, _ = trainer.avatar.render(trainer.cameras[index], trainer.bone_transforms[index],
-                                                background=trainer.background)
-            gt, _ = trainer.target(index)
+        for index in range(trainer.frames.count):
+            image, _, _ = trainer.avatar.render(trainer.frames.cameras[index], trainer.frames.bone_transforms[index],
+                                                background=trainer.frames.background)
+            gt, _ = trainer.frames.target(index)
             values.append(float(-10 * torch.log10(((image - gt) ** 2).mean())))
     return float(np.mean(values))
 
@@ -46,7 +46,7 @@ def _mean_train_psnr(trainer):
 def test_fit_learns_and_writes_outputs(demo_video, tmp_path):
     config = _tiny_config()
     trainer = Trainer(demo_video, config, tmp_path / "fit")
-    trainer.warmup_field()
+    trainer.skinning.warmup(config.field_warmup_steps)
     before = _mean_train_psnr(trainer)
     trainer.fit(progress=False)  # a fresh fit (its warm-up distils the same prior again)
     after = _mean_train_psnr(trainer)
@@ -63,8 +63,8 @@ def test_fit_learns_and_writes_outputs(demo_video, tmp_path):
     assert avatar.gaussians.count == trainer.gaussians.count
     bones = torch.as_tensor(demo_video.bone_transforms[3], dtype=torch.float32)
     with torch.no_grad():
-        reloaded, _, _ = avatar.render(demo_video.cameras[3], bones, background=trainer.background)
-        original, _, _ = trainer.avatar.render(demo_video.cameras[3], bones, background=trainer.background)
+        reloaded, _, _ = avatar.render(demo_video.cameras[3], bones, background=trainer.frames.background)
+        original, _, _ = trainer.avatar.render(demo_video.cameras[3], bones, background=trainer.frames.background)
     assert torch.allclose(reloaded, original, atol=1e-5)
 
     result = evaluate_avatar(avatar, demo_video, progress=False)
@@ -88,16 +88,17 @@ def test_resume_matches_uninterrupted(demo_video, tmp_path):
         a, b = getattr(whole.gaussians, name), getattr(resumed.gaussians, name)
         assert a.shape == b.shape, name
         assert torch.allclose(a, b, atol=1e-6), name
-    assert resumed.avatar.secondary_motion is not None
+    assert resumed.avatar.part("secondary_motion") is not None
     # the backward mapping ran (its cache was rebuilt after the last densification) and resumed the same way
-    assert whole.backward.ready and resumed.backward.ready
-    assert torch.equal(whole.backward.index, resumed.backward.index)
-    assert torch.allclose(whole.backward.target_means, resumed.backward.target_means, atol=1e-6)
+    backward, resumed_backward = (t.extension("backward_mapping").mapping for t in (whole, resumed))
+    assert backward.ready and resumed_backward.ready
+    assert torch.equal(backward.index, resumed_backward.index)
+    assert torch.allclose(backward.target_means, resumed_backward.target_means, atol=1e-6)
     log = [json.loads(line) for line in (tmp_path / "whole" / "train_log.jsonl").read_text().splitlines()]
     assert any(entry.get("ambiguous", 0) > 0 for entry in log), log
-    assert torch.equal(whole.avatar.lighting.directional, resumed.avatar.lighting.directional)
-    assert torch.allclose(whole.avatar.secondary_motion.displacement, resumed.avatar.secondary_motion.displacement,
-                          atol=1e-6)
+    assert torch.equal(whole.avatar.part("lighting").directional, resumed.avatar.part("lighting").directional)
+    assert torch.allclose(whole.avatar.part("secondary_motion").displacement,
+                          resumed.avatar.part("secondary_motion").displacement, atol=1e-6)
 
 
 def test_dynamics_fit_resumes_exactly_and_rolls_out_new_motions(demo_video, tmp_path):
@@ -110,27 +111,27 @@ def test_dynamics_fit_resumes_exactly_and_rolls_out_new_motions(demo_video, tmp_
     interrupted.fit(progress=False, stop_at=33)  # between two refreshes of the cached rollout
     resumed = Trainer(demo_video, config, tmp_path / "parts")
     resumed.fit(resume=True, progress=False)
-    dynamics, resumed_dynamics = whole.avatar.secondary_motion, resumed.avatar.secondary_motion
+    dynamics, resumed_dynamics = whole.avatar.part("dynamics"), resumed.avatar.part("dynamics")
     assert isinstance(dynamics, SecondaryDynamics) and isinstance(resumed_dynamics, SecondaryDynamics)
     for name, parameter in dynamics.named_parameters():
         assert torch.allclose(parameter, dict(resumed_dynamics.named_parameters())[name], atol=1e-6), name
     assert torch.allclose(whole.gaussians.means, resumed.gaussians.means, atol=1e-6)
     # the saved avatar replays the training instants from its table ...
     avatar = Avatar.load(tmp_path / "whole")
-    table = avatar.secondary_motion.frame_displacement
-    assert table.shape == (len(whole.train_indices), dynamics.node_count, 3)
+    table = avatar.part("dynamics").frame_displacement
+    assert table.shape == (whole.frames.count, dynamics.node_count, 3)
     assert float(table[1:].abs().max()) > 0
-    bones = whole.bone_transforms[5]
-    assert torch.equal(avatar.secondary_motion.node_displacement(bones), table[5])
+    bones = whole.frames.bone_transforms[5]
+    assert torch.equal(avatar.part("dynamics").node_displacement(bones), table[5])
     # ... and rolls out a motion it never saw (every training frame, at the video's own rate)
     motion = torch.as_tensor(demo_video.bone_transforms, dtype=torch.float32)
     avatar.prepare_sequence(motion, frame_ids=demo_video.frame_ids, fps=demo_video.fps)
-    unseen = [t for t in range(demo_video.frame_count) if t not in set(whole.train_indices.tolist())]
+    unseen = [t for t in range(demo_video.frame_count) if t not in set(whole.frames.indices.tolist())]
     assert unseen
-    moved = avatar.secondary_motion.node_displacement(motion[unseen[-1]])
+    moved = avatar.part("dynamics").node_displacement(motion[unseen[-1]])
     assert float(moved.abs().max()) > 0
     with_dynamics = evaluate_avatar(avatar, demo_video, progress=False)["psnr_masked"]
-    avatar.secondary_motion = None
+    del avatar.parts["dynamics"]
     without = evaluate_avatar(avatar, demo_video, progress=False)["psnr_masked"]
     assert abs(with_dynamics - without) < 1.0, (with_dynamics, without)  # a short fit: small, sane motion
 
@@ -144,9 +145,9 @@ def test_joint_growth_fit_grows_replays_and_resumes_exactly(demo_video, tmp_path
                           checkpoint_every=1000, log_every=10)
     whole = Trainer(demo_video, config, tmp_path / "whole")
     whole.fit(progress=False)
-    extra = whole.avatar.extra_joints
+    extra = whole.avatar.part("joint_growth")
     assert extra is not None and extra.count == 2
-    assert whole.field.joint_count == demo_video.skeleton.joint_count + 2
+    assert whole.avatar.field.joint_count == demo_video.skeleton.joint_count + 2
     log = [json.loads(line) for line in (tmp_path / "whole" / "train_log.jsonl").read_text().splitlines()]
     growth = [entry for entry in log if entry.get("stage") == "grow_joints"]
     assert len(growth) == 1 and growth[0]["step"] == 30
@@ -165,27 +166,28 @@ def test_joint_growth_fit_grows_replays_and_resumes_exactly(demo_video, tmp_path
         resumed = Trainer(demo_video, config, tmp_path / f"parts{stop}")
         resumed.fit(resume=True, progress=False)
         for name, parameter in extra.named_parameters():
-            assert torch.allclose(parameter, dict(resumed.avatar.extra_joints.named_parameters())[name],
+            assert torch.allclose(parameter, dict(resumed.avatar.part("joint_growth").named_parameters())[name],
                                   atol=1e-6), (stop, name)
-        for name, parameter in whole.field.named_parameters():
-            assert torch.allclose(parameter, dict(resumed.field.named_parameters())[name], atol=1e-6), (stop, name)
+        for name, parameter in whole.avatar.field.named_parameters():
+            assert torch.allclose(parameter, dict(resumed.avatar.field.named_parameters())[name], atol=1e-6), (stop, name)
         assert torch.allclose(whole.gaussians.means, resumed.gaussians.means, atol=1e-6), stop
 
     # the saved avatar replays each training instant's learned rotations; other poses keep the joints at rest
     avatar = Avatar.load(tmp_path / "whole")
-    rotations = avatar.extra_joints.rotations_for_pose(whole.bone_transforms[4])
+    rotations = avatar.part("joint_growth").rotations_for_pose(whole.frames.bone_transforms[4])
     assert torch.allclose(rotations, extra.frame_rotations(torch.tensor(4)))
     assert float(rotations[:, 1:].detach().abs().max()) > 0
-    unseen = [t for t in range(demo_video.frame_count) if t not in set(whole.train_indices.tolist())][0]
-    rest = avatar.extra_joints.rotations_for_pose(torch.as_tensor(demo_video.bone_transforms[unseen],
+    unseen = [t for t in range(demo_video.frame_count) if t not in set(whole.frames.indices.tolist())][0]
+    rest = avatar.part("joint_growth").rotations_for_pose(torch.as_tensor(demo_video.bone_transforms[unseen],
                                                                   dtype=torch.float32))
     assert torch.equal(rest, torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2))
-    frame = int(whole.train_indices[4])
+    frame = int(whole.frames.indices[4])
     with torch.no_grad():
-        replayed, _, _ = avatar.render(demo_video.cameras[frame], whole.bone_transforms[4])
-        trained, _, _ = whole.avatar.render(demo_video.cameras[frame], whole.bone_transforms[4])
-        at_rest, _, _ = avatar.render(demo_video.cameras[frame], whole.bone_transforms[4],
-                                      extra_rotations=torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2))
+        bones = whole.frames.bone_transforms[4]
+        replayed, _, _ = avatar.render(demo_video.cameras[frame], bones)
+        trained, _, _ = whole.avatar.render(demo_video.cameras[frame], bones)
+        at_rest, _, _ = avatar.render(demo_video.cameras[frame], bones,
+                                      inputs={"joint_growth": torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2)})
     assert (replayed - trained).abs().max() < 1e-5
     assert (replayed - at_rest).abs().max() > 1e-4
 
@@ -196,11 +198,11 @@ def test_history_criterion_locates_the_joint_with_the_largest_code_offsets(demo_
                           grow_criterion="history", grow_threshold=0.5, grow_max_joints=1, grow_kernel_frames=6)
     trainer = Trainer(demo_video, config, tmp_path / "fit")
     trainer.fit(progress=False, stop_at=41)
-    report = trainer.growth_report
+    report = trainer.extension("joint_growth").report
     values = report["joint_gradient"]
     assert all(math.isfinite(v) and v > 0 for v in values.values())
     assert report["grown_parents"] == [max(values, key=values.get)]
-    assert trainer.avatar.extra_joints.count == 1
+    assert trainer.avatar.part("joint_growth").count == 1
 
 
 def test_dynamics_and_per_frame_displacements_are_exclusive():
@@ -208,19 +210,21 @@ def test_dynamics_and_per_frame_displacements_are_exclusive():
         preset("quick", dynamics=True, secondary_motion=True)
 
 
-def test_resume_accepts_a_checkpoint_from_before_skeleton_growth(demo_video, tmp_path):
-    """A checkpoint written by an earlier version (no growth statistics in it) still resumes."""
-    config = _tiny_config(iterations=30, checkpoint_every=1000, secondary_motion=False)
-    Trainer(demo_video, config, tmp_path / "run").fit(progress=False, stop_at=15)
+def test_resume_refuses_a_checkpoint_of_an_earlier_format_clearly(demo_video, tmp_path):
+    """A checkpoint written before the extension protocol (no format tag, one key per optional part) is refused
+    with a message naming its format; a fresh fit in the same folder still runs."""
+    config = _tiny_config(iterations=20, checkpoint_every=1000, secondary_motion=False)
+    Trainer(demo_video, config, tmp_path / "run").fit(progress=False, stop_at=10)
     path = tmp_path / "run" / "checkpoint.pt"
     state = torch.load(path, weights_only=False)
-    for key in ("grown", "extra_joints", "extra_joints_optimizer", "position_grad_accum", "joint_grad_sum",
-                "joint_grad_seen"):
-        del state[key]
-    torch.save(state, path)
-    resumed = Trainer(demo_video, config, tmp_path / "run")
-    resumed.fit(resume=True, progress=False)
-    assert resumed.step == 30
+    legacy = {key: value for key, value in state.items() if key not in ("format", "extensions", "skinning")}
+    legacy.update(field=state["skinning"]["field"], pose_correction=None, secondary_motion=None)
+    torch.save(legacy, path)
+    with pytest.raises(ValueError, match="checkpoint format 'warpavatar-checkpoint/1' was written by an earlier"):
+        Trainer(demo_video, config, tmp_path / "run").fit(resume=True, progress=False)
+    fresh = Trainer(demo_video, config, tmp_path / "run")
+    fresh.fit(progress=False)
+    assert fresh.step == 20
 
 
 def test_resume_refuses_other_config(demo_video, tmp_path):
@@ -241,26 +245,26 @@ def test_training_target_keeps_edge_pixels_of_flat_background_frames(demo_video,
 
     index = 2
     auto = Trainer(demo_video, _tiny_config(iterations=1), tmp_path / "auto")
-    frame_index = int(auto.train_indices[index])  # the tiny config trains on a subset of the frames
+    frame_index = int(auto.frames.indices[index])  # the tiny config trains on a subset of the frames
     image = torch.as_tensor(demo_video.images[frame_index]).float() / 255.0
     mask = torch.as_tensor(demo_video.masks[frame_index]).float() / 255.0
     background = torch.as_tensor(demo_video.background, dtype=torch.float32)
     composite = image * mask[..., None] + background * (1 - mask[..., None])
     # the demo's meta.json declares the flat background its frames were rendered over: 'auto' keeps the frame
     assert "background" in demo_video.meta
-    target, target_mask = auto.target(index)
+    target, target_mask = auto.frames.target(index)
     assert torch.equal(target, image) and torch.equal(target_mask, mask)
     # the frame and the composite differ at the anti-aliased pixels just outside the mask
     outside = (mask == 0) & (image.sum(-1) > 0)
     assert bool(outside.any())
     masked = Trainer(demo_video, _tiny_config(iterations=1, target="masked"), tmp_path / "masked")
-    assert torch.equal(masked.target(index)[0], composite)
+    assert torch.equal(masked.frames.target(index)[0], composite)
     # a folder that declares no background (a real video) is cut out by its mask under 'auto'
     undeclared = dataclasses.replace(demo_video, meta={})
     cut = Trainer(undeclared, _tiny_config(iterations=1), tmp_path / "undeclared")
-    assert torch.equal(cut.target(index)[0], composite)
+    assert torch.equal(cut.frames.target(index)[0], composite)
     frame = Trainer(undeclared, _tiny_config(iterations=1, target="frame"), tmp_path / "frame")
-    assert torch.equal(frame.target(index)[0], image)
+    assert torch.equal(frame.frames.target(index)[0], image)
 
 
 def test_bad_target_is_a_clear_error():
@@ -269,7 +273,7 @@ def test_bad_target_is_a_clear_error():
 
 
 def test_skinning_prior_temperature_blends_neighbouring_bones(demo_video, tmp_path):
-    from warpavatar.skinning_field import bone_distance_prior
+    from warpavatar.model.skinning_field import bone_distance_prior
 
     sharp = Trainer(demo_video, _tiny_config(iterations=1), tmp_path / "sharp")
     smooth = Trainer(demo_video, _tiny_config(iterations=1, skinning_prior_temperature=0.1), tmp_path / "smooth")
@@ -279,12 +283,12 @@ def test_skinning_prior_temperature_blends_neighbouring_bones(demo_video, tmp_pa
     for trainer, temperature in ((sharp, 0.02), (smooth, 0.1)):
         points = trainer.avatar.field.grid_points.reshape(-1, 3)
         expected = bone_distance_prior(points, heads, tails, temperature=temperature * trainer.extent)
-        assert torch.allclose(trainer.field_prior, expected, atol=1e-6)
+        assert torch.allclose(trainer.skinning.prior, expected, atol=1e-6)
 
     # a higher temperature spreads each point's weight over more bones
     def entropy(weights):
         return float(-(weights * weights.clamp_min(1e-12).log()).sum(-1).mean())
 
-    assert entropy(smooth.field_prior) > 1.5 * entropy(sharp.field_prior)
+    assert entropy(smooth.skinning.prior) > 1.5 * entropy(sharp.skinning.prior)
     with pytest.raises(ValueError, match="skinning_prior_temperature must be positive"):
         preset("quick", skinning_prior_temperature=0.0)

@@ -9,12 +9,12 @@ import torch
 
 from conftest import small_avatar
 from warpavatar import data, ops
-from warpavatar.avatar import Avatar
-from warpavatar.config import FitConfig
-from warpavatar.joint_growth import (ExtraJoints, assignment_weights, joint_gradient_sums, joint_gradients,
-                                     locate_parents, motion_kernel,
-                                     quaternion_to_matrix, rotation_from_vector)
-from warpavatar.skinning_field import bone_distance_prior
+from warpavatar.extensions.joint_growth import (ExtraJoints, assignment_weights, joint_gradient_sums,
+                                                joint_gradients, locate_parents, motion_kernel)
+from warpavatar.fit import preset
+from warpavatar.geometry import quat_from_vector, quat_to_matrix
+from warpavatar.model import Avatar
+from warpavatar.model.skinning_field import bone_distance_prior
 
 
 def _random_rigid(count, generator, *, spread=0.3):
@@ -148,11 +148,11 @@ def _extra_joints(device, *, frame_count=5, joint_count=3, seed=5):
 def test_quaternion_helpers():
     q = _axis_quaternion([0.0, 0.0, 1.0], 0.8)
     c, s = math.cos(0.8), math.sin(0.8)
-    assert torch.allclose(quaternion_to_matrix(q), torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]),
+    assert torch.allclose(quat_to_matrix(q), torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]),
                           atol=1e-6)
-    assert torch.equal(rotation_from_vector(torch.zeros(2, 3)), torch.tensor([[1.0, 0, 0, 0], [1.0, 0, 0, 0]]))
+    assert torch.equal(quat_from_vector(torch.zeros(2, 3)), torch.tensor([[1.0, 0, 0, 0], [1.0, 0, 0, 0]]))
     v = torch.tensor([[0.0, 0.0, math.tan(0.4)]])
-    assert torch.allclose(rotation_from_vector(v)[0], q, atol=1e-6)
+    assert torch.allclose(quat_from_vector(v)[0], q, atol=1e-6)
 
 
 def test_extra_joint_transforms_rotate_about_the_joint_then_follow_the_parent(device):
@@ -162,7 +162,7 @@ def test_extra_joint_transforms_rotate_about_the_joint_then_follow_the_parent(de
     transforms = extra.transforms(pose, rotations.to(device))
     centres = extra.positions().detach()
     for e, parent in enumerate(extra.parents.tolist()):
-        rotation = quaternion_to_matrix(rotations[e]).to(device)
+        rotation = quat_to_matrix(rotations[e]).to(device)
         local = torch.eye(4, device=device)
         local[:3, :3] = rotation
         local[:3, 3] = centres[e] - rotation @ centres[e]
@@ -197,7 +197,7 @@ def test_rotation_gradient_through_lbs_matches_finite_differences(device):
     vector = torch.tensor([[0.2, -0.3, 0.1], [0.05, 0.4, -0.2]], device=device)
 
     def loss(v):
-        bones = torch.cat([poses[2], extra.transforms(poses[2], rotation_from_vector(v))])
+        bones = torch.cat([poses[2], extra.transforms(poses[2], quat_from_vector(v))])
         posed, _ = ops.lbs(points, weights, bones)
         return ((posed - target) ** 2).sum()
 
@@ -248,7 +248,7 @@ def _grow(avatar, video, parents, device):
     extra = ExtraJoints(parents, heads[parents], bones, torch.arange(bones.shape[0], dtype=torch.float32) / 30,
                         extent=1.0, hidden_position=16, hidden_rotation=16, layers=2).to(device)
     avatar.field.add_joints(parents)
-    avatar.extra_joints = extra
+    avatar.add_part(extra)
     return extra
 
 
@@ -258,7 +258,7 @@ def test_growing_changes_no_render_and_groups_keep_the_bone_loss(demo_skeleton, 
     bones = torch.as_tensor(video.bone_transforms[2], dtype=torch.float32, device=device)
     camera = video.cameras[2]
     heads, tails = torch.as_tensor(video.skeleton.heads, device=device), torch.as_tensor(video.skeleton.tails, device=device)
-    from warpavatar.skinning_field import bone_sample_points
+    from warpavatar.model.skinning_field import bone_sample_points
     samples, sample_bones = bone_sample_points(heads, tails, torch.as_tensor(video.skeleton.parents, device=device))
     with torch.no_grad():
         before, _, _ = avatar.render(camera, bones)
@@ -269,19 +269,19 @@ def test_growing_changes_no_render_and_groups_keep_the_bone_loss(demo_skeleton, 
     identity = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 3, device=device)
     with torch.no_grad():
         weights_after = avatar.field.weights(avatar.gaussians.means)
-        grouped = weights_after @ extra.group_matrix()
+        grouped = weights_after @ avatar.skinning_groups()
         assert torch.allclose(grouped, weights_before, atol=1e-5)
         # each child shares its parent's weight: parent 3 with two children keeps a third of it
         assert torch.allclose(weights_after[:, 3], weights_before[:, 3] / 3, atol=1e-5)
         assert torch.allclose(weights_after[:, -1], weights_before[:, 7] / 2, atol=1e-5)
-        after, _, _ = avatar.render(camera, bones, extra_rotations=identity)
-        bone_after = avatar.field.bone_loss(samples, sample_bones, groups=extra.group_matrix())
+        after, _, _ = avatar.render(camera, bones, inputs={"joint_growth": identity})
+        bone_after = avatar.field.bone_loss(samples, sample_bones, groups=avatar.skinning_groups())
     assert (before - after).abs().max() < 1e-4
     assert abs(float(bone_after) - float(bone_before)) < 1e-5
     # a rotated grown joint moves the Gaussians it has weight on
     turn = torch.stack([_axis_quaternion([0.0, 1.0, 0.0], 0.8)] * 3).to(device)
     with torch.no_grad():
-        turned, _, _ = avatar.render(camera, bones, extra_rotations=turn)
+        turned, _, _ = avatar.render(camera, bones, inputs={"joint_growth": turn})
     assert (turned - before).abs().max() > 0.05
 
 
@@ -293,7 +293,8 @@ def test_grown_avatar_file_round_trip_and_rig(demo_skeleton, device, tmp_path):
         extra.rotation_mlp[-1].bias.copy_(torch.tensor([0.3, -0.2, 0.4], device=device))
     avatar.save(tmp_path / "avatar.pt")
     loaded = Avatar.load(tmp_path, device=device)
-    assert loaded.extra_joints is not None and loaded.extra_joints.count == 2
+    assert loaded.part("joint_growth") is not None and loaded.part("joint_growth").count == 2
+    assert loaded.grown_joint_count == 2
     for frame in (1, 3):
         bones = torch.as_tensor(video.bone_transforms[frame], dtype=torch.float32, device=device)
         with torch.no_grad():
@@ -307,9 +308,9 @@ def test_grown_avatar_file_round_trip_and_rig(demo_skeleton, device, tmp_path):
     assert rig.parents[-2:].tolist() == [5, 1]
     assert np.allclose(rig.heads[-2:], extra.positions().detach().cpu().numpy(), atol=1e-6)
     plain = _avatar(video, device)
-    with pytest.raises(ValueError, match="no grown joints"):
+    with pytest.raises(ValueError, match="inputs for parts this avatar does not have: \\['joint_growth'\\]"):
         plain.pose_bones(torch.eye(4, device=device).repeat(plain.joint_count, 1, 1),
-                         extra_rotations=torch.ones(1, 4, device=device))
+                         inputs={"joint_growth": torch.ones(1, 4, device=device)})
 
 
 def test_grown_skeleton_exports_to_usd(demo_skeleton, tmp_path, capsys):
@@ -321,7 +322,7 @@ def test_grown_skeleton_exports_to_usd(demo_skeleton, tmp_path, capsys):
     avatar = _avatar(video, "cpu")
     _grow(avatar, video, [4], "cpu")
     with torch.no_grad():
-        avatar.extra_joints.rotation_mlp[-1].bias.copy_(torch.tensor([0.0, 0.5, 0.0]))
+        avatar.part("joint_growth").rotation_mlp[-1].bias.copy_(torch.tensor([0.0, 0.5, 0.0]))
     avatar.save(tmp_path / "avatar.pt")
     output = tmp_path / "motion.usdc"
     assert animate.main([str(tmp_path), "--motion", str(data.demo_subject_path() / "train"), "--frames", "0:3",
@@ -348,8 +349,9 @@ def test_grown_skeleton_exports_to_usd(demo_skeleton, tmp_path, capsys):
     for t in range(3):
         bones = torch.as_tensor(video.bone_transforms[t], dtype=torch.float32)
         with torch.no_grad():
-            expected = avatar.pose_bones(bones, extra_rotations=torch.as_tensor(chosen[t])).numpy()
-            posed = avatar.pose(bones, extra_rotations=torch.as_tensor(chosen[t]))["means"].numpy()
+            explicit = {"joint_growth": torch.as_tensor(chosen[t])}
+            expected = avatar.pose_bones(bones, inputs=explicit).numpy()
+            posed = avatar.pose(bones, inputs=explicit)["means"].numpy()
         assert np.abs(result["joint_transforms"][t] - expected).max() < 1e-4
         assert np.abs(result["positions"][t] - posed).max() < 1e-5
     np.save(tmp_path / "short.npy", chosen[:2])
@@ -362,7 +364,7 @@ def test_grown_skeleton_exports_to_usd(demo_skeleton, tmp_path, capsys):
 
 
 def test_grown_rotation_files_are_checked(tmp_path):
-    from warpavatar.animation import read_grown_rotations
+    from warpavatar.io.animation import read_grown_rotations
 
     good = np.tile(np.array([0.0, 0.0, 2.0, 0.0]), (5, 2, 1))
     np.savez(tmp_path / "good.npz", rotations=good)
@@ -387,28 +389,26 @@ def test_grown_rotation_files_are_checked(tmp_path):
 
 def test_config_rejects_unsupported_combinations():
     with pytest.raises(ValueError, match="grow-joints"):
-        FitConfig(grow_joints=True, dynamics=True)
+        preset(grow_joints=True, dynamics=True)
     with pytest.raises(ValueError, match="grow-joints"):
-        FitConfig(grow_joints=True, backward_mapping=True)
+        preset(grow_joints=True, backward_mapping=True)
     with pytest.raises(ValueError, match="grow_threshold"):
-        FitConfig(grow_threshold=0.0)
-    with pytest.raises(ValueError, match="needs --grow-joints"):
-        FitConfig(grow_parents="Hips")
+        preset(grow_joints=True, grow_threshold=0.0)
 
 
 def test_misspelt_grow_parents_fail_before_the_fit(tmp_path):
-    from warpavatar.trainer import Trainer
+    from warpavatar.fit import Trainer
 
     video = data.load_video_folder(data.demo_subject_path() / "train", max_frames=4, scale=0.25)
-    config = FitConfig(grow_joints=True, grow_parents="Hips,NotAJoint", init_carve=False, init_points_per_bone=5,
-                       grid_cells=8, grid_min_cells=4, field_hidden=16, field_layers=1)
+    config = preset(grow_joints=True, grow_parents="Hips,NotAJoint", init_carve=False, init_points_per_bone=5,
+                    grid_cells=8, grid_min_cells=4, field_hidden=16, field_layers=1)
     with pytest.raises(ValueError, match="does not have: NotAJoint "):
         Trainer(video, config, tmp_path / "fit")
 
 
 def test_history_offsets_are_what_the_frame_code_adds(device):
     """The 'history' growth criterion reads the part of the pose correction that the frame codes add."""
-    from warpavatar.pose_correction import PoseCorrection
+    from warpavatar.extensions.pose_correction import PoseCorrection
 
     generator = torch.Generator().manual_seed(8)
     parents = torch.tensor([-1, 0, 1])
@@ -436,9 +436,11 @@ def test_history_offsets_are_what_the_frame_code_adds(device):
 
 def test_history_criterion_needs_the_frame_codes():
     with pytest.raises(ValueError, match="grow-criterion history"):
-        FitConfig(grow_joints=True, grow_criterion="history", frame_codes=False, grow_at=3000)
+        preset(grow_joints=True, grow_criterion="history", frame_codes=False, grow_at=3000)
     with pytest.raises(ValueError, match="grow-criterion history"):
-        FitConfig(grow_joints=True, grow_criterion="history", grow_at=1000, gaussian_only_steps=1500)
+        preset(grow_joints=True, grow_criterion="history", grow_at=1000, gaussian_only_steps=1500)
+    with pytest.raises(ValueError, match="grow-criterion history"):
+        preset(grow_joints=True, grow_criterion="history", grow_at=3000, pose_correction=False)
     with pytest.raises(ValueError, match="grow_criterion must be"):
-        FitConfig(grow_criterion="curvature")
-    FitConfig(grow_joints=True, grow_criterion="history", grow_at=3000)  # the combination that works
+        preset(grow_joints=True, grow_criterion="curvature")
+    preset(grow_joints=True, grow_criterion="history", grow_at=3000)  # the combination that works

@@ -4,8 +4,8 @@ import math
 
 import torch
 
-from warpavatar.avatar import PosedGaussians
-from warpavatar.lighting import WorldLighting, outward_normals
+from warpavatar.model import PosedGaussians
+from warpavatar.extensions.lighting import WorldLighting, outward_normals
 
 HEADS = torch.tensor([[0.0, 0.0, 0.0]])
 TAILS = torch.tensor([[0.0, 0.0, 1.0]])  # one bone along +z
@@ -52,19 +52,19 @@ def test_lighting_starts_as_identity_and_learns_a_direction():
     posed = PosedGaussians(means=means, quats=quats, canonical_quats=quats, canonical_means=means, scales=scales)
     colors = torch.rand(means.shape[0], 3, generator=generator) * 0.5 + 0.25
     lighting = WorldLighting(HEADS, TAILS)
-    assert torch.equal(lighting(colors, posed), colors)
+    assert torch.equal(lighting.shade(colors, posed), colors)
     with torch.no_grad():
         lighting.ambient.fill_(0.8)
         lighting.directional.copy_(torch.tensor([[0.3, 0.0, 0.0]] * 3))
     expected = colors * (0.8 + 0.3 * radial[:, :1]).clamp_min(0)
-    assert torch.allclose(lighting(colors, posed), expected, atol=1e-6)
+    assert torch.allclose(lighting.shade(colors, posed), expected, atol=1e-6)
     # gradients reach the 12 numbers; targets lit from +x pull the directional x terms up
     lighting = WorldLighting(HEADS, TAILS)
     target = colors * (1.0 + 0.5 * radial[:, :1])
     optimizer = torch.optim.Adam(lighting.parameters(), lr=0.05)
     for _ in range(200):
         optimizer.zero_grad()
-        ((lighting(colors, posed) - target) ** 2).mean().backward()
+        ((lighting.shade(colors, posed) - target) ** 2).mean().backward()
         optimizer.step()
     assert torch.allclose(lighting.directional[:, 0], torch.full((3,), 0.5), atol=0.05)
     assert torch.allclose(lighting.ambient, torch.ones(3), atol=0.05)

@@ -4,7 +4,8 @@ import pytest
 import torch
 
 from warpavatar import ops
-from warpavatar.secondary_motion import SecondaryMotion, voxel_downsample
+from warpavatar.extensions.graph import voxel_downsample
+from warpavatar.extensions.secondary_motion import SecondaryMotion
 
 
 def _random_rigid_poses(frame_count, joint_count, generator):

@@ -1,10 +1,10 @@
 """SMAD dynamics benchmark: ``python tools/bench_kernels.py dynamics [--device cuda:0] [--quick]``.
 
-A :class:`warpavatar.dynamics.SecondaryDynamics` of M = 500, 1500, 5000 nodes (``--quick``: 500) on random
+A :class:`warpavatar.extensions.dynamics.SecondaryDynamics` of M = 500, 1500, 5000 nodes (``--quick``: 500) on random
 points in a unit box, 19 bones, default network sizes (hidden 64, 3 message passes, 2 substeps), driven by a
 100-frame motion. Rows time:
 
-* ``rollout``: one frame of :meth:`~warpavatar.dynamics.SecondaryDynamics.rollout` without gradients (what a
+* ``rollout``: one frame of :meth:`~warpavatar.extensions.dynamics.SecondaryDynamics.rollout` without gradients (what a
   refresh of the training cache, ``warpavatar-eval`` and ``warpavatar-animate`` pay per frame);
 * ``training window``: the trainer's step of the dynamics, 4 frames rolled with gradients then the backward
   pass of a loss on the last state.
@@ -20,7 +20,8 @@ import time
 
 import torch
 
-from warpavatar.dynamics import SecondaryDynamics, frame_intervals
+from warpavatar.extensions.dynamics import SecondaryDynamics
+from warpavatar.model import frame_intervals
 
 __all__ = ["run"]
 

@@ -8,7 +8,7 @@ and SH coefficients and the avatar's. Zeros mean an exact round trip.
 """
 
 import sys, time, numpy as np, torch
-from warpavatar.avatar import Avatar
+from warpavatar.model import Avatar
 from warpavatar.io.usd import read_gaussian_usd
 from warpavatar import data
 avatar = Avatar.load(sys.argv[1])

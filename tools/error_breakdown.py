@@ -165,7 +165,7 @@ def main(argv=None) -> int:
     if args.reference is None:
         if len(args.paths) < 2:
             parser.error("give an avatar and at least one video folder (or --reference)")
-        from warpavatar.avatar import Avatar
+        from warpavatar.model import Avatar
 
         avatar = Avatar.load(args.paths[0], device=args.device)
         folders = args.paths[1:]

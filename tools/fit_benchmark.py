@@ -17,9 +17,9 @@ from pathlib import Path
 import torch
 
 from warpavatar import data
-from warpavatar.config import add_config_arguments, config_from_arguments
 from warpavatar.evaluate import evaluate_avatar, write_json_atomic
-from warpavatar.trainer import Trainer
+from warpavatar.fit import Trainer
+from warpavatar.fit.arguments import add_config_arguments, config_from_arguments
 
 
 def main(argv=None) -> int:

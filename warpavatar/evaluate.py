@@ -35,7 +35,7 @@ def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = N
     """Render ``avatar`` for every frame of ``video`` and measure it.
 
     Args:
-        avatar: a fitted :class:`~warpavatar.avatar.Avatar` (its device is used).
+        avatar: a fitted :class:`~warpavatar.model.Avatar` (its device is used).
         video: a :class:`~warpavatar.data.VideoFolder` of the same skeleton.
         save_renders: folder for side-by-side images (render | ground truth | error x4), or None.
         progress: show a progress bar.

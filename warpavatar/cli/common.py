@@ -1,13 +1,17 @@
-"""Pieces shared by the command-line tools: device choice and turning expected errors into clear messages."""
+"""Pieces shared by the command-line tools: device choice, the avatar and motion options, and turning expected
+errors into clear messages."""
 
 from __future__ import annotations
 
+import argparse
 import functools
 import sys
+from pathlib import Path
 
 import torch
 
-__all__ = ["default_device", "resolve_device", "friendly_errors"]
+__all__ = ["default_device", "resolve_device", "friendly_errors", "add_avatar_arguments", "add_motion_arguments",
+           "load_avatar", "load_motion_for"]
 
 
 def default_device() -> str:
@@ -36,3 +40,58 @@ def friendly_errors(main):
             return 130
 
     return wrapper
+
+
+def add_avatar_arguments(parser: argparse.ArgumentParser) -> None:
+    """The fitted avatar to load (positional), ``--device`` and ``--no-progress``."""
+    parser.add_argument("avatar", type=Path, help="the fit's output folder (or its avatar.pt)")
+    parser.add_argument("--device", default=default_device(), help="torch device: cpu or cuda (default: %(default)s)")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def add_motion_arguments(parser: argparse.ArgumentParser) -> None:
+    """The motion that drives an avatar: ``--motion`` and how to read and cut it."""
+    parser.add_argument("--motion", required=True, type=Path,
+                        help="motion source: a video folder (its poses.npz), a poses .npz with bone_transforms of "
+                             "the same skeleton, or a .bvh file")
+    parser.add_argument("--frames", default=None, metavar="A:B", help="only motion frames A..B-1 (default: all)")
+    parser.add_argument("--fps", type=float, default=None,
+                        help="frames per second of the output (default: the motion's)")
+    parser.add_argument("--name-map", type=Path, default=None,
+                        help="BVH only: JSON file mapping avatar joint names to BVH joint names "
+                             "(default: same names, case-insensitive); unmapped joints keep their rest pose")
+    parser.add_argument("--bvh-scale", type=float, default=None,
+                        help="BVH only: metres per BVH unit (default: from the ratio of skeleton heights)")
+    parser.add_argument("--bvh-up", choices=("X", "Y", "Z"), default=None, help="BVH only: its up axis (default Y)")
+    parser.add_argument("--grown-rotations", type=Path, default=None, metavar="FILE",
+                        help="explicit rotations of the joints grown by --grow-joints, one row per motion frame: a "
+                             ".npy [T, E, 4] or a .npz with a 'rotations' array, (w, x, y, z) in each grown joint's "
+                             "parent rest frame (default: training instants replay their learned rotations, other "
+                             "poses keep the grown joints at rest)")
+
+
+def load_avatar(args):
+    """The avatar ``args.avatar`` on ``args.device``."""
+    from warpavatar.model import Avatar
+
+    return Avatar.load(args.avatar, device=resolve_device(args.device))
+
+
+def load_motion_for(avatar, args):
+    """The motion of ``args`` retargeted to ``avatar``, its frame slice, and the explicit per-frame inputs of the
+    avatar's parts it names (``{part name: [T, ...]}``: the grown joints' rotations)."""
+    import json
+
+    from warpavatar.extensions.joint_growth import ExtraJoints
+    from warpavatar.io.animation import parse_frame_range, read_grown_rotations
+    from warpavatar.io.motion import load_motion
+
+    name_map = json.loads(args.name_map.read_text()) if args.name_map else None
+    frames = parse_frame_range(args.frames)
+    motion = load_motion(args.motion, avatar.skeleton, name_map=name_map, frames=frames,
+                         bvh_scale=args.bvh_scale, bvh_up=args.bvh_up)
+    part_inputs = {}
+    if args.grown_rotations is not None:
+        part_inputs[ExtraJoints.name] = read_grown_rotations(
+            args.grown_rotations, frame_count=motion.bone_transforms.shape[0], joint_count=avatar.grown_joint_count)
+    return motion, frames, part_inputs

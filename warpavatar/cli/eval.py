@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from warpavatar.cli.common import default_device, friendly_errors, resolve_device
+from warpavatar.cli.common import add_avatar_arguments, friendly_errors, load_avatar
 
 DESCRIPTION = """Render a fitted avatar with the cameras and poses of a video folder and compare with its frames.
 
@@ -19,14 +19,12 @@ VIDEO_FOLDER may also be a subject folder: then every folder under novel_view/ a
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="warpavatar-eval", description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("avatar", type=Path, help="the fit's output folder (or its avatar.pt)")
+    add_avatar_arguments(parser)
     parser.add_argument("video_folder", type=Path, help="held-out video folder, or a subject folder")
     parser.add_argument("--json", type=Path, default=None, help="write the results (means and per frame) here")
     parser.add_argument("--save-renders", type=Path, default=None,
                         help="write render | ground truth | error images into this folder")
-    parser.add_argument("--device", default=default_device(), help="torch device (default: %(default)s)")
     parser.add_argument("--scale", type=float, default=1.0, help="evaluate at this image scale (default: 1)")
-    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return parser
 
 
@@ -34,11 +32,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from warpavatar import data
-    from warpavatar.avatar import Avatar
     from warpavatar.evaluate import evaluate_avatar, write_json_atomic
 
-    device = resolve_device(args.device)
-    avatar = Avatar.load(args.avatar, device=device)
+    avatar = load_avatar(args)
     folder = args.video_folder
     if (folder / "novel_view").is_dir() or (folder / "novel_pose").is_dir():
         subject = data.load_subject(folder, scale=args.scale)

@@ -8,12 +8,13 @@ import time
 from pathlib import Path
 
 from warpavatar.cli.common import default_device, friendly_errors, resolve_device
-from warpavatar.config import PRESETS, add_config_arguments, config_from_arguments
+from warpavatar.fit.arguments import add_config_arguments, config_from_arguments
+from warpavatar.fit.presets import preset_names
 
 DESCRIPTION = """Fit an animatable 3D Gaussian avatar to a video folder (see docs/data.md for the format).
 
-Outputs in the output folder: avatar.pt (the avatar: Gaussians, skinning field, skeleton, config; loads back
-with warpavatar.avatar.Avatar.load), canonical.ply (the canonical Gaussians with the 3DGS attribute names),
+Outputs in the output folder: avatar.pt (the avatar: Gaussians, skinning field, skeleton, its optional parts,
+config; loads back with warpavatar.model.Avatar.load), canonical.ply (the canonical Gaussians with the 3DGS attribute names),
 config.json, train_log.jsonl (one JSON line per logged step), checkpoint.pt (to resume) and previews/
 (render | ground truth for a few training frames).
 """
@@ -26,7 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="the video folder to fit (or a subject folder holding train/); omit with --demo")
     parser.add_argument("-o", "--output", type=Path, default=None,
                         help="output folder (default: ./warpavatar-out/<folder name>)")
-    parser.add_argument("--preset", choices=sorted(PRESETS), default=None,
+    parser.add_argument("--preset", choices=preset_names(), default=None,
                         help="named configuration: 'default' (quality, GPU) or 'quick' (small, CPU, minutes); "
                              "default: 'default' on CUDA, 'quick' on CPU and with --demo")
     parser.add_argument("--device", default=default_device(), help="torch device: cpu or cuda (default: %(default)s)")
@@ -45,7 +46,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from warpavatar import data
     from warpavatar.evaluate import evaluate_avatar, write_json_atomic
-    from warpavatar.trainer import Trainer
+    from warpavatar.fit import Trainer
 
     device = resolve_device(args.device)
     preset_name = args.preset or ("default" if device.type == "cuda" and not args.demo else "quick")
@@ -69,12 +70,8 @@ def main(argv=None) -> int:
     trainer.fit(resume=args.resume, progress=not args.no_progress)
     minutes = (time.time() - start) / 60
     print(f"done in {minutes:.1f} min: {trainer.gaussians.count} Gaussians; avatar at {output / 'avatar.pt'}")
-    if trainer.avatar.extra_joints is not None:
-        rig = trainer.avatar.rig()
-        grown = rig.names[trainer.avatar.joint_count:]
-        print(f"grown joints ({len(grown)}): {', '.join(grown)} (per-joint statistics in train_log.jsonl)")
-    elif config.grow_joints and trainer.grown:
-        print("no joint grew: none passed --grow-threshold (per-joint statistics in train_log.jsonl)")
+    for line in trainer.summary_lines():
+        print(line)
     if args.demo:
         subject = data.load_subject(subject_root)
         results = {}

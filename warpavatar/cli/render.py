@@ -12,7 +12,8 @@ import numpy as np
 import torch
 import tqdm
 
-from warpavatar.cli.common import default_device, friendly_errors, resolve_device
+from warpavatar.cli.common import (add_avatar_arguments, add_motion_arguments, friendly_errors, load_avatar,
+                                    load_motion_for)
 
 DESCRIPTION = """Render a fitted avatar animated by a motion, as an MP4 (OpenCV) or a folder of PNG frames.
 
@@ -24,27 +25,16 @@ video-folder motion uses its own cameras and other motions an orbit.
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="warpavatar-render", description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("avatar", type=Path, help="the fit's output folder (or its avatar.pt)")
-    parser.add_argument("--motion", required=True, type=Path,
-                        help="a video folder, a poses .npz of the same skeleton, or a .bvh file")
+    add_avatar_arguments(parser)
+    add_motion_arguments(parser)
     parser.add_argument("-o", "--output", required=True, type=Path,
                         help="an .mp4 file, or a folder that receives 000000.png, 000001.png, ...")
     camera = parser.add_mutually_exclusive_group()
     camera.add_argument("--camera", type=Path, default=None, help="cameras.json to render through")
     camera.add_argument("--orbit", action="store_true", help="circle the avatar once over the animation")
     parser.add_argument("--size", type=int, default=512, help="orbit image width and height in pixels (default 512)")
-    parser.add_argument("--frames", default=None, metavar="A:B", help="only motion frames A..B-1 (default: all)")
-    parser.add_argument("--fps", type=float, default=None, help="video frame rate (default: the motion's)")
     parser.add_argument("--background", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("R", "G", "B"),
                         help="background colour in 0..1 (default black)")
-    parser.add_argument("--name-map", type=Path, default=None, help="BVH only: JSON avatar-joint -> BVH-joint names")
-    parser.add_argument("--grown-rotations", type=Path, default=None, metavar="FILE",
-                        help="explicit rotations of the joints grown by --grow-joints, one row per motion frame: a .npy "
-                             "[T, E, 4] or a .npz with a 'rotations' array, (w, x, y, z) in each grown joint's "
-                             "parent rest frame (default: training instants replay their learned rotations, other "
-                             "poses keep the grown joints at rest)")
-    parser.add_argument("--device", default=default_device(), help="torch device (default: %(default)s)")
-    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return parser
 
 
@@ -52,19 +42,13 @@ def build_parser() -> argparse.ArgumentParser:
 @torch.no_grad()
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    import json
-
     import cv2
 
-    from warpavatar.animation import orbit_cameras, parse_frame_range, read_cameras_json, read_grown_rotations
-    from warpavatar.avatar import Avatar
-    from warpavatar.io.motion import load_motion
+    from warpavatar.io.animation import orbit_cameras, read_cameras_json
 
-    device = resolve_device(args.device)
-    avatar = Avatar.load(args.avatar, device=device)
-    name_map = json.loads(args.name_map.read_text()) if args.name_map else None
-    frames = parse_frame_range(args.frames)
-    motion = load_motion(args.motion, avatar.skeleton, name_map=name_map, frames=frames)
+    avatar = load_avatar(args)
+    device = avatar.gaussians.means.device
+    motion, frames, part_inputs = load_motion_for(avatar, args)
     count = motion.bone_transforms.shape[0]
     if args.camera:
         cameras = read_cameras_json(args.camera, count)
@@ -76,10 +60,6 @@ def main(argv=None) -> int:
     else:
         cameras = orbit_cameras(avatar.skeleton, count, width=args.size, height=args.size)
     fps = args.fps or motion.fps
-    grown = None
-    if args.grown_rotations is not None:
-        grown = read_grown_rotations(args.grown_rotations, frame_count=count,
-                                     joint_count=avatar.grown_joint_count)
     background = torch.tensor(args.background, dtype=torch.float32, device=device)
     grid = avatar.field.grid_weights()
     avatar.prepare_sequence(motion.bone_transforms, frame_ids=motion.frame_ids, fps=motion.fps,
@@ -95,9 +75,9 @@ def main(argv=None) -> int:
     try:
         for t in tqdm.trange(count, disable=args.no_progress, desc="render"):
             bones = torch.as_tensor(motion.bone_transforms[t], dtype=torch.float32, device=device)
-            rotations = None if grown is None else torch.as_tensor(grown[t], device=device)
+            inputs = {name: torch.as_tensor(values[t], device=device) for name, values in part_inputs.items()}
             image, _, _ = avatar.render(cameras[t], bones, background=background, frame_index=t, grid=grid,
-                                        extra_rotations=rotations)
+                                        inputs=inputs)
             pixels = cv2.cvtColor((image.clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR)
             if to_video:
                 if writer is None:

@@ -1,7 +1,8 @@
 """Driving a fitted avatar with a motion, frame by frame, on the avatar's device.
 
 Used by ``warpavatar-animate`` (USD export) and ``warpavatar-render`` (video): both pose the avatar with the
-same code path as fitting and evaluation (:meth:`warpavatar.avatar.Avatar.pose`), including any deformers.
+same code path as fitting and evaluation (:meth:`warpavatar.model.Avatar.pose`), every part of the avatar
+included.
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, Mapping
 
 import numpy as np
 import torch
@@ -138,21 +139,22 @@ def read_grown_rotations(path: str | Path, *, frame_count: int, joint_count: int
 
 @torch.no_grad()
 def posed_frames(avatar, bone_transforms: np.ndarray, *, frame_ids: np.ndarray | None = None, fps: float = 30.0,
-                 grown_rotations: np.ndarray | None = None) -> Iterator[dict]:
+                 part_inputs: Mapping[str, np.ndarray] | None = None) -> Iterator[dict]:
     """Yield the posed Gaussians of each frame (torch tensors on the avatar's device).
 
     Args:
         avatar: the avatar.
         bone_transforms: [T,J,4,4] consecutive frames of the motion.
         frame_ids: [T] frame numbers of the rows (default ``0..T-1``).
-        fps: frames per second of the frame numbers (with them, the time steps of learned secondary dynamics).
-        grown_rotations: [T,E,4] explicit rotations of the avatar's grown joints (:func:`read_grown_rotations`);
-            by default a training instant replays its learned rotations and other poses rest.
+        fps: frames per second of the frame numbers (with them, the time steps of parts with state over time).
+        part_inputs: explicit per-frame inputs of the avatar's parts by part name, arrays with the frame first
+            (e.g. the grown joints' rotations [T,E,4], :func:`read_grown_rotations`); by default each part
+            decides (a training instant replays what was learned for it).
     """
     device = avatar.gaussians.means.device
     grid = avatar.field.grid_weights()
     avatar.prepare_sequence(bone_transforms, frame_ids=frame_ids, fps=fps)
     for t in range(bone_transforms.shape[0]):
         bones = torch.as_tensor(bone_transforms[t], dtype=torch.float32, device=device)
-        rotations = None if grown_rotations is None else torch.as_tensor(grown_rotations[t], device=device)
-        yield avatar.pose(bones, frame_index=t, grid=grid, extra_rotations=rotations)
+        inputs = {name: torch.as_tensor(values[t], device=device) for name, values in (part_inputs or {}).items()}
+        yield avatar.pose(bones, frame_index=t, grid=grid, inputs=inputs)

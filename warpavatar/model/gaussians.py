@@ -11,10 +11,9 @@ import math
 
 import torch
 
-__all__ = ["SH_C0", "rgb_to_sh_dc", "sh_dc_to_rgb", "GaussianModel"]
+from warpavatar.geometry import SH_C0, quat_to_matrix
 
-SH_C0 = 0.28209479177387814
-"""Degree-0 real spherical-harmonics constant: colour = SH_C0 * dc + 0.5."""
+__all__ = ["rgb_to_sh_dc", "sh_dc_to_rgb", "GaussianModel"]
 
 _PARAMETER_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")
 
@@ -27,19 +26,6 @@ def rgb_to_sh_dc(rgb: torch.Tensor) -> torch.Tensor:
 def sh_dc_to_rgb(dc: torch.Tensor) -> torch.Tensor:
     """Inverse of :func:`rgb_to_sh_dc`."""
     return dc * SH_C0 + 0.5
-
-
-def _quat_to_matrix(quats: torch.Tensor) -> torch.Tensor:
-    q = quats / quats.norm(dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(*q.shape[:-1], 3, 3)
 
 
 class GaussianModel(torch.nn.Module):
@@ -148,7 +134,7 @@ class GaussianModel(torch.nn.Module):
         return {name: getattr(self, name).detach()[index].clone() for name in _PARAMETER_NAMES}
 
     def densify(self, grad_norm: torch.Tensor, *, threshold: float, size_split: float, generator: torch.Generator
-                ) -> tuple[int, int]:
+                ) -> torch.Tensor:
         """Clone small and split large Gaussians whose mean screen-space gradient exceeds ``threshold``.
 
         Args:
@@ -159,7 +145,7 @@ class GaussianModel(torch.nn.Module):
             generator: random generator for the split samples (keeps fits deterministic).
 
         Returns:
-            (cloned, split) counts.
+            [N'] for each Gaussian afterwards, the index (before) of the one it is, or was cloned or split from.
         """
         selected = grad_norm >= threshold
         max_scale = self.scales.detach().max(dim=1).values
@@ -171,7 +157,8 @@ class GaussianModel(torch.nn.Module):
             split = self.raw_parameters(split_index)
             samples = []
             stds = split["log_scales"].exp()
-            rotations = _quat_to_matrix(split["quats"])
+            quats = split["quats"]
+            rotations = quat_to_matrix(quats / quats.norm(dim=-1, keepdim=True))
             for _ in range(2):
                 noise = torch.randn(stds.shape, generator=generator, device="cpu").to(stds.device) * stds
                 samples.append(split["means"] + torch.einsum("nij,nj->ni", rotations, noise))
@@ -180,12 +167,15 @@ class GaussianModel(torch.nn.Module):
             two["log_scales"] = two["log_scales"] - math.log(1.6)
             new_values.append(two)
         merged = {name: torch.cat([values[name] for values in new_values], dim=0) for name in _PARAMETER_NAMES}
+        source = torch.cat([torch.arange(self.count, device=self.means.device), clone_index, split_index,
+                            split_index])
         self.append(merged)
         if split_index.numel():
             keep = torch.ones(self.count, dtype=torch.bool, device=self.means.device)
             keep[split_index] = False
             self.prune(keep)
-        return int(clone_index.numel()), int(split_index.numel())
+            source = source[keep]
+        return source
 
     def reset_opacity(self, value: float = 0.01) -> None:
         """Clamp every opacity to at most ``value`` and clear the opacity moments (3DGS opacity reset)."""

@@ -15,12 +15,16 @@ a training instant) uses that frame's code, any other pose uses the zero code, i
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
-from warpavatar.secondary_motion import match_pose
-from warpavatar.skinning_field import box_encoding
+from warpavatar.extensions.base import Extension, LossTerm, option
+from warpavatar.geometry import match_pose, mlp, quat_from_vector, quat_multiply
+from warpavatar.model.parts import AvatarPart
+from warpavatar.model.skinning_field import box_encoding
 
-__all__ = ["PoseCorrection", "relative_rotations_6d"]
+__all__ = ["PoseCorrection", "relative_rotations_6d", "PoseCorrectionOptions", "PoseCorrectionExtension"]
 
 
 def relative_rotations_6d(bone_transforms: torch.Tensor, parents: torch.Tensor) -> torch.Tensor:
@@ -42,7 +46,7 @@ def relative_rotations_6d(bone_transforms: torch.Tensor, parents: torch.Tensor) 
     return six.reshape(-1)
 
 
-class PoseCorrection(torch.nn.Module):
+class PoseCorrection(AvatarPart):
     """MLP(canonical position, pose) -> (offset [N,3], rotation (3 numbers: the vector part of an unnormalized
     quaternion with w = 1), log-scale change [N,3]).
 
@@ -57,6 +61,8 @@ class PoseCorrection(torch.nn.Module):
         frame_count: number of training frames that get a code (0: none).
         code_width: length of each frame code.
     """
+
+    name = "pose_correction"
 
     def __init__(self, bbox_min: torch.Tensor, bbox_max: torch.Tensor, parents: torch.Tensor, *, hidden: int = 128,
                  layers: int = 3, frequencies: int = 4, pose_width: int = 32, frame_count: int = 0,
@@ -74,11 +80,7 @@ class PoseCorrection(torch.nn.Module):
         # the training frames' poses, to recognise a training instant (filled by set_frame_poses)
         self.register_buffer("frame_poses", torch.zeros(frame_count, joint_count, 4, 4))
         width_in = 3 + 6 * frequencies + pose_width + (code_width if frame_count else 0)
-        modules: list[torch.nn.Module] = []
-        for _ in range(layers):
-            modules += [torch.nn.Linear(width_in, hidden), torch.nn.SiLU()]
-            width_in = hidden
-        self.trunk = torch.nn.Sequential(*modules)
+        self.trunk = mlp(width_in, hidden, layers, activation=torch.nn.SiLU)
         self.head = torch.nn.Linear(hidden, 3 + 3 + 3)
         torch.nn.init.zeros_(self.head.weight)
         torch.nn.init.zeros_(self.head.bias)
@@ -92,15 +94,17 @@ class PoseCorrection(torch.nn.Module):
         """Corrected canonical (means [N,3], unit quats [N,4], scales [N,3]) for this pose."""
         code = self.frame_code(bone_transforms) if self.frame_codes.shape[0] else None
         outputs = self._outputs(means, bone_transforms, code)
-        self.last_outputs = outputs
+        if torch.is_grad_enabled():  # a pose without gradients (a refresh, a preview) keeps the training one's
+            self.last_outputs = outputs
         offset = outputs[:, :3] * self._offset_scale()
-        delta = torch.cat([torch.ones_like(outputs[:, :1]), outputs[:, 3:6]], dim=-1)
-        delta = delta / delta.norm(dim=-1, keepdim=True)
-        w1, v1 = delta[:, :1], delta[:, 1:]
-        w2, v2 = quats[:, :1], quats[:, 1:]
-        rotated = torch.cat([w1 * w2 - (v1 * v2).sum(-1, keepdim=True),
-                             w1 * v2 + w2 * v1 + torch.cross(v1, v2, dim=-1)], dim=-1)
+        rotated = quat_multiply(quat_from_vector(outputs[:, 3:6]), quats)
         return means + offset, rotated, scales * torch.exp(outputs[:, 6:9].clamp(-3.0, 3.0))
+
+    def deform_canonical(self, canonical, bones, frame):
+        """The corrected canonical Gaussians for this pose (read from the skeleton's transforms in ``bones``)."""
+        means, quats, scales = self(canonical.means, canonical.quats, canonical.scales,
+                                    bones[: self.parents.shape[0]])
+        return canonical.replace(means=means, quats=quats, scales=scales)
 
     def _offset_scale(self) -> torch.Tensor:
         """World length of a unit position output: a tenth of the canonical box's diagonal."""
@@ -139,8 +143,67 @@ class PoseCorrection(torch.nn.Module):
         return self.frame_codes[best] * matched
 
     def regularization(self) -> torch.Tensor:
-        """Mean squared raw output of the last forward (keeps the correction small where images do not need it)."""
+        """Mean squared raw output of the last forward with gradients (keeps the correction small where images
+        do not need it)."""
         if self.last_outputs is None:
             return torch.zeros((), device=self.bbox_min.device)
         codes = (self.frame_codes**2).sum(-1).mean() if self.frame_codes.shape[0] else 0.0
         return (self.last_outputs**2).sum(-1).mean() + codes
+
+    def state_for_file(self) -> dict:
+        return {"state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()}, "hyper": dict(self.hyper)}
+
+    @classmethod
+    def from_file_state(cls, state: dict, *, device="cpu") -> "PoseCorrection":
+        weights = state["state_dict"]
+        part = cls(weights["bbox_min"], weights["bbox_max"], weights["parents"], **state["hyper"])
+        part.load_state_dict(weights)
+        return part.to(device)
+
+
+@dataclass
+class PoseCorrectionOptions:
+    frame_codes: bool = option(True, "give each training frame a learned code in the pose correction (cloth "
+                               "dynamics of the training instants; other poses use the pose-only correction)")
+    pose_correction_hidden: int = option(128, "hidden width of the pose-correction MLP")
+    lambda_pose_correction: float = option(0.01, "weight of the pose correction's size regularizer")
+
+
+class PoseCorrectionExtension(Extension):
+    """Trains :class:`PoseCorrection` with the skinning field (from the joint stage on, same learning rate)."""
+
+    name = "pose_correction"
+    title = "pose correction (--pose-correction)"
+    summary = "learn a pose-conditioned correction of canonical Gaussians (garments)"
+    options_type = PoseCorrectionOptions
+    enabled_by_default = True
+    presets = {"quick": {"pose_correction": False}}
+
+    def attach(self) -> None:
+        fit, options = self.fit, self.options
+        field = fit.skinning.field
+        frame_count = fit.frames.count if options.frame_codes else 0
+        part = PoseCorrection(field.bbox_min, field.bbox_max, torch.as_tensor(fit.frames.skeleton.parents),
+                              hidden=options.pose_correction_hidden, frame_count=frame_count).to(fit.device)
+        if options.frame_codes:
+            part.set_frame_poses(fit.frames.bone_transforms)
+        self.part = fit.avatar.add_part(part)
+        self.optimizer = torch.optim.Adam(part.parameters(), lr=fit.config.field_lr)
+
+    def begin_step(self, step) -> None:
+        self.part.requires_grad_(step.train_field)  # trains with the field, from the joint stage on
+
+    def losses(self, step) -> dict[str, LossTerm]:
+        if not step.train_field:
+            return {}
+        return {"pose_correction": LossTerm(self.options.lambda_pose_correction, self.part.regularization())}
+
+    def optimizers(self, step) -> list[torch.optim.Optimizer]:
+        return [self.optimizer] if step.train_field else []
+
+    def state_dict(self) -> dict:
+        return {"part": self.part.state_dict(), "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.part.load_state_dict(state["part"])
+        self.optimizer.load_state_dict(state["optimizer"])

@@ -14,12 +14,16 @@ Gaussian's posed rotation.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
-from warpavatar.avatar import quat_rotate
-from warpavatar.skinning_field import closest_on_segments
+from warpavatar.extensions.base import Extension, option
+from warpavatar.geometry import quat_rotate
+from warpavatar.model.parts import AvatarPart
+from warpavatar.model.skinning_field import closest_on_segments
 
-__all__ = ["WorldLighting", "outward_normals"]
+__all__ = ["WorldLighting", "outward_normals", "LightingOptions", "LightingExtension"]
 
 
 def _closest_on_bones(points: torch.Tensor, heads: torch.Tensor, tails: torch.Tensor) -> torch.Tensor:
@@ -50,12 +54,14 @@ def outward_normals(canonical_means: torch.Tensor, canonical_quats: torch.Tensor
     return quat_rotate(posed_quats, local) * sign
 
 
-class WorldLighting(torch.nn.Module):
+class WorldLighting(AvatarPart):
     """``E(n) = max(0, ambient + directional @ n)`` per RGB channel; starts as the identity (E = 1).
 
     Args:
         heads: [J,3] rest-pose bone heads; tails: [J,3] bone tails (to orient normals outwards).
     """
+
+    name = "lighting"
 
     def __init__(self, heads: torch.Tensor, tails: torch.Tensor):
         super().__init__()
@@ -64,10 +70,48 @@ class WorldLighting(torch.nn.Module):
         self.ambient = torch.nn.Parameter(torch.ones(3))
         self.directional = torch.nn.Parameter(torch.zeros(3, 3))  # [rgb, xyz]
 
-    def forward(self, colors: torch.Tensor, posed: dict) -> torch.Tensor:
+    def shade(self, colors: torch.Tensor, posed, frame=None) -> torch.Tensor:
         """Lit colours [N,3] from SH colours [N,3] and the posed Gaussians (``canonical_means``, ``quats``,
         ``canonical_quats``, ``scales``)."""
         normals = outward_normals(posed["canonical_means"], posed["canonical_quats"], posed["quats"],
                                   posed["scales"], self.heads, self.tails)
         irradiance = (self.ambient + normals @ self.directional.T).clamp_min(0.0)
         return colors * irradiance
+
+    @classmethod
+    def from_file_state(cls, state: dict, *, device="cpu") -> "WorldLighting":
+        weights = state["state_dict"]
+        part = cls(weights["heads"], weights["tails"])
+        part.load_state_dict(weights)
+        return part.to(device)
+
+
+@dataclass
+class LightingOptions:
+    lr_lighting: float = option(1e-3, "Adam learning rate of the global lighting's 12 numbers")
+
+
+class LightingExtension(Extension):
+    """Fits :class:`WorldLighting`'s 12 numbers with the Gaussians, from the first step."""
+
+    name = "lighting"
+    title = "world lighting (--lighting)"
+    summary = ("multiply colours by a global first-order irradiance of each Gaussian's world normal (lights fixed "
+               "in the world; extrapolates to sides never facing the camera)")
+    options_type = LightingOptions
+
+    def attach(self) -> None:
+        skeleton = self.fit.frames.skeleton
+        self.part = self.fit.avatar.add_part(WorldLighting(torch.as_tensor(skeleton.heads),
+                                                           torch.as_tensor(skeleton.tails)).to(self.fit.device))
+        self.optimizer = torch.optim.Adam(self.part.parameters(), lr=self.options.lr_lighting)
+
+    def optimizers(self, step) -> list[torch.optim.Optimizer]:
+        return [self.optimizer]
+
+    def state_dict(self) -> dict:
+        return {"part": self.part.state_dict(), "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.part.load_state_dict(state["part"])
+        self.optimizer.load_state_dict(state["optimizer"])

@@ -14,6 +14,7 @@ import math
 import torch
 
 from warpavatar import ops
+from warpavatar.geometry import fourier_features, mlp
 
 __all__ = ["closest_on_segments", "bone_distance_prior", "bone_sample_points", "grid_shape_for_box", "box_encoding",
            "VoxelSkinningField"]
@@ -22,12 +23,7 @@ __all__ = ["closest_on_segments", "bone_distance_prior", "bone_sample_points", "
 def box_encoding(points: torch.Tensor, bbox_min: torch.Tensor, bbox_max: torch.Tensor, frequencies: int
                  ) -> torch.Tensor:
     """Positional encoding [N, 3 + 6*frequencies] of points, after mapping the box to [-1, 1]^3."""
-    unit = (points - bbox_min) / (bbox_max - bbox_min) * 2.0 - 1.0
-    bands = [unit]
-    for octave in range(frequencies):
-        scaled = unit * (math.pi * 2.0**octave)
-        bands += [torch.sin(scaled), torch.cos(scaled)]
-    return torch.cat(bands, dim=-1)
+    return fourier_features((points - bbox_min) / (bbox_max - bbox_min) * 2.0 - 1.0, frequencies)
 
 
 def closest_on_segments(points: torch.Tensor, heads: torch.Tensor, tails: torch.Tensor) -> torch.Tensor:
@@ -110,14 +106,8 @@ class VoxelSkinningField(torch.nn.Module):
         gz, gy, gx = torch.meshgrid(*axes, indexing="ij")
         unit = torch.stack([gx, gy, gz], dim=-1)  # [D,H,W,3] in 0..1, x first
         self.register_buffer("grid_points", (bbox_min.cpu() + unit * (bbox_max - bbox_min).cpu()).to(bbox_min))
-        in_features = 3 + 3 * 2 * frequencies
-        modules: list[torch.nn.Module] = []
-        width_in = in_features
-        for _ in range(layers):
-            modules += [torch.nn.Linear(width_in, hidden), torch.nn.Softplus(beta=10.0)]
-            width_in = hidden
-        modules.append(torch.nn.Linear(width_in, joint_count))
-        self.mlp = torch.nn.Sequential(*modules)
+        self.mlp = mlp(3 + 3 * 2 * frequencies, hidden, layers, joint_count,
+                       activation=lambda: torch.nn.Softplus(beta=10.0))
         # The MLP only ever sees the grid points: encode them once (derived, so not saved in state dicts).
         self.register_buffer("grid_encoding", self._encode(self.grid_points.reshape(-1, 3)), persistent=False)
 

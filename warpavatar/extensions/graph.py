@@ -1,30 +1,24 @@
-"""Secondary motion of the training instants on SMAD's Gaussian graph (paper 000, Sec. 3.2-3.3).
+"""SMAD's Gaussian graph (paper 000, Sec. 3.2-3.3), shared by the secondary-motion extensions.
 
-Loose cloth (a skirt that flares and swings) does not follow the skeleton: its shape at an instant depends on
-the motion before it. Following SMAD, the canonical Gaussians are voxel-downsampled into graph *nodes*, joined
-by k-NN edges (k = 16) whose rest offsets are those of the canonical shape. Every training frame ``t`` has a
-learned displacement of every node, ``D[t] [M,3]`` in the canonical (rest) frame; a Gaussian moves by the
-Gaussian-kernel blend of the displacements of its nearest nodes, before linear blend skinning (so the
-displacement turns with the body: skinning maps it through the blended bone transform).
-
-The displacements are what SMAD's dynamics produce, recovered here by inverse rendering, frame by frame, and
-regularized as SMAD regularizes its simulation (Eq. 11): the displaced graph keeps its edge lengths
-(:func:`warpavatar.ops.isometry_loss`) and the node velocities stay small
-(:func:`warpavatar.ops.damping_loss` on the finite-difference velocity of the displacement sequence).
-
-A pose equal to a training frame's (a novel view of a training instant, or a replay of the training motion)
-gets that frame's displacement; any other pose gets none (the skinned, pose-corrected shape).
+The canonical Gaussians are voxel-downsampled into graph *nodes*, joined by k-NN edges (k = 16) whose rest
+offsets are those of the canonical shape. A secondary-motion part gives every node a displacement in the
+canonical (rest) frame; a Gaussian moves by the Gaussian-kernel blend of the displacements of its nearest
+nodes, before linear blend skinning (so the displacement turns with the body). The graph measures the stretch
+a displacement makes (SMAD's isometry term).
 """
 
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 
 import torch
 
 from warpavatar import ops
+from warpavatar.extensions.base import option
+from warpavatar.model.parts import AvatarPart
 
-__all__ = ["NodeGraph", "SecondaryMotion", "voxel_downsample", "match_pose"]
+__all__ = ["NodeGraph", "voxel_downsample", "GraphMotionOptions", "GRAPH_PRESETS", "graph_nodes"]
 
 
 class _BlendNodes(torch.autograd.Function):
@@ -59,18 +53,6 @@ def _blend_matrices(index: torch.Tensor, weights: torch.Tensor, node_count: int
     return blend, transposed
 
 
-def match_pose(frame_poses: torch.Tensor, bone_transforms: torch.Tensor, *, tolerance: float = 1e-4
-               ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(index of the row of ``frame_poses`` [T,J,4,4] closest to ``bone_transforms`` [J',4,4] (J' >= J), 1.0 if
-    every entry is within ``tolerance`` else 0.0), both device tensors: no host synchronization.
-
-    ``T`` must be at least 1.
-    """
-    difference = (frame_poses - bone_transforms[: frame_poses.shape[1]]).abs().amax(dim=(1, 2, 3))
-    best = torch.argmin(difference)
-    return best, (difference[best] <= tolerance).to(frame_poses.dtype)
-
-
 def voxel_downsample(points: torch.Tensor, voxel_size: float) -> torch.Tensor:
     """Mean of the points in each occupied voxel of edge ``voxel_size`` [world units]: [M,3], M <= N.
 
@@ -89,12 +71,14 @@ def voxel_downsample(points: torch.Tensor, voxel_size: float) -> torch.Tensor:
     return sums / counts[:, None]
 
 
-class NodeGraph(torch.nn.Module):
+class NodeGraph(AvatarPart):
     """SMAD's Gaussian graph: voxel-downsampled nodes, their k-NN edges and the Gaussians' binding to them.
 
-    The base of the two secondary-motion models (:class:`SecondaryMotion`, per-frame displacements, and
-    :class:`warpavatar.dynamics.SecondaryDynamics`, learned dynamics): a model gives node displacements [M,3]
-    in the canonical frame, the graph blends them onto the Gaussians and measures their stretch.
+    The base of the secondary-motion parts (:class:`~warpavatar.extensions.secondary_motion.SecondaryMotion`,
+    per-frame displacements, and :class:`~warpavatar.extensions.dynamics.SecondaryDynamics`, learned
+    dynamics): a part gives node displacements [M,3] in the canonical frame (:meth:`node_displacement`, or an
+    explicit input of the frame), the graph blends them onto the Gaussians before skinning and measures their
+    stretch.
 
     Args:
         node_positions: [M,3] canonical node positions [world units] (see :func:`voxel_downsample`).
@@ -161,6 +145,18 @@ class NodeGraph(torch.nn.Module):
         blend, blend_transposed = self._bound(means)
         return _BlendNodes.apply(node_displacement.contiguous(), blend, blend_transposed)
 
+    def node_displacement(self, bone_transforms: torch.Tensor) -> torch.Tensor:
+        """Canonical displacement [M,3] of every node for a pose [J+E,4,4] (subclasses look it up)."""
+        raise NotImplementedError
+
+    def deform_canonical(self, canonical, bones, frame):
+        """Displace the canonical Gaussians (before skinning, without moving where their weights are read) by
+        the blend of the nodes' displacements: the frame's explicit input, else :meth:`node_displacement`."""
+        displacement = frame.input(self.name)
+        if displacement is None:
+            displacement = self.node_displacement(bones)
+        return canonical.displaced(self.gaussian_displacement(canonical.rest_means, displacement))
+
     def isometry(self, node_displacement: torch.Tensor) -> torch.Tensor:
         """SMAD's isometry term on the displaced graph, in units of the voxel size squared (dimensionless).
 
@@ -182,86 +178,24 @@ class NodeGraph(torch.nn.Module):
                 "binding": binding}
 
 
-class SecondaryMotion(NodeGraph):
-    """Per-training-frame node displacements on a voxel-downsampled Gaussian graph.
+@dataclass
+class GraphMotionOptions:
+    """Options shared by the secondary-motion extensions on SMAD's graph (one flag sets both)."""
 
-    Args:
-        node_positions: [M,3] canonical node positions [world units] (see :func:`voxel_downsample`).
-        frame_poses: [T,J,4,4] bone transforms of the training frames, in the order of the displacements.
-        voxel_size: the voxel edge the nodes were made with [world units]; it sets the kernel width of the
-            Gaussian-to-node binding and the unit of the regularizers.
-        neighbors: k of the node graph's k-NN edges (SMAD: 16).
-        bind_count: nearest nodes each Gaussian blends.
+    secondary_from: int = option(2000, "step at which the graph is built from the canonical Gaussians and starts "
+                                 "to train")
+    secondary_voxel: float = option(0.03, "graph voxel edge as a fraction of the canonical box's longest side")
+    lambda_isometry: float = option(0.1, "weight of SMAD's isometry loss on the posed graph (per voxel^2)")
+    lambda_damping: float = option(0.01, "weight of SMAD's damping loss on node velocities (voxels per frame)")
+    lambda_displacement: float = option(1e-3, "weight of the mean squared node displacement (per voxel^2)")
 
-    Velocities in the regularizers are in voxels per training frame (finite differences of consecutive rows).
-    """
 
-    def __init__(self, node_positions: torch.Tensor, frame_poses: torch.Tensor, *, voxel_size: float,
-                 neighbors: int = 16, bind_count: int = 4):
-        super().__init__(node_positions, voxel_size=voxel_size, neighbors=neighbors, bind_count=bind_count)
-        self.register_buffer("frame_poses", frame_poses.detach().float().clone())
-        self.displacement = torch.nn.Parameter(torch.zeros(frame_poses.shape[0], self.node_count, 3,
-                                                           device=self.nodes.device))
+GRAPH_PRESETS = {"quick": {"secondary_from": 800}}
+"""The graph options' values in named presets (both secondary-motion extensions declare them)."""
 
-    @property
-    def frame_count(self) -> int:
-        return self.displacement.shape[0]
 
-    # --------------------------------------------------------------------------------------- frames
-    def frame_match(self, bone_transforms: torch.Tensor, *, tolerance: float = 1e-4
-                    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """(index of the training frame whose pose equals ``bone_transforms``, 1.0 if it matches else 0.0).
-
-        Both are device tensors: no host synchronization.
-        """
-        return match_pose(self.frame_poses, bone_transforms, tolerance=tolerance)
-
-    def node_displacement(self, bone_transforms: torch.Tensor) -> torch.Tensor:
-        """Canonical displacement [M,3] of every node for this pose (zeros unless it is a training instant)."""
-        best, matched = self.frame_match(bone_transforms)
-        return self.displacement[best] * matched
-
-    def damping(self, frame: torch.Tensor | int) -> torch.Tensor:
-        """SMAD's damping term around training frame ``frame``: mean squared node velocity over the (up to two)
-        finite differences that involve it, in voxels per frame.
-
-        Only rows ``frame - 1 .. frame + 1`` get a gradient, so a row-sparse optimizer touches only them.
-        """
-        frame = int(frame)
-        low, high = max(0, frame - 1), min(self.frame_count - 1, frame + 1)
-        if high <= low:
-            return self.displacement.sum() * 0.0
-        window = self.displacement[low: high + 1]
-        velocity = (window[1:] - window[:-1]) / self.hyper["voxel_size"]
-        return ops.damping_loss(velocity.contiguous())
-
-    def magnitude(self, frame: torch.Tensor | int) -> torch.Tensor:
-        """Mean squared displacement of frame ``frame``'s nodes, in voxels (keeps what the images leave free at
-        rest)."""
-        return (self.displacement[int(frame)] / self.hyper["voxel_size"]).square().sum(-1).mean()
-
-    def sparsify_gradient(self) -> None:
-        """Turn the displacement's dense gradient into a row-sparse one (the frames this step touched), for
-        :class:`torch.optim.SparseAdam`: rows of frames not seen in a step then keep still, where a dense Adam
-        would keep moving them on stale momentum."""
-        grad = self.displacement.grad
-        if grad is not None and not grad.is_sparse:
-            rows = torch.nonzero(grad.abs().amax(dim=(1, 2)) > 0).squeeze(1)
-            self.displacement.grad = torch.sparse_coo_tensor(rows[None], grad[rows], grad.shape).coalesce()
-
-    @classmethod
-    def from_file_state(cls, state: dict, *, device="cpu") -> "SecondaryMotion":
-        weights = state["state_dict"]
-        module = cls.__new__(cls)
-        torch.nn.Module.__init__(module)
-        module.hyper = dict(state["hyper"])
-        for name in ("nodes", "edges", "rest_offset", "frame_poses"):
-            module.register_buffer(name, weights[name].to(device))
-        module.displacement = torch.nn.Parameter(weights["displacement"].to(device))
-        module.restore_binding(state.get("binding"), device=device)
-        return module
-
-    def extra_repr(self) -> str:
-        return (f"nodes={self.node_count}, edges={self.edges.shape[0]}, frames={self.frame_count}, "
-                f"voxel_size={self.hyper['voxel_size']:.4g}")
-
+def graph_nodes(fit, options: GraphMotionOptions) -> tuple[torch.Tensor, float]:
+    """The graph's nodes [M,3] from the current canonical Gaussians of a fit, and the voxel edge [world units]."""
+    field = fit.skinning.field
+    voxel = options.secondary_voxel * float((field.bbox_max - field.bbox_min).max())
+    return voxel_downsample(fit.avatar.gaussians.means.detach(), voxel), voxel

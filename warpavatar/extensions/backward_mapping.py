@@ -26,11 +26,15 @@ Gaussian is pulled towards ``p*`` (``L_geo``, mean L1 distance) and the skinning
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 from warpavatar import ops
+from warpavatar.extensions.base import Extension, LossTerm, option
 
-__all__ = ["jensen_shannon", "bone_axes", "BoneGMM", "BackwardMapping"]
+__all__ = ["jensen_shannon", "bone_axes", "BoneGMM", "BackwardMapping", "BackwardMappingOptions",
+           "BackwardMappingExtension"]
 
 
 def jensen_shannon(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
@@ -294,3 +298,80 @@ class BackwardMapping:
         self.index = state["index"].to(device)
         self.target_means = state["target_means"].to(device)
         self.target_weights = state["target_weights"].to(device)
+
+
+@dataclass
+class BackwardMappingOptions:
+    backward_from: int = option(3000, "first step of the backward-mapping phase")
+    backward_until: int = option(6500, "last step of the backward-mapping phase")
+    backward_every: int = option(150, "steps between refreshes of the detected and corrected Gaussians")
+    backward_threshold: float = option(0.5, "Gaussians whose confidence 1 - JSD(GMM weights, weights) is at most "
+                                       "this are ambiguous")
+    backward_neighbours: int = option(8, "nearest normal Gaussians an ambiguous one may take its weights from")
+    backward_max_move: float = option(0.05, "corrections moving a canonical centre farther than this fraction of "
+                                      "the canonical extent are dropped (distant parts touching in the frame)")
+    lambda_geo: float = option(1000.0, "weight of the geometry cycle loss (mean L1 distance, world units)")
+    lambda_skin: float = option(10.0, "weight of the skinning cycle loss (mean squared weight difference)")
+
+    def __post_init__(self):
+        if not 0.0 < self.backward_threshold < 1.0:
+            raise ValueError(f"backward_threshold must lie in (0, 1), got {self.backward_threshold}")
+        if self.backward_every < 1:
+            raise ValueError(f"backward_every must be at least 1, got {self.backward_every}")
+
+
+class BackwardMappingExtension(Extension):
+    """Runs :class:`BackwardMapping` between ``backward_from`` and ``backward_until`` while the field trains:
+    every ``backward_every`` steps it re-detects and corrects on the step's training frame, and every step adds
+    the cycle losses of the cached corrections."""
+
+    name = "backward_mapping"
+    title = "TAGA's backward mapping (--backward-mapping)"
+    summary = ("detect Gaussians whose skinning disagrees with a bone GMM (ambiguous), correct them from their "
+               "nearest normal neighbours and pull the canonical model and skinning field towards the correction "
+               "(TAGA's cycle losses)")
+    options_type = BackwardMappingOptions
+    presets = {"quick": {"backward_from": 1000, "backward_until": 1700}}
+
+    def attach(self) -> None:
+        fit, options = self.fit, self.options
+        skeleton = fit.frames.skeleton
+        device = fit.device
+        self.mapping = BackwardMapping(
+            torch.as_tensor(skeleton.heads, dtype=torch.float32, device=device),
+            torch.as_tensor(skeleton.tails, dtype=torch.float32, device=device),
+            torch.as_tensor(skeleton.parents, device=device), threshold=options.backward_threshold,
+            neighbours=options.backward_neighbours, min_semi_axis=0.005 * fit.extent,
+            max_move=options.backward_max_move * fit.extent)
+        self.refreshed = -1  # step of the last refresh
+
+    def _active(self, step) -> bool:
+        return step.train_field and self.options.backward_from <= step.step <= self.options.backward_until
+
+    def losses(self, step) -> dict[str, LossTerm]:
+        if not self._active(step):
+            return {}
+        mapping, avatar = self.mapping, self.fit.avatar
+        if not mapping.ready or step.step - self.refreshed >= self.options.backward_every:
+            bones = self.fit.frames.bone_transforms[step.index]
+            with torch.no_grad():
+                posed = avatar.pose(bones, grid=step.grid)
+                mapping.refresh(avatar.gaussians.means.detach(), posed["means"], posed["weights"],
+                                avatar.pose_bones(bones))
+            self.refreshed = step.step
+        geo, skin = mapping.losses(avatar.gaussians.means, self.fit.skinning.field, step.grid)
+        return {"geo": LossTerm(self.options.lambda_geo, geo), "skin": LossTerm(self.options.lambda_skin, skin)}
+
+    def on_gaussians_renumbered(self, source_index: torch.Tensor) -> None:
+        self.mapping.clear()  # its cached indices no longer name the same Gaussians
+
+    def log_values(self) -> dict[str, float]:
+        # ambiguous Gaussians the backward mapping has corrected (its cached constraints)
+        return {"ambiguous": int(self.mapping.index.numel()) if self.mapping.ready else 0}
+
+    def state_dict(self) -> dict:
+        return {"mapping": self.mapping.state(), "refreshed": self.refreshed}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.mapping.load_state(state["mapping"], device=self.fit.device)
+        self.refreshed = int(state["refreshed"])

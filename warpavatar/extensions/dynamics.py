@@ -2,9 +2,9 @@
 nodes move by a mass-spring-damper system, stepped by explicit (semi-implicit) Euler, under forces a
 message-passing network predicts from the body's motion.
 
-Where :class:`~warpavatar.secondary_motion.SecondaryMotion` learns one free displacement per training frame
-(so it replays the training instants and gives nothing for a new motion), this model is a function of the
-motion: any pose sequence can be rolled out, so cloth responds to a dance it never saw (as far as the fit
+Where :class:`~warpavatar.extensions.secondary_motion.SecondaryMotion` learns one free displacement per
+training frame (so it replays the training instants and gives nothing for a new motion), this model is a
+function of the motion: any pose sequence can be rolled out, so cloth responds to a dance it never saw (as far as the fit
 loosened its springs).
 
 State and frames. Each graph node ``i`` has a canonical (rest) position ``x_i`` and a secondary state, its
@@ -42,35 +42,16 @@ no displacement.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 
 from warpavatar import ops
-from warpavatar.secondary_motion import NodeGraph, match_pose
+from warpavatar.extensions.base import Extension, LossTerm, option
+from warpavatar.extensions.graph import GRAPH_PRESETS, GraphMotionOptions, NodeGraph, graph_nodes
+from warpavatar.geometry import match_pose, mlp
 
-__all__ = ["SecondaryDynamics", "DynamicsState", "frame_intervals"]
-
-
-def frame_intervals(frame_ids, fps: float) -> torch.Tensor:
-    """Seconds from each frame to the one before it, [T] float32 (the first is the median interval).
-
-    Args:
-        frame_ids: [T] strictly increasing frame numbers of the sequence.
-        fps: frames per second of the numbering.
-    """
-    ids = torch.as_tensor(frame_ids, dtype=torch.float64).reshape(-1)
-    if not math.isfinite(fps) or fps <= 0:
-        raise ValueError(f"fps must be a positive number, got {fps}")
-    if ids.numel() == 0:
-        return torch.zeros(0)
-    steps = torch.diff(ids, prepend=ids[:1])
-    if ids.numel() > 1:
-        if bool((steps[1:] <= 0).any()):
-            raise ValueError("frame ids must be strictly increasing")
-        steps[0] = steps[1:].median()
-    else:
-        steps[0] = 1.0
-    return (steps / fps).float()
+__all__ = ["SecondaryDynamics", "DynamicsState", "DynamicsOptions", "DynamicsExtension"]
 
 
 class DynamicsState:
@@ -81,17 +62,6 @@ class DynamicsState:
     def __init__(self, displacement: torch.Tensor, velocity: torch.Tensor):
         self.displacement = displacement
         self.velocity = velocity
-
-
-def _mlp(sizes: list[int], *, norm: bool = False) -> torch.nn.Sequential:
-    layers: list[torch.nn.Module] = []
-    for index in range(len(sizes) - 1):
-        layers.append(torch.nn.Linear(sizes[index], sizes[index + 1]))
-        if index < len(sizes) - 2:
-            if norm:
-                layers.append(torch.nn.LayerNorm(sizes[index + 1]))
-            layers.append(torch.nn.ReLU())
-    return torch.nn.Sequential(*layers)
 
 
 def _bounded(raw: torch.Tensor, upper: float) -> torch.Tensor:
@@ -108,7 +78,7 @@ class SecondaryDynamics(NodeGraph):
 
     Args:
         node_positions: [M,3] canonical node positions [world units] (see
-            :func:`~warpavatar.secondary_motion.voxel_downsample`).
+            :func:`~warpavatar.extensions.graph.voxel_downsample`).
         node_weights: [M,J] skinning weights of the nodes (rows sum to 1); refresh them with
             :meth:`set_node_weights` while the skinning field trains.
         parents: [J] parent index of each bone (-1 for roots); the first root is the pose embedding's frame.
@@ -126,6 +96,8 @@ class SecondaryDynamics(NodeGraph):
             proportionally more, so every substep stays within the stability bounds).
         force_limit: bound of the network's force, in voxels per typical frame interval squared.
     """
+
+    name = "dynamics"
 
     def __init__(self, node_positions: torch.Tensor, node_weights: torch.Tensor, parents, *, voxel_size: float,
                  frame_interval: float, neighbors: int = 16, bind_count: int = 4, hidden: int = 64,
@@ -193,12 +165,12 @@ class SecondaryDynamics(NodeGraph):
             device=device))
 
         pose_inputs = pose_window * joint_count * 6
-        self.pose_embedding = _mlp([pose_inputs, 2 * hidden, 2 * hidden, embedding], norm=True).to(device)
+        self.pose_embedding = mlp(pose_inputs, 2 * hidden, 2, embedding, layer_norm=True).to(device)
         node_inputs = 3 + 3 * velocity_history + 3 + 3 + 3 + embedding
-        self.node_projection = torch.nn.Sequential(torch.nn.Linear(node_inputs, hidden), torch.nn.ReLU()).to(device)
-        self.edge_mlp = _mlp([2 * hidden + 8, hidden, hidden]).to(device)
+        self.node_projection = mlp(node_inputs, hidden, 1).to(device)
+        self.edge_mlp = mlp(2 * hidden + 8, hidden, 1, hidden).to(device)
         self.node_update = torch.nn.GRUCell(hidden, hidden).to(device)
-        self.decoder = _mlp([hidden, hidden, hidden]).to(device)
+        self.decoder = mlp(hidden, hidden, 1, hidden).to(device)
         self.force_head = torch.nn.Linear(hidden, 3).to(device)
         # Start close to the spring-damper response to the body's motion, held stiffly to the skinned shape
         # (an anchor frequency of about 1.3 / frame): the photometric loss loosens the nodes that swing.
@@ -366,7 +338,7 @@ class SecondaryDynamics(NodeGraph):
 
         Args:
             bone_transforms: [T,J,4,4] consecutive frames.
-            intervals: [T] seconds since the previous frame (see :func:`frame_intervals`).
+            intervals: [T] seconds since the previous frame (see :func:`warpavatar.model.parts.frame_intervals`).
             drive: :meth:`drive` of the sequence, when the caller has it already.
 
         Returns:
@@ -460,3 +432,142 @@ class SecondaryDynamics(NodeGraph):
     def extra_repr(self) -> str:
         return (f"nodes={self.node_count}, edges={self.edges.shape[0]}, hidden={self.hyper['hidden']}, "
                 f"voxel_size={self.hyper['voxel_size']:.4g}, trained_frames={self.frame_poses.shape[0]}")
+
+
+@dataclass
+class DynamicsOptions(GraphMotionOptions):
+    dynamics_hidden: int = option(64, "width of the dynamics network's node features and messages")
+    dynamics_window: int = option(4, "frames each step rolls forward with gradients, from a cached state "
+                                  "(truncated backpropagation through time)")
+    dynamics_refresh_every: int = option(100, "steps between full no-gradient rollouts of the training sequence "
+                                         "that refresh the cached states")
+    dynamics_substeps: int = option(2, "semi-implicit Euler steps per frame")
+    dynamics_velocity_history: int = option(11, "past skinned velocities in each node's encoding (SMAD: 11)")
+    dynamics_pose_window: int = option(4, "frames of bone rotations in the pose-window embedding")
+    lr_dynamics: float = option(1e-3, "Adam learning rate of the dynamics network")
+    lr_dynamics_springs: float = option(1e-2, "Adam learning rate of the dynamics' stiffness, anchor and damping "
+                                        "(logits of their bounded ranges)")
+
+    def __post_init__(self):
+        for name in ("dynamics_hidden", "dynamics_window", "dynamics_refresh_every", "dynamics_substeps",
+                     "dynamics_velocity_history", "dynamics_pose_window"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+
+
+class DynamicsExtension(Extension):
+    """Fits :class:`SecondaryDynamics` from ``secondary_from`` on: each step rolls the last ``dynamics_window``
+    frames forward with gradients from a cached state of the training sequence (truncated backpropagation
+    through time), and every ``dynamics_refresh_every`` steps the whole sequence is rolled out again without
+    gradients to refresh that cache (and the table of the training instants)."""
+
+    name = "dynamics"
+    title = "learned secondary dynamics (--dynamics)"
+    summary = ("learn SMAD's secondary dynamics on the graph (the alternative to --secondary-motion): a "
+               "message-passing network predicts forces from the body's motion and a mass-spring-damper step with "
+               "learned stiffness and damping moves the nodes, so any motion can be rolled out (novel poses, "
+               "exports); starts at --secondary-from")
+    options_type = DynamicsOptions
+    presets = GRAPH_PRESETS
+    part: SecondaryDynamics | None = None
+
+    def attach(self) -> None:
+        self.drive: dict | None = None  # SecondaryDynamics.drive of the training sequence
+        self.cache: tuple[torch.Tensor, torch.Tensor] | None = None  # states [T,M,3] (d, u), no grad
+        self.refreshed = -1  # step of the last refresh
+        self.step = 0
+        self.state: DynamicsState | None = None  # this step's state, with gradients over the window
+
+    def _build(self, part: SecondaryDynamics) -> None:
+        self.part = self.fit.avatar.add_part(part)
+        springs = [part.stiffness_raw, part.anchor_raw, part.damping_raw]
+        network = [p for p in part.parameters() if all(p is not q for q in springs)]
+        self.optimizer = torch.optim.Adam([{"params": network, "lr": self.options.lr_dynamics},
+                                           {"params": springs, "lr": self.options.lr_dynamics_springs}])
+        self.drive = None  # computed with the cache (refresh) or, after a resume, on first use
+        self.cache = None
+
+    def begin_step(self, step) -> None:
+        self.step = step.step
+        if self.part is None and step.step >= self.options.secondary_from:
+            fit, options = self.fit, self.options
+            nodes, voxel = graph_nodes(fit, options)
+            with torch.no_grad():
+                node_weights = fit.skinning.field.weights(nodes, step.grid)
+            part = SecondaryDynamics(
+                nodes, node_weights, fit.frames.skeleton.parents, voxel_size=voxel,
+                frame_interval=float(fit.frames.intervals.median()), hidden=options.dynamics_hidden,
+                velocity_history=options.dynamics_velocity_history, pose_window=options.dynamics_pose_window,
+                substeps=options.dynamics_substeps)
+            part.bind(fit.avatar.gaussians.means)
+            self._build(part)
+
+    @torch.no_grad()
+    def refresh(self, grid: torch.Tensor | None = None) -> None:
+        """Re-read the nodes' skinning weights and roll the whole training sequence out (no gradients): the
+        cached states the training windows start from, and the table novel views of training instants use."""
+        part, frames = self.part, self.fit.frames
+        field = self.fit.skinning.field
+        part.set_node_weights(field.weights(part.nodes, field.grid_weights() if grid is None else grid))
+        self.drive = part.drive(frames.bone_transforms, frames.intervals)
+        displacement, velocity = part.rollout(frames.bone_transforms, frames.intervals, drive=self.drive)
+        self.cache = (displacement, velocity)
+        part.set_training_rollout(frames.bone_transforms, displacement)
+        self.refreshed = self.step
+
+    def frame_input(self, step) -> torch.Tensor | None:
+        """The state of training frame ``step.index``, rolled with gradients over the last ``dynamics_window``
+        frames from the cached state before them (which it then updates): its node displacement."""
+        self.state = None
+        if self.part is None:
+            return None
+        part, frames = self.part, self.fit.frames
+        if self.cache is None or step.step - self.refreshed >= self.options.dynamics_refresh_every:
+            self.refresh(step.grid)
+        elif self.drive is None:  # resumed with a cache: the drive of the saved node weights
+            self.drive = part.drive(frames.bone_transforms, frames.intervals)
+        cached_displacement, cached_velocity = self.cache
+        start = max(0, step.index - self.options.dynamics_window)
+        # clones: the cache rows are overwritten below, and autograd may hold on to the start state
+        state = DynamicsState(cached_displacement[start].clone(), cached_velocity[start].clone())
+        for frame in range(start + 1, step.index + 1):
+            state = part.step(state, self.drive, frame, frames.seconds[frame])
+            cached_displacement[frame] = state.displacement.detach()
+            cached_velocity[frame] = state.velocity.detach()
+        self.state = state
+        return state.displacement
+
+    def losses(self, step) -> dict[str, LossTerm]:
+        if self.state is None:
+            return {}
+        options, part, state = self.options, self.part, self.state
+        return {"isometry": LossTerm(options.lambda_isometry, part.isometry(state.displacement)),
+                "damping": LossTerm(options.lambda_damping, part.damping(state)),
+                "displacement": LossTerm(options.lambda_displacement, part.magnitude(state))}
+
+    def optimizers(self, step) -> list[torch.optim.Optimizer]:
+        return [] if self.state is None else [self.optimizer]
+
+    def on_gaussians_renumbered(self, source_index: torch.Tensor) -> None:
+        if self.part is not None:
+            self.part.bind(self.fit.avatar.gaussians.means)
+
+    def finish(self) -> None:
+        if self.part is not None:
+            self.refresh()  # the saved table of the training instants comes from the final model
+
+    def state_dict(self) -> dict:
+        if self.part is None:
+            return {}
+        return {"part": self.part.state_for_file(), "optimizer": self.optimizer.state_dict(),
+                "cache": None if self.cache is None else [tensor.cpu() for tensor in self.cache],
+                "refreshed": self.refreshed}
+
+    def load_state_dict(self, state: dict) -> None:
+        if not state:
+            return
+        self._build(SecondaryDynamics.from_file_state(state["part"], device=self.fit.device))
+        self.optimizer.load_state_dict(state["optimizer"])
+        if state["cache"] is not None:
+            self.cache = tuple(tensor.to(self.fit.device) for tensor in state["cache"])
+        self.refreshed = int(state["refreshed"])

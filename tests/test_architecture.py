@@ -1,0 +1,95 @@
+"""The layout's rules (docs/architecture.md), read from the code's own imports: no import cycle, model/ below
+extensions/ below fit/, and the trainer reaching extensions only through the registry."""
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "warpavatar"
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports() -> dict[str, set[str]]:
+    """Each module of the package -> the warpavatar modules it imports (at any depth of its code)."""
+    modules = {_module_name(path): path for path in PACKAGE.rglob("*.py") if "data/demo" not in path.as_posix()}
+    graph = {}
+    for name, path in modules.items():
+        targets = set()
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.Import):
+                targets.update(alias.name for alias in node.names)
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1] + [base])
+                targets.add(base)
+                targets.update(f"{base}.{alias.name}" for alias in node.names)
+        graph[name] = {t for t in targets if t in modules and t != name}
+    return graph
+
+
+GRAPH = _imports()
+
+
+def _cycle(graph) -> list[str] | None:
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(node):
+        state[node] = 1
+        stack.append(node)
+        for target in sorted(graph[node]):
+            # a package's face importing its own submodules is how a package exposes them, not a cycle
+            if target.startswith(node + "."):
+                continue
+            if state.get(target) == 1:
+                return stack[stack.index(target):] + [target]
+            if target not in state and (found := visit(target)):
+                return found
+        stack.pop()
+        state[node] = 2
+        return None
+
+    for node in sorted(graph):
+        if node not in state and (found := visit(node)):
+            return found
+    return None
+
+
+def test_the_graph_is_read():
+    assert "warpavatar.model" in GRAPH["warpavatar.fit.trainer"]
+    assert "warpavatar.extensions.base" in GRAPH["warpavatar.extensions.dynamics"]
+
+
+def test_there_is_no_import_cycle():
+    assert _cycle(GRAPH) is None, " -> ".join(_cycle(GRAPH))
+
+
+@pytest.mark.parametrize("lower, higher", [
+    ("warpavatar.model", "warpavatar.extensions"),
+    ("warpavatar.model", "warpavatar.fit"),
+    ("warpavatar.extensions", "warpavatar.fit"),
+    ("warpavatar.data", "warpavatar.model"),
+    ("warpavatar.geometry", "warpavatar.model"),
+    ("warpavatar.fit", "warpavatar.cli"),
+    ("warpavatar.model", "warpavatar.evaluate"),
+])
+def test_data_flows_one_way(lower, higher):
+    offenders = sorted(f"{module} -> {target}" for module, targets in GRAPH.items() if module.startswith(lower)
+                       for target in targets if target.startswith(higher))
+    assert not offenders, offenders
+
+
+def test_the_trainer_reaches_extensions_only_through_the_registry():
+    offenders = sorted(f"{module} -> {target}" for module, targets in GRAPH.items()
+                       if module.startswith("warpavatar.fit")
+                       for target in targets if target.startswith("warpavatar.extensions.")
+                       and target not in ("warpavatar.extensions.base", "warpavatar.extensions.registry"))
+    assert not offenders, offenders

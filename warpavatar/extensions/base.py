@@ -1,0 +1,211 @@
+"""The extension protocol: how an optional part of the avatar takes part in a fit.
+
+An extension owns one optional feature from end to end: its options (a dataclass whose fields become
+``warpavatar-fit`` flags), which other extensions it conflicts with or needs, the part it adds to the avatar
+(:class:`~warpavatar.model.parts.AvatarPart`: what posing, rendering, exports and the avatar file see), and
+how that part trains: its loss terms, its optimizers, its schedule and what it keeps in checkpoints. The
+trainer knows none of them by name: it calls the hooks below on every enabled extension, in the registry's
+order (:mod:`warpavatar.extensions`), and an extension never imports the trainer.
+
+One training step calls, in this order::
+
+    begin_step(step)            before the skinning grid is read: may change the model (grow joints)
+    frame_input(step)           the explicit input of its avatar part for this step's render, or None
+      ... the avatar is posed and rendered ...
+    losses(step)                {name: LossTerm(weight, value)}; the trainer sums weight * value
+    optimizers(step)            the optimizers that step now (zeroed before, stepped after the backward)
+      ... backward ...
+    after_backward(step)        gradients are there (pool them, make them sparse, ...)
+      ... optimizers step ...
+
+When density control clones, splits and prunes Gaussians, it calls ``before_densify(visible_count)`` while the
+old Gaussians still exist, then ``on_gaussians_renumbered(source_index)``. At the end ``finish()`` runs before
+the avatar is written; ``state_dict``/``load_state_dict`` carry everything a resumed fit needs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, ClassVar, NamedTuple
+
+import torch
+
+__all__ = ["option", "NoOptions", "LossTerm", "FitContext", "StepContext", "Extension"]
+
+
+def option(default, help_text: str, *, product: bool = False, choices: tuple | None = None):
+    """A dataclass field that is also a ``warpavatar-fit`` flag (``--field-name``).
+
+    Args:
+        default: the value when neither the preset nor the command line sets one.
+        help_text: what ``--help`` says, with the unit where there is one.
+        product: a main option of the product (listed first by ``--help``) rather than a research knob.
+        choices: the values the flag accepts, when they are few (the options class still checks its values).
+    """
+    if isinstance(default, (list, dict, set)):
+        raise TypeError("options hold plain values")
+    return field(default=default, metadata={"help": help_text, "product": product, "choices": choices})
+
+
+@dataclass
+class NoOptions:
+    """The options of an extension that has none besides being on."""
+
+
+class LossTerm(NamedTuple):
+    """One term of the training loss: the trainer adds ``weight * value`` and logs ``value`` by name."""
+
+    weight: float
+    value: torch.Tensor
+
+
+@dataclass
+class FitContext:
+    """What a fit gives its extensions; fixed for the whole fit.
+
+    Attributes:
+        avatar: the avatar being fitted (:class:`~warpavatar.model.avatar.Avatar`); its Gaussians are replaced
+            as density control renumbers them, so read ``avatar.gaussians`` when needed.
+        frames: the training frames (:class:`~warpavatar.fit.frames.TrainingFrames`): ``count``,
+            ``bone_transforms`` [T,J,4,4], ``intervals`` [T] and ``seconds`` (seconds since the frame before),
+            ``times`` [T] (seconds), ``skeleton``.
+        config: the whole fit configuration (core fields and every enabled extension's options).
+        extent: half the diagonal of the canonical box [world units]: the length scale of a fit.
+        skinning: the skinning-field stage (:class:`~warpavatar.fit.skinning.SkinningStage`): ``field``,
+            ``grid(...)``, ``add_joints(parents)``.
+        density: the density control (:class:`~warpavatar.fit.density.DensityControl`): ``visible_count`` [N],
+            the steps each Gaussian was seen in since the last densification round.
+        log: writes one record to the training log.
+    """
+
+    avatar: Any
+    frames: Any
+    config: Any
+    extent: float
+    skinning: Any
+    density: Any
+    log: Callable[[dict], None]
+
+    @property
+    def device(self) -> torch.device:
+        return self.avatar.gaussians.means.device
+
+
+@dataclass
+class StepContext:
+    """One training step as the extensions see it.
+
+    Attributes:
+        step: the step's number (0-based).
+        index: the training frame it trains on (index into ``FitContext.frames``).
+        train_field: whether the skinning field (and the networks that train with it) train in this step.
+        grid: the skinning grid of this step (:meth:`warpavatar.model.skinning_field.VoxelSkinningField.grid_weights`,
+            with gradients when the field trains), read on first use: an extension that changes the field in
+            :meth:`Extension.begin_step` does so before the grid is read.
+        posed: the posed Gaussians (:class:`~warpavatar.model.avatar.PosedGaussians`), set after the render.
+        image: [H,W,3] the render; ``alpha`` [H,W]; ``target`` [H,W,3] its ground truth; ``mask`` [H,W] or None.
+    """
+
+    step: int
+    index: int
+    train_field: bool
+    read_grid: Callable[[], torch.Tensor] = field(repr=False, default=None)
+    posed: Any = None
+    image: torch.Tensor | None = None
+    alpha: torch.Tensor | None = None
+    target: torch.Tensor | None = None
+    mask: torch.Tensor | None = None
+
+    @property
+    def grid(self) -> torch.Tensor:
+        return self.read_grid()
+
+
+class Extension:
+    """Base of the fit's optional parts. Subclasses set the class attributes and override the hooks they need
+    (every hook does nothing by default).
+
+    Args:
+        options: an instance of :attr:`options_type` (this extension's options).
+        fit: the fit's :class:`FitContext`.
+    """
+
+    name: ClassVar[str] = ""
+    """Name in the registry, the config, the checkpoint and (for its avatar part) the avatar."""
+    switch: ClassVar[str] = ""
+    """The option that turns it on (``--<switch>`` in kebab-case); its name when empty."""
+    title: ClassVar[str] = ""
+    """Title of its group of options in ``--help``."""
+    summary: ClassVar[str] = ""
+    """Help of the switch: what the extension does, in a sentence or two."""
+    options_type: ClassVar[type] = NoOptions
+    """The dataclass of its options (fields made with :func:`option`)."""
+    enabled_by_default: ClassVar[bool] = False
+    conflicts: ClassVar[dict[str, str]] = {}
+    """Extensions it cannot be combined with, each with the reason told to the user."""
+    requires: ClassVar[tuple[str, ...]] = ()
+    """Extensions it needs."""
+    presets: ClassVar[dict[str, dict]] = {}
+    """Its values in named presets: ``{preset name: {its switch or option: value}}`` (e.g. a shorter schedule in
+    ``quick``)."""
+
+    def __init__(self, options, fit: FitContext):
+        self.options = options
+        self.fit = fit
+
+    @classmethod
+    def switch_name(cls) -> str:
+        """The option that turns it on."""
+        return cls.switch or cls.name
+
+    @classmethod
+    def check(cls, options, config) -> None:
+        """Raise ValueError where its options do not fit the rest of ``config`` (beyond conflicts/requires)."""
+
+    # --------------------------------------------------------------------------------------------- hooks
+    def attach(self) -> None:
+        """Build what exists from the start of the fit (after the avatar and the skinning stage)."""
+
+    def begin_step(self, step: StepContext) -> None:
+        """Start of a step, before the skinning grid is read."""
+
+    def frame_input(self, step: StepContext) -> Any | None:
+        """The explicit input of this extension's avatar part for the step's render (None: the part decides)."""
+        return None
+
+    def losses(self, step: StepContext) -> dict[str, LossTerm]:
+        """This step's loss terms by name."""
+        return {}
+
+    def optimizers(self, step: StepContext) -> list[torch.optim.Optimizer]:
+        """The optimizers that step in this step."""
+        return []
+
+    def after_backward(self, step: StepContext) -> None:
+        """The gradients of this step exist; the optimizers have not stepped yet."""
+
+    def before_densify(self, visible_count: torch.Tensor) -> None:
+        """Density control is about to renumber the Gaussians; ``visible_count`` [N]: steps each was seen in
+        since the last round."""
+
+    def on_gaussians_renumbered(self, source_index: torch.Tensor) -> None:
+        """The Gaussians were cloned, split or pruned: new Gaussian ``i`` is (or comes from) old
+        ``source_index[i]``."""
+
+    def log_values(self) -> dict[str, float]:
+        """Values for the training log beyond the loss terms (read only on logging steps)."""
+        return {}
+
+    def finish(self) -> None:
+        """The fit is over; runs before the avatar is written."""
+
+    def summary_lines(self) -> list[str]:
+        """What ``warpavatar-fit`` prints about this extension at the end."""
+        return []
+
+    def state_dict(self) -> dict:
+        """Everything a resumed fit needs (its part, optimizers, caches)."""
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict` (after :meth:`attach`)."""

@@ -1,0 +1,206 @@
+"""Fit configuration: the core options, the options of each enabled extension, and the ``warpavatar-fit`` flags.
+
+A :class:`FitConfig` holds the core of a fit (data, schedule, Gaussians, skinning field, the core's losses,
+optimizer, density control, book-keeping) as fields, and one options dataclass per enabled extension in
+``extensions`` (:mod:`warpavatar.extensions`). Flags and presets speak one flat vocabulary: a core field's
+name, an extension's switch (``pose_correction=True``) or an extension option's name (``frame_codes=False``);
+:meth:`FitConfig.from_flat` sorts them out.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field, fields
+from typing import Mapping
+
+from warpavatar.extensions import get_extension, registered
+
+__all__ = ["FitConfig", "CORE_GROUPS", "option_owners"]
+
+CORE_GROUPS = ("data and schedule", "Gaussians", "skinning field", "colours", "losses", "optimizer",
+               "density control", "book-keeping")
+"""The groups of core options in ``--help``, in order (after the main options)."""
+
+
+def _core(default, help_text: str, *, group: str, product: bool = False, choices: tuple | None = None):
+    assert group in CORE_GROUPS, group
+    return field(default=default, metadata={"help": help_text, "group": group, "product": product,
+                                            "choices": choices})
+
+
+@dataclass
+class FitConfig:
+    """Every knob of a fit. Iteration counts are optimizer steps (one training frame each)."""
+
+    iterations: int = _core(8000, "total optimizer steps (one training frame per step)", group="data and schedule",
+                            product=True)
+    seed: int = _core(0, "random seed: the fit is deterministic for a given seed on a given device",
+                      group="data and schedule", product=True)
+    image_scale: float = _core(1.0, "resize training frames by this factor (K is scaled to match)",
+                               group="data and schedule", product=True)
+    max_train_frames: int = _core(0, "use at most this many training frames, evenly spaced (0 = all)",
+                                  group="data and schedule", product=True)
+    # Initialization (TAGA Sec. 3.1, no body template) and the Gaussians
+    init_points_per_bone: int = _core(400, "Gaussians sampled around each bone's midpoint at start", group="Gaussians")
+    init_carve: bool = _core(True, "also seed Gaussians by carving the canonical box with the training masks",
+                             group="Gaussians")
+    init_carve_candidates: int = _core(200000, "random canonical points tested against the masks when carving",
+                                       group="Gaussians")
+    init_carve_points: int = _core(20000, "at most this many carved points are kept", group="Gaussians")
+    sh_degree: int = _core(3, "spherical-harmonics degree of the colours (0 = view-independent)", group="Gaussians")
+    sh_increase_every: int = _core(1000, "raise the active SH degree by one every this many steps", group="Gaussians")
+    # Skinning field (TAGA Sec. 3.1, appendix C)
+    grid_cells: int = _core(128, "voxel skinning grid cells along the longest canonical axis (TAGA: 64x64x16; "
+                            "128 measured 0.3 dB better on novel views, BENCHMARKS.md)", group="skinning field")
+    grid_min_cells: int = _core(16, "fewest voxel cells along any axis", group="skinning field")
+    field_hidden: int = _core(128, "hidden width of the skinning-field MLP", group="skinning field")
+    field_layers: int = _core(4, "hidden layers of the skinning-field MLP", group="skinning field")
+    field_frequencies: int = _core(6, "positional-encoding frequencies of the skinning-field MLP input",
+                                   group="skinning field")
+    skinning_prior_temperature: float = _core(
+        0.02, "temperature of the rigid bone-distance skinning prior that the field's warm-up distils and carving "
+        "poses points with, as a fraction of the skeleton's size: small values give each point its nearest bone, "
+        "larger ones blend neighbouring bones (loose garments)", group="skinning field")
+    field_warmup_steps: int = _core(600, "warm-up steps that distil a rigid bone-distance prior into the field",
+                                    group="skinning field")
+    gaussian_only_steps: int = _core(1500, "steps after warm-up where only the Gaussians train (field frozen)",
+                                     group="skinning field")
+    field_lr: float = _core(1e-3, "Adam learning rate of the skinning-field MLP (and of the networks that train "
+                            "with it)", group="skinning field")
+    lambda_bone: float = _core(5.0, "weight of the bone regularization (one-hot weights at bone midpoints)",
+                               group="skinning field")
+    # Colours
+    shading: str = _core("world", "'world': colours follow how the body faces a fixed light rig (evaluated from "
+                         "the training camera centre; right for a fixed camera and a turning subject); 'view': "
+                         "view-dependent colours from the rendering camera (3DGS)", group="colours", product=True,
+                         choices=("world", "view"))
+    # Losses
+    target: str = _core("auto", "what the render is compared with: 'frame' (the frame as it is), 'masked' (the "
+                        "masked foreground over the background colour) or 'auto' ('frame' when meta.json declares "
+                        "the flat background the frames were rendered over, so their anti-aliased edge pixels "
+                        "stay; 'masked' otherwise)", group="losses", product=True,
+                        choices=("auto", "frame", "masked"))
+    lambda_ssim: float = _core(0.2, "weight of (1 - SSIM) in the photometric loss", group="losses")
+    lambda_mask: float = _core(0.1, "weight of the L1 loss between rendered alpha and the foreground mask",
+                               group="losses")
+    lambda_scale: float = _core(0.0, "weight of a penalty on Gaussian scales above 5 % of the canonical extent "
+                                "(world units)", group="losses")
+    # Optimizer (3DGS rates; positions scaled by the canonical extent)
+    lr_position: float = _core(1.6e-4, "initial position learning rate, times the canonical extent",
+                               group="optimizer")
+    lr_position_final: float = _core(1.6e-6, "final position learning rate, times the canonical extent",
+                                     group="optimizer")
+    lr_scale: float = _core(5e-3, "learning rate of log-scales", group="optimizer")
+    lr_rotation: float = _core(1e-3, "learning rate of quaternions", group="optimizer")
+    lr_opacity: float = _core(2.5e-2, "learning rate of opacity logits", group="optimizer")
+    lr_color: float = _core(2.5e-3, "learning rate of SH DC coefficients (higher orders use 1/20 of it)",
+                            group="optimizer")
+    # Adaptive density control
+    densify_from: int = _core(500, "first step of densification (after the warm-up)", group="density control")
+    densify_until: int = _core(6000, "last step of densification", group="density control")
+    densify_every: int = _core(100, "steps between densification rounds", group="density control")
+    densify_grad_threshold: float = _core(2e-4, "mean screen-space gradient (NDC) above which a Gaussian is cloned "
+                                          "or split", group="density control")
+    densify_percent_dense: float = _core(0.01, "relative size (of the canonical extent) separating clone from "
+                                         "split", group="density control")
+    max_gaussians: int = _core(200000, "Gaussian budget: the densification threshold rises as the count nears it",
+                               group="density control")
+    prune_opacity: float = _core(0.005, "Gaussians whose opacity falls below this are pruned",
+                                 group="density control")
+    prune_max_scale: float = _core(0.1, "Gaussians larger than this fraction of the canonical extent are pruned",
+                                   group="density control")
+    opacity_reset_every: int = _core(2500, "steps between opacity resets (0 = never)", group="density control")
+    # Book-keeping
+    log_every: int = _core(50, "steps between training-log lines (JSON lines)", group="book-keeping")
+    checkpoint_every: int = _core(1000, "steps between checkpoints (written atomically)", group="book-keeping")
+    preview_frames: int = _core(3, "training frames rendered as previews at the end", group="book-keeping")
+    #: the enabled extensions' options by extension name (see :mod:`warpavatar.extensions`)
+    extensions: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.shading not in ("world", "view"):
+            raise ValueError(f"shading must be 'world' or 'view', got {self.shading!r}")
+        if self.target not in ("auto", "frame", "masked"):
+            raise ValueError(f"target must be 'auto', 'frame' or 'masked', got {self.target!r}")
+        if not self.skinning_prior_temperature > 0.0:
+            raise ValueError(f"skinning_prior_temperature must be positive, got {self.skinning_prior_temperature}")
+        # the registry's order, whatever order they were given in
+        order = [cls.name for cls in registered()]
+        for name in self.extensions:
+            get_extension(name)  # unknown names fail here
+        self.extensions = {name: self.extensions[name] for name in order if name in self.extensions}
+        for name, options in self.extensions.items():
+            cls = get_extension(name)
+            if not isinstance(options, cls.options_type):
+                raise TypeError(f"the options of {name!r} must be a {cls.options_type.__name__}, got {options!r}")
+            for other, reason in cls.conflicts.items():
+                if other in self.extensions:
+                    raise ValueError(reason)
+            for needed in cls.requires:
+                if needed not in self.extensions:
+                    raise ValueError(f"{_flag(cls.switch_name())} needs {_flag(get_extension(needed).switch_name())}")
+            cls.check(options, self)
+
+    # ------------------------------------------------------------------------------------------ the flat view
+    @classmethod
+    def from_flat(cls, values: Mapping) -> "FitConfig":
+        """A config from one flat mapping of core fields, extension switches and extension options (unset ones
+        keep their defaults; an extension is on when its switch says so, else by its own default).
+
+        Raises:
+            ValueError: a name that is none of these (the message lists them), or values that do not fit.
+        """
+        core = {f.name for f in fields(cls) if f.name != "extensions"}
+        switches = {ext.switch_name(): ext for ext in registered()}
+        owners = option_owners()
+        unknown = sorted(set(values) - core - set(switches) - set(owners))
+        if unknown:
+            raise ValueError(f"unknown config fields: {unknown}")
+        extensions = {}
+        for ext in registered():
+            if values.get(ext.switch_name(), ext.enabled_by_default):
+                names = {f.name for f in fields(ext.options_type)}
+                extensions[ext.name] = ext.options_type(**{k: v for k, v in values.items() if k in names})
+        return cls(**{k: v for k, v in values.items() if k in core}, extensions=extensions)
+
+    def enabled(self, name: str) -> bool:
+        """Whether the extension ``name`` is on."""
+        return name in self.extensions
+
+    # ---------------------------------------------------------------------------------------------- files
+    def to_dict(self) -> dict:
+        values = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "extensions"}
+        values["extensions"] = {name: dataclasses.asdict(options) for name, options in self.extensions.items()}
+        return values
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "FitConfig":
+        """Read :meth:`to_dict`, or the flat layout of configs written before extensions had options of their
+        own (every field at the top level)."""
+        if "extensions" not in values:
+            return cls.from_flat(values)
+        values = dict(values)
+        extensions = {name: get_extension(name).options_type(**options)
+                      for name, options in values.pop("extensions").items()}
+        known = {f.name for f in fields(cls)}
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(f"unknown config fields: {sorted(unknown)}")
+        return cls(**values, extensions=extensions)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2)
+
+
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def option_owners() -> dict[str, list]:
+    """Each extension option's name -> the extensions that have it (two for a shared option)."""
+    owners: dict[str, list] = {}
+    for ext in registered():
+        for f in fields(ext.options_type):
+            owners.setdefault(f.name, []).append(ext)
+    return owners

@@ -1,0 +1,81 @@
+"""Adaptive density control (3DGS) with a Gaussian budget (ToMiE appendix A.4), as its own strategy."""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["DensityControl"]
+
+
+class DensityControl:
+    """Clones and splits the Gaussians whose screen-space gradient stays large, prunes the faint and the huge,
+    resets opacities, and tells the fit's extensions when the Gaussians are renumbered.
+
+    Args:
+        config: the fit configuration (``densify_*``, ``max_gaussians``, ``prune_*``, ``opacity_reset_every``).
+        extent: the canonical box's half-diagonal [world units] (sizes are relative to it).
+        generator: the fit's random generator (the samples of split Gaussians).
+
+    Attributes:
+        grad_accum: [N,2] summed absolute screen-space position gradients since the last round [NDC units].
+        visible_count: [N] steps each Gaussian was visible in since the last round.
+    """
+
+    def __init__(self, config, *, extent: float, generator: torch.Generator):
+        self.config = config
+        self.extent = extent
+        self.generator = generator
+        self.grad_accum = self.visible_count = None
+
+    def reset(self, count: int, device) -> None:
+        """Start a new round's statistics for ``count`` Gaussians."""
+        self.grad_accum = torch.zeros(count, 2, device=device)
+        self.visible_count = torch.zeros(count, device=device)
+
+    @torch.no_grad()
+    def accumulate(self, grad_out: torch.Tensor, radii: torch.Tensor, camera) -> None:
+        """Add one step's screen gradients [N,2] (pixels) and visibility (``radii`` [N,2] > 0 somewhere)."""
+        # absolute screen gradient in NDC units (pixels -> [-1, 1]) as 3DGS thresholds it
+        scale = torch.tensor([camera.width * 0.5, camera.height * 0.5], device=grad_out.device)
+        self.grad_accum += grad_out * scale
+        self.visible_count += (radii > 0).any(dim=-1).float()
+
+    @torch.no_grad()
+    def after_step(self, step: int, gaussians, extensions) -> None:
+        """Run a round when one is due after step ``step`` (then ``before_densify`` and
+        ``on_gaussians_renumbered`` of each extension), and the opacity reset."""
+        config = self.config
+        in_window = config.densify_from <= step <= config.densify_until
+        if in_window and step > 0 and step % config.densify_every == 0:
+            count = gaussians.count
+            threshold = config.densify_grad_threshold
+            budget = config.max_gaussians
+            if count > budget:  # ToMiE A.4: raise the threshold as the count passes the budget
+                threshold *= 2.0 + (count - budget) / (budget / 6.0)
+            grad_norm = (self.grad_accum / self.visible_count.clamp_min(1)[:, None]).norm(dim=-1)
+            for extension in extensions:
+                extension.before_densify(self.visible_count)
+            source = torch.arange(count, device=self.grad_accum.device)
+            if count < 1.5 * budget:
+                source = gaussians.densify(grad_norm, threshold=threshold,
+                                           size_split=config.densify_percent_dense * self.extent,
+                                           generator=self.generator)
+            max_scale = gaussians.scales.detach().max(dim=1).values
+            keep = (gaussians.opacities.detach() > config.prune_opacity) & (
+                max_scale < config.prune_max_scale * self.extent)
+            if not bool(keep.all()):
+                gaussians.prune(keep)
+                source = source[keep]
+            self.reset(gaussians.count, source.device)
+            for extension in extensions:
+                extension.on_gaussians_renumbered(source)
+        if config.opacity_reset_every and step > 0 and step % config.opacity_reset_every == 0 \
+                and step <= config.densify_until:
+            gaussians.reset_opacity()
+
+    def state_dict(self) -> dict:
+        return {"grad_accum": self.grad_accum.cpu(), "visible_count": self.visible_count.cpu()}
+
+    def load_state_dict(self, state: dict, *, device) -> None:
+        self.grad_accum = state["grad_accum"].to(device)
+        self.visible_count = state["visible_count"].to(device)

@@ -1,0 +1,37 @@
+"""What a finished fit writes besides the avatar: the canonical Gaussians as a 3DGS .ply and preview images."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from warpavatar.io.ply import write_gaussian_ply
+
+__all__ = ["write_canonical_ply", "write_previews"]
+
+
+def write_canonical_ply(gaussians, path: str | Path) -> None:
+    """The canonical Gaussians with the 3DGS attribute names (opens in common splat viewers)."""
+    write_gaussian_ply(path, means=gaussians.means.detach().cpu().numpy(),
+                       quats=gaussians.normalized_quats.detach().cpu().numpy(),
+                       scales=gaussians.scales.detach().cpu().numpy(),
+                       opacities=gaussians.opacities.detach().cpu().numpy(),
+                       sh_coeffs=gaussians.sh_coefficients().detach().cpu().numpy())
+
+
+@torch.no_grad()
+def write_previews(avatar, frames, folder: str | Path, *, count: int) -> None:
+    """``render | ground truth`` PNGs of ``count`` evenly spaced training frames, named by frame number."""
+    import cv2
+
+    folder = Path(folder)
+    folder.mkdir(exist_ok=True)
+    for index in frames.spread(count):
+        image, _, _ = avatar.render(frames.cameras[index], frames.bone_transforms[index],
+                                    background=frames.background)
+        target, _ = frames.target(index)
+        row = torch.cat([image, target], dim=1).clamp(0, 1).cpu().numpy()
+        path = folder / f"{frames.frame_id(index):06d}.png"
+        cv2.imwrite(str(path), cv2.cvtColor((row * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))

@@ -1,0 +1,68 @@
+"""Named configurations: flat values (core fields, extension switches and options) over the defaults.
+
+A preset is the core's values (:data:`CORE_PRESETS`) plus what each registered extension declares for it
+(:attr:`~warpavatar.extensions.Extension.presets`: its switch and its options, e.g. a shorter schedule in
+``quick``).
+"""
+
+from __future__ import annotations
+
+from warpavatar.extensions import registered
+from warpavatar.fit.config import FitConfig
+
+__all__ = ["CORE_PRESETS", "preset_names", "preset_values", "preset"]
+
+CORE_PRESETS: dict[str, dict] = {
+    # Quality preset, for a GPU.
+    "default": {},
+    # Small and fast: CPU fits in minutes, and the test suite.
+    "quick": dict(
+        iterations=2000,
+        image_scale=0.5,
+        init_points_per_bone=150,
+        init_carve_candidates=60000,
+        init_carve_points=6000,
+        sh_degree=1,
+        sh_increase_every=800,
+        grid_cells=32,
+        grid_min_cells=8,
+        field_hidden=64,
+        field_layers=3,
+        field_warmup_steps=300,
+        gaussian_only_steps=600,
+        densify_from=200,
+        densify_until=1400,
+        densify_every=100,
+        max_gaussians=10000,
+        opacity_reset_every=0,
+        checkpoint_every=500,
+    ),
+}
+
+
+def preset_names() -> list[str]:
+    return sorted(CORE_PRESETS)
+
+
+def preset_values(name: str) -> dict:
+    """The flat values of preset ``name``: the core's, then each registered extension's.
+
+    Raises:
+        ValueError: an unknown preset, or two extensions that give one shared option different values.
+    """
+    if name not in CORE_PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {preset_names()}")
+    values = dict(CORE_PRESETS[name])
+    for extension in registered():
+        for key, value in extension.presets.get(name, {}).items():
+            if key in values and values[key] != value:
+                raise ValueError(f"preset {name!r}: {extension.__name__} sets {key}={value!r}, another part "
+                                 f"{values[key]!r}")
+            values[key] = value
+    return values
+
+
+def preset(name: str = "default", **overrides) -> FitConfig:
+    """The named preset (``"default"`` or ``"quick"``) with some flat values overridden (core fields,
+    extension switches such as ``dynamics=True``, extension options such as ``dynamics_hidden=32``)."""
+    return FitConfig.from_flat({**preset_values(name), **overrides})

@@ -1,0 +1,258 @@
+"""Fitting an avatar to a video folder (TAGA's forward path): the training loop.
+
+Stages (TAGA appendix C): (1) warm-up: the skinning field alone distils a rigid bone-distance prior; (2)
+Gaussian-only: the Gaussians train under that frozen field; (3) joint: the field trains too, with the bone
+regularization (:class:`~warpavatar.fit.skinning.SkinningStage`). Adaptive density control runs with a
+Gaussian budget (:class:`~warpavatar.fit.density.DensityControl`). Every optional part of the avatar is an
+extension (:mod:`warpavatar.extensions`) whose hooks the loop calls in the registry's order: the loss is the
+sum of ``weight * value`` over the terms that the core and each extension return, logged by name.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import torch
+import tqdm
+
+from warpavatar.extensions import FitContext, LossTerm, StepContext, get_extension
+from warpavatar.fit.checkpoint import CHECKPOINT_NAME, read_checkpoint, save_checkpoint
+from warpavatar.fit.config import FitConfig
+from warpavatar.fit.density import DensityControl
+from warpavatar.fit.frames import TrainingFrames
+from warpavatar.fit.init import initial_gaussians
+from warpavatar.fit.outputs import write_canonical_ply, write_previews
+from warpavatar.fit.skinning import SkinningStage
+from warpavatar.metrics import psnr, ssim_map
+from warpavatar.model import Avatar, GaussianModel, VoxelSkinningField
+
+__all__ = ["Trainer"]
+
+
+class Trainer:
+    """Fits an :class:`~warpavatar.model.avatar.Avatar` to one video folder.
+
+    Args:
+        video: the training :class:`~warpavatar.data.VideoFolder` (already loaded, possibly rescaled).
+        config: the fit configuration.
+        output_dir: where checkpoints, the avatar file, the log and previews go.
+        device: torch device to train on.
+    """
+
+    def __init__(self, video, config: FitConfig, output_dir: str | os.PathLike, *, device="cpu"):
+        self.config = config
+        self.output_dir = Path(output_dir)
+        self.device = torch.device(device)
+        self.output_dir.mkdir(parents=True, exist_ok=True)
+        self.log_path = self.output_dir / "train_log.jsonl"
+        torch.manual_seed(config.seed)
+        self.generator = torch.Generator().manual_seed(config.seed)
+        self.frames = TrainingFrames(video, max_frames=config.max_train_frames, target=config.target,
+                                     device=self.device)
+        skeleton = video.skeleton
+        positions, colours, bbox_min, bbox_max = initial_gaussians(skeleton, video, config, generator=self.generator,
+                                                                   device=self.device)
+        self.extent = float((bbox_max - bbox_min).norm()) * 0.5
+        gaussians = GaussianModel(positions, colours, torch.full_like(positions, 0.01 * self.extent),
+                                  sh_degree=config.sh_degree)
+        field = VoxelSkinningField(bbox_min, bbox_max, skeleton.joint_count, cells=config.grid_cells,
+                                   min_cells=config.grid_min_cells, hidden=config.field_hidden,
+                                   layers=config.field_layers, frequencies=config.field_frequencies).to(self.device)
+        self.avatar = Avatar(skeleton, gaussians, field)
+        if config.shading == "world":
+            self.avatar.shading_origin = self.frames.camera_centre()
+        self.skinning = SkinningStage(field, skeleton, config, extent=self.extent)
+        self.density = DensityControl(config, extent=self.extent, generator=self.generator)
+        self.density.reset(gaussians.count, self.device)
+        context = FitContext(avatar=self.avatar, frames=self.frames, config=config, extent=self.extent,
+                             skinning=self.skinning, density=self.density, log=self._log)
+        #: the enabled extensions, in the registry's order (the order their hooks run)
+        self.extensions = [get_extension(name)(options, context) for name, options in config.extensions.items()]
+        for extension in self.extensions:
+            extension.attach()
+        self._make_gaussian_optimizer()
+        self.step = 0
+        self.frame_order: list[int] = []
+
+    @property
+    def gaussians(self) -> GaussianModel:
+        return self.avatar.gaussians
+
+    def extension(self, name: str):
+        """The enabled extension called ``name``, or None."""
+        return next((extension for extension in self.extensions if extension.name == name), None)
+
+    def _make_gaussian_optimizer(self) -> None:
+        config = self.config
+        self.gaussians.make_optimizer(lr_position=config.lr_position * self.extent, lr_scale=config.lr_scale,
+                                      lr_rotation=config.lr_rotation, lr_opacity=config.lr_opacity,
+                                      lr_color=config.lr_color)
+
+    def _next_frame(self) -> int:
+        if not self.frame_order:
+            self.frame_order = torch.randperm(self.frames.count, generator=self.generator).tolist()
+        return self.frame_order.pop()
+
+    def _position_lr(self, step: int) -> float:
+        config = self.config
+        fraction = min(1.0, step / max(1, config.iterations))
+        start, end = config.lr_position * self.extent, config.lr_position_final * self.extent
+        return math.exp(math.log(start) * (1 - fraction) + math.log(end) * fraction)
+
+    def _core_losses(self, step: StepContext) -> dict[str, LossTerm]:
+        """The photometric loss (L1 and D-SSIM), the mask and scale terms, and the skinning field's."""
+        config = self.config
+        terms = {"l1": LossTerm(1.0 - config.lambda_ssim, (step.image - step.target).abs().mean()),
+                 "dssim": LossTerm(config.lambda_ssim, 1.0 - ssim_map(step.image, step.target).mean())}
+        if step.mask is not None and config.lambda_mask > 0:
+            terms["mask"] = LossTerm(config.lambda_mask, (step.alpha - step.mask).abs().mean())
+        if config.lambda_scale > 0:
+            terms["scale"] = LossTerm(config.lambda_scale,
+                                      torch.relu(self.gaussians.scales - 0.05 * self.extent).mean())
+        terms.update(self.skinning.losses(step, self.avatar.skinning_groups()))
+        return terms
+
+    # ------------------------------------------------------------------------------------------------ a step
+    def train_step(self) -> tuple[StepContext, dict[str, LossTerm]]:
+        """One optimizer step on one training frame; returns the step and its loss terms (device tensors)."""
+        config, frames = self.config, self.frames
+        number = self.step
+        train_field = number >= config.gaussian_only_steps
+        step = StepContext(step=number, index=self._next_frame(), train_field=train_field,
+                           read_grid=lambda: self.skinning.grid(number, train_field=train_field))
+        for extension in self.extensions:
+            extension.begin_step(step)
+        step.target, step.mask = frames.target(step.index)
+        self.gaussians.set_position_lr(self._position_lr(number))
+        inputs = {extension.name: value for extension in self.extensions
+                  if (value := extension.frame_input(step)) is not None}
+        camera = frames.cameras[step.index]
+        grad_out = torch.zeros(self.gaussians.count, 2, device=self.device)
+        step.posed = self.avatar.pose(frames.bone_transforms[step.index], grid=step.grid, inputs=inputs,
+                                      sh_degree=min(config.sh_degree, number // max(1, config.sh_increase_every)))
+        step.image, step.alpha, _, info = self.avatar.rasterize(step.posed, camera, background=frames.background,
+                                                                densify_grad_out=grad_out, return_info=True)
+        terms = self._core_losses(step)
+        for extension in self.extensions:
+            for name, term in extension.losses(step).items():
+                if name in terms:
+                    raise ValueError(f"extension {extension.name!r} returns a loss term {name!r} another part has")
+                terms[name] = term
+        loss = sum(term.weight * term.value for term in terms.values())
+        optimizers = [self.gaussians.optimizer, *self.skinning.optimizers(step)]
+        for extension in self.extensions:
+            optimizers += extension.optimizers(step)
+        for optimizer in optimizers:
+            optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        for extension in self.extensions:
+            extension.after_backward(step)
+        for optimizer in optimizers:
+            optimizer.step()
+        self.density.accumulate(grad_out, info["radii"], camera)
+        self.density.after_step(number, self.gaussians, self.extensions)
+        self.step += 1
+        terms["loss"] = LossTerm(1.0, loss)
+        return step, terms
+
+    def _log_record(self, step: StepContext, terms: dict[str, LossTerm]) -> dict:
+        record = {name: float(term.value.detach()) for name, term in terms.items()}
+        for extension in self.extensions:
+            record.update(extension.log_values())
+        record.update(psnr=psnr(step.image.detach(), step.target), gaussians=self.gaussians.count)
+        return record
+
+    # ------------------------------------------------------------------------------------------- checkpoints
+    def checkpoint_state(self) -> dict:
+        return {
+            "step": self.step,
+            "config": self.config.to_dict(),
+            "gaussians": self.gaussians.state_for_checkpoint(),
+            "gaussian_optimizer": self.gaussians.optimizer.state_dict(),
+            "skinning": self.skinning.state_dict(),
+            "density": self.density.state_dict(),
+            "generator": self.generator.get_state(),
+            "frame_order": list(self.frame_order),
+            "extensions": {extension.name: extension.state_dict() for extension in self.extensions},
+        }
+
+    def save_checkpoint(self) -> Path:
+        return save_checkpoint(self.output_dir / CHECKPOINT_NAME, self.checkpoint_state())
+
+    def load_checkpoint(self, path: str | os.PathLike) -> None:
+        state = read_checkpoint(path)
+        saved, current = FitConfig.from_dict(state["config"]).to_dict(), self.config.to_dict()
+        if saved != current:
+            changed = sorted(k for k in current.keys() | saved.keys() if saved.get(k) != current.get(k))
+            raise ValueError(f"{path}: the checkpoint was made with a different config ({', '.join(changed)}); "
+                             "resume with the same options or start a new output folder")
+        self.avatar.gaussians = GaussianModel.from_checkpoint(state["gaussians"], device=self.device)
+        self._make_gaussian_optimizer()
+        self.gaussians.optimizer.load_state_dict(state["gaussian_optimizer"])
+        # extensions first: one may give the field outputs (grown joints) that its saved state has
+        for extension in self.extensions:
+            extension.load_state_dict(state["extensions"][extension.name])
+        self.skinning.load_state_dict(state["skinning"])
+        self.density.load_state_dict(state["density"], device=self.device)
+        self.generator.set_state(state["generator"])
+        self.frame_order = list(state["frame_order"])
+        self.step = int(state["step"])
+
+    # ------------------------------------------------------------------------------------------------ run
+    def fit(self, *, resume: bool = False, progress: bool = True, stop_at: int | None = None) -> Avatar:
+        """Run (or continue) the fit and write the outputs.
+
+        Args:
+            resume: continue from ``checkpoint.pt`` in the output folder when it exists.
+            progress: show a tqdm progress bar.
+            stop_at: stop after this step (as an interruption would), without writing final outputs.
+        """
+        config = self.config
+        checkpoint = self.output_dir / CHECKPOINT_NAME
+        if resume and checkpoint.is_file():
+            self.load_checkpoint(checkpoint)
+        else:
+            self.log_path.unlink(missing_ok=True)
+            (self.output_dir / "config.json").write_text(config.to_json())
+            warm = self.skinning.warmup(config.field_warmup_steps)
+            self._log({"stage": "warmup", "distillation_loss": warm, "gaussians": self.gaussians.count})
+        start_time = time.time()
+        end = config.iterations if stop_at is None else min(stop_at, config.iterations)
+        bar = tqdm.tqdm(total=config.iterations, initial=self.step, disable=not progress, desc="fit", unit="step")
+        while self.step < end:
+            step, terms = self.train_step()
+            bar.update(1)
+            if self.step % config.log_every == 0 or self.step == config.iterations:
+                record = self._log_record(step, terms)  # the only host reads of a step, every log_every steps
+                self._log({**record, "step": self.step, "seconds": round(time.time() - start_time, 2)})
+                bar.set_postfix(loss=f"{record['loss']:.4f}", psnr=f"{record['psnr']:.2f}", n=record["gaussians"])
+            if self.step % config.checkpoint_every == 0 and self.step < config.iterations:
+                self.save_checkpoint()
+        bar.close()
+        if self.step >= config.iterations:
+            self.write_outputs()
+        else:
+            self.save_checkpoint()
+        return self.avatar
+
+    def _log(self, record: dict) -> None:
+        with open(self.log_path, "a", encoding="utf-8") as f:
+            f.write(json.dumps(record) + "\n")
+
+    def summary_lines(self) -> list[str]:
+        """What the extensions report about the finished fit (for the command line)."""
+        return [line for extension in self.extensions for line in extension.summary_lines()]
+
+    def write_outputs(self) -> None:
+        """Avatar file, canonical .ply, previews of a few training frames; the last checkpoint stays."""
+        for extension in self.extensions:
+            extension.finish()
+        self.avatar.save(self.output_dir / "avatar.pt", config=self.config.to_dict())
+        write_canonical_ply(self.gaussians, self.output_dir / "canonical.ply")
+        self.save_checkpoint()
+        write_previews(self.avatar, self.frames, self.output_dir / "previews", count=self.config.preview_frames)
+
