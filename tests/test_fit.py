@@ -169,7 +169,8 @@ def test_joint_growth_fit_grows_replays_and_resumes_exactly(demo_video, tmp_path
             assert torch.allclose(parameter, dict(resumed.avatar.part("joint_growth").named_parameters())[name],
                                   atol=1e-6), (stop, name)
         for name, parameter in whole.avatar.field.named_parameters():
-            assert torch.allclose(parameter, dict(resumed.avatar.field.named_parameters())[name], atol=1e-6), (stop, name)
+            resumed_parameter = dict(resumed.avatar.field.named_parameters())[name]
+            assert torch.allclose(parameter, resumed_parameter, atol=1e-6), (stop, name)
         assert torch.allclose(whole.gaussians.means, resumed.gaussians.means, atol=1e-6), stop
 
     # the saved avatar replays each training instant's learned rotations; other poses keep the joints at rest

@@ -257,14 +257,15 @@ def test_growing_changes_no_render_and_groups_keep_the_bone_loss(demo_skeleton, 
     avatar = _avatar(video, device)
     bones = torch.as_tensor(video.bone_transforms[2], dtype=torch.float32, device=device)
     camera = video.cameras[2]
-    heads, tails = torch.as_tensor(video.skeleton.heads, device=device), torch.as_tensor(video.skeleton.tails, device=device)
+    heads = torch.as_tensor(video.skeleton.heads, device=device)
+    tails = torch.as_tensor(video.skeleton.tails, device=device)
     from warpavatar.model.skinning_field import bone_sample_points
     samples, sample_bones = bone_sample_points(heads, tails, torch.as_tensor(video.skeleton.parents, device=device))
     with torch.no_grad():
         before, _, _ = avatar.render(camera, bones)
         weights_before = avatar.field.weights(avatar.gaussians.means)
         bone_before = avatar.field.bone_loss(samples, sample_bones)
-    extra = _grow(avatar, video, [3, 3, 7], device)
+    _grow(avatar, video, [3, 3, 7], device)
     assert avatar.field.joint_count == avatar.joint_count + 3
     identity = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 3, device=device)
     with torch.no_grad():

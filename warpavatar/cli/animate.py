@@ -9,8 +9,7 @@ from pathlib import Path
 
 import tqdm
 
-from warpavatar.cli.common import (add_avatar_arguments, add_motion_arguments, friendly_errors, load_avatar,
-                                    load_motion_for)
+from warpavatar.cli.common import avatar_parser, friendly_errors, load_avatar, load_motion_for
 
 DESCRIPTION = """Pose a fitted avatar frame by frame with a motion and write the animated Gaussians to USD.
 
@@ -23,11 +22,9 @@ See docs/export.md for every attribute written.
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="warpavatar-animate", description=DESCRIPTION,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_avatar_arguments(parser)
-    add_motion_arguments(parser)
-    parser.add_argument("-o", "--output", required=True, type=Path, help="the .usdc (or .usd, binary crate) file to write")
+    parser = avatar_parser("warpavatar-animate", DESCRIPTION, motion=True)
+    parser.add_argument("-o", "--output", required=True, type=Path,
+                        help="the .usdc (or .usd, binary crate) file to write")
     parser.add_argument("--layout", choices=("particlefield", "points"), default="particlefield",
                         help="USD prim layout (default: %(default)s)")
     parser.add_argument("--skeleton", action="store_true",

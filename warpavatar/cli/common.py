@@ -10,8 +10,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["default_device", "resolve_device", "friendly_errors", "add_avatar_arguments", "add_motion_arguments",
-           "load_avatar", "load_motion_for"]
+__all__ = ["default_device", "resolve_device", "friendly_errors", "avatar_parser", "load_avatar", "load_motion_for"]
 
 
 def default_device() -> str:
@@ -40,6 +39,17 @@ def friendly_errors(main):
             return 130
 
     return wrapper
+
+
+def avatar_parser(prog: str, description: str, *, motion: bool) -> argparse.ArgumentParser:
+    """The parser of a command that loads a fitted avatar (positional, ``--device``, ``--no-progress``) and, with
+    ``motion``, drives it with a motion (:func:`add_motion_arguments`)."""
+    parser = argparse.ArgumentParser(prog=prog, description=description,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_avatar_arguments(parser)
+    if motion:
+        add_motion_arguments(parser)
+    return parser
 
 
 def add_avatar_arguments(parser: argparse.ArgumentParser) -> None:

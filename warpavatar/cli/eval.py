@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from warpavatar.cli.common import add_avatar_arguments, friendly_errors, load_avatar
+from warpavatar.cli.common import avatar_parser, friendly_errors, load_avatar
 
 DESCRIPTION = """Render a fitted avatar with the cameras and poses of a video folder and compare with its frames.
 
@@ -17,9 +17,7 @@ VIDEO_FOLDER may also be a subject folder: then every folder under novel_view/ a
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="warpavatar-eval", description=DESCRIPTION,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_avatar_arguments(parser)
+    parser = avatar_parser("warpavatar-eval", DESCRIPTION, motion=False)
     parser.add_argument("video_folder", type=Path, help="held-out video folder, or a subject folder")
     parser.add_argument("--json", type=Path, default=None, help="write the results (means and per frame) here")
     parser.add_argument("--save-renders", type=Path, default=None,

@@ -14,9 +14,12 @@ from warpavatar.fit.presets import preset_names
 DESCRIPTION = """Fit an animatable 3D Gaussian avatar to a video folder (see docs/data.md for the format).
 
 Outputs in the output folder: avatar.pt (the avatar: Gaussians, skinning field, skeleton, its optional parts,
-config; loads back with warpavatar.model.Avatar.load), canonical.ply (the canonical Gaussians with the 3DGS attribute names),
-config.json, train_log.jsonl (one JSON line per logged step), checkpoint.pt (to resume) and previews/
-(render | ground truth for a few training frames).
+config; loads back with warpavatar.model.Avatar.load), canonical.ply (the canonical Gaussians with the 3DGS
+attribute names), config.json, train_log.jsonl (one JSON line per logged step: every loss term by name),
+checkpoint.pt (to resume) and previews/ (render | ground truth for a few training frames).
+
+Options: the main ones first, then the core's groups, then one group per optional part (extension) with its
+research knobs. Each overrides the preset's value; --help shows the default and where a preset differs.
 """
 
 

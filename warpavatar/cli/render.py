@@ -12,8 +12,7 @@ import numpy as np
 import torch
 import tqdm
 
-from warpavatar.cli.common import (add_avatar_arguments, add_motion_arguments, friendly_errors, load_avatar,
-                                    load_motion_for)
+from warpavatar.cli.common import avatar_parser, friendly_errors, load_avatar, load_motion_for
 
 DESCRIPTION = """Render a fitted avatar animated by a motion, as an MP4 (OpenCV) or a folder of PNG frames.
 
@@ -23,10 +22,7 @@ video-folder motion uses its own cameras and other motions an orbit.
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="warpavatar-render", description=DESCRIPTION,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_avatar_arguments(parser)
-    add_motion_arguments(parser)
+    parser = avatar_parser("warpavatar-render", DESCRIPTION, motion=True)
     parser.add_argument("-o", "--output", required=True, type=Path,
                         help="an .mp4 file, or a folder that receives 000000.png, 000001.png, ...")
     camera = parser.add_mutually_exclusive_group()

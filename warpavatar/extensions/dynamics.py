@@ -4,8 +4,8 @@ message-passing network predicts from the body's motion.
 
 Where :class:`~warpavatar.extensions.secondary_motion.SecondaryMotion` learns one free displacement per
 training frame (so it replays the training instants and gives nothing for a new motion), this model is a
-function of the motion: any pose sequence can be rolled out, so cloth responds to a dance it never saw (as far as the fit
-loosened its springs).
+function of the motion: any pose sequence can be rolled out, so cloth responds to a dance it never saw (as far
+as the fit loosened its springs).
 
 State and frames. Each graph node ``i`` has a canonical (rest) position ``x_i`` and a secondary state, its
 displacement ``d_i`` and velocity ``u_i`` [world units, world units / s], both in the node's canonical frame.

@@ -12,11 +12,13 @@ from warpavatar.model.skinning_field import bone_distance_prior
 __all__ = ["initial_gaussians"]
 
 
-def _project(points: torch.Tensor, K: torch.Tensor, world_to_camera: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _project(points: torch.Tensor, K: torch.Tensor, world_to_camera: torch.Tensor
+             ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixels [N,2] and depths [N] of world points [N,3] through a pinhole camera."""
     camera = points @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
     z = camera[:, 2]
-    pixels = camera[:, :2] / z.clamp_min(1e-6)[:, None] * torch.stack([K[0, 0], K[1, 1]]) + torch.stack([K[0, 2], K[1, 2]])
-    return pixels, z
+    focal, centre = torch.stack([K[0, 0], K[1, 1]]), torch.stack([K[0, 2], K[1, 2]])
+    return camera[:, :2] / z.clamp_min(1e-6)[:, None] * focal + centre, z
 
 
 def initial_gaussians(skeleton, video, config, *, generator: torch.Generator, device

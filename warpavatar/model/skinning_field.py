@@ -137,8 +137,8 @@ class VoxelSkinningField(torch.nn.Module):
         """Add one output per grown joint (ToMiE Sec. 4.4), each starting as a copy of its parent's.
 
         The parent's logit and its copies are all lowered by log(1 + number of children), so the parent's
-        weight is split evenly between itself and its children: the summed weight of the group, and so any pose in which the
-        children move with the parent, is unchanged. Training then decides where the children take over.
+        weight is split evenly between itself and its children: the summed weight of the group, and so any pose in
+        which the children move with the parent, is unchanged. Training then decides where the children take over.
 
         Args:
             parents: [E] index of each new joint's parent among the current outputs.
