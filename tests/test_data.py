@@ -468,3 +468,49 @@ def test_import_instantavatar_errors(tmp_path):
     with pytest.raises(VideoFolderError, match=r"cameras\.npz.*missing"):
         import_instantavatar(source, tmp_path / "out", skeleton_json=source / "skeleton.json",
                              bone_transforms_npz=source / "bones.npz")
+
+
+def test_staged_folder_commits_whole_or_not_at_all(tmp_path):
+    from warpavatar.data import staged_folder
+
+    destination = tmp_path / "out"
+    with staged_folder(destination) as staging:
+        assert staging == tmp_path / "out.tmp" and not destination.exists()
+        (staging / "a.txt").write_text("first")
+    assert (destination / "a.txt").read_text() == "first" and not staging.exists()
+    # a failure half-way leaves the previous folder as it was and no temporary folder
+    with pytest.raises(RuntimeError, match="half-way"):
+        with staged_folder(destination, overwrite=True) as staging:
+            (staging / "a.txt").write_text("second")
+            raise RuntimeError("half-way")
+    assert (destination / "a.txt").read_text() == "first"
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["out"]
+    with pytest.raises(FileExistsError, match="out already exists"):
+        with staged_folder(destination):
+            pass
+    with staged_folder(destination, overwrite=True) as staging:
+        (staging / "b.txt").write_text("replaced")
+    assert sorted(path.name for path in destination.iterdir()) == ["b.txt"]
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["out"]
+
+
+def test_the_prepared_skeleton_round_trips_through_skeleton_json(tmp_path):
+    """warpavatar-prepare builds the same Skeleton class the loader reads (float64 while it fits)."""
+    from warpavatar.data.reader import read_skeleton
+    from warpavatar.data.writer import write_json
+    from warpavatar.prepare import skeleton_fit
+
+    body = skeleton_fit.BodyMeasurements(
+        torso_length=0.52, neck_length=0.19, hip_width=0.27, shoulder_width=0.38, upper_arm=0.3, forearm=0.25,
+        hand=0.09, hand_width=0.08, thigh=0.44, shin=0.42, foot=0.18, ear_width=0.15, nose_offset=0.1,
+        nose_angle_rad=1.7)
+    skeleton = skeleton_fit.build_rest_skeleton(body).skeleton
+    assert isinstance(skeleton, Skeleton) and skeleton.heads.dtype == np.float64
+    write_json(tmp_path / "skeleton.json", skeleton.to_json_dict(decimals=6))
+    loaded = read_skeleton(tmp_path / "skeleton.json")
+    assert loaded.names == list(skeleton_fit.JOINT_NAMES) and loaded.heads.dtype == np.float32
+    assert np.array_equal(loaded.parents, skeleton.parents)
+    np.testing.assert_allclose(loaded.heads, skeleton.heads, atol=1e-6)
+    np.testing.assert_allclose(loaded.tails, skeleton.tails, atol=1e-6)
+    with pytest.raises(ValueError, match="dtype must be numpy.float32 or numpy.float64"):
+        Skeleton(names=["a"], parents=[-1], heads=np.zeros((1, 3)), tails=np.ones((1, 3)), dtype=np.int32)

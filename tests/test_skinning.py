@@ -9,6 +9,7 @@ import torch
 from warpavatar import ops
 from warpavatar._src import skinning as skinning_src
 from warpavatar._torch_impl import skinning as reference
+from warpavatar.geometry import quat_to_matrix
 
 SEEDS = (0, 1, 2)
 
@@ -62,15 +63,6 @@ def random_quats(point_count, generator):
     quats = torch.randn(point_count, 4, generator=generator)
     return quats / quats.norm(dim=1, keepdim=True)
 
-
-def quat_to_matrix(q):
-    """[N, 3, 3] rotation matrices of unit (w, x, y, z) quaternions [N, 4] (test-side helper)."""
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).view(-1, 3, 3)
 
 
 def directional_check(function, inputs, index, cotangents, *, eps, tolerance, generator):

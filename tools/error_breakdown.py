@@ -22,7 +22,7 @@ measured (``needed, outside as is``; ``-`` when the outside alone already misses
 
 ``--reference blur`` or ``--reference mean`` scores the ground truth itself instead of an avatar: blurred by a
 Gaussian of ``--blur-sigma`` pixels (2), or its mask filled with the frame's mean colour inside it. These are
-the baselines of ``../shared/data/README.md``.
+the baselines a benchmark's data README quotes.
 """
 
 from __future__ import annotations

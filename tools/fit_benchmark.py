@@ -2,7 +2,7 @@
 
     python tools/fit_benchmark.py SUBJECT -o OUT [--preset default|quick] [--device cuda] [fit flags...]
 
-SUBJECT holds train/, novel_view/* and novel_pose/* (FORMAT.md). Any other flag is passed to warpavatar-fit's
+SUBJECT holds train/, novel_view/* and novel_pose/* (docs/FORMAT.md). Any other flag is passed to warpavatar-fit's
 configuration (e.g. --iterations 8000 --sh-degree 1). Prints one markdown row per held-out folder (masked and
 full-frame PSNR/SSIM, fit time, Gaussian count) and writes OUT/benchmark.json.
 """

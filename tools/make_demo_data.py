@@ -1,6 +1,6 @@
 """Build the small demo subject shipped inside the package from a full benchmark subject.
 
-``python tools/make_demo_data.py /work/shared/data/robot -o warpavatar/data/demo --size 128``
+``python tools/make_demo_data.py path/to/robot -o warpavatar/data/demo --size 128``
 
 Keeps a subset of the training frames (every k-th, over the whole video), one ``novel_view/`` folder (all of
 its frames) and one ``novel_pose/`` folder (every k-th frame). Each folder is cropped to a square around the

@@ -1,6 +1,6 @@
 """Torch-facing skinning ops: voxel skinning-field sampling and (inverse) linear blend skinning.
 
-TAGA (``/work/shared/papers/004_*``, Sec. 3.1 and 3.4) stores the skinning field on a low-resolution voxel
+TAGA (Sec. 3.1 and 3.4) stores the skinning field on a low-resolution voxel
 grid, reads each Gaussian's weights by trilinear interpolation (:func:`sample_grid`), poses Gaussians with
 the blended bone transforms (:func:`lbs`) and maps corrected observation-space Gaussians back to the
 canonical space with the inverted blend (:func:`inverse_lbs`). Each op runs hand-written Warp kernels from
@@ -132,7 +132,7 @@ def sample_grid(grid: torch.Tensor, points: torch.Tensor, bbox_min, bbox_max) ->
     padding_mode="border")`` with points normalized to [-1, 1].
 
     TAGA's skinning field has 64x64x16 samples. In warpavatar's z-up world (the rest pose stands on z = 0,
-    FORMAT.md) a body facing along +-y is tall along z, wide along x (arms) and thin along y, so the field is
+    docs/FORMAT.md) a body facing along +-y is tall along z, wide along x (arms) and thin along y, so the field is
     ``grid[D, H, W, J]`` with ``[D, H, W] = [64, 16, 64]``: 64 samples along z, 16 along y, 64 along x.
 
     Gradients flow to ``grid`` (atomically accumulated) and to ``points``. Following torch's grid_sampler,

@@ -85,7 +85,7 @@ def orbit_cameras(skeleton, frame_count: int, *, width: int = 512, height: int =
 
 
 def read_cameras_json(path: str | Path, frame_count: int) -> list[OrbitCamera]:
-    """Cameras from a FORMAT.md ``cameras.json`` (fixed, or one per frame), one per motion frame."""
+    """Cameras from a docs/FORMAT.md ``cameras.json`` (fixed, or one per frame), one per motion frame."""
     path = Path(path)
     try:
         spec = json.loads(path.read_text())

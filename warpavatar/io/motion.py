@@ -1,7 +1,7 @@
 """Motion sources that drive a fitted avatar: a video folder, a ``poses.npz`` or a BVH file.
 
 :func:`load_motion` turns any of them into per-frame bone transforms of *our* skeleton (rest pose ->
-posed world, the linear-blend-skinning matrices of ``poses.npz``; see ``FORMAT.md``), checked for shape,
+posed world, the linear-blend-skinning matrices of ``poses.npz``; see ``docs/FORMAT.md``), checked for shape,
 finiteness and rigidity, with errors that name the file.
 """
 

@@ -38,6 +38,7 @@ import os
 import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom, UsdSkel, UsdVol, Vt
 
+from warpavatar.geometry import SH_C0, quat_from_matrix
 from warpavatar.io.ply import _check_array
 
 __all__ = ["GaussianUsdWriter", "read_gaussian_usd", "gaussian_extent", "LAYOUTS"]
@@ -45,35 +46,8 @@ __all__ = ["GaussianUsdWriter", "read_gaussian_usd", "gaussian_extent", "LAYOUTS
 LAYOUTS = ("particlefield", "points")
 """Names of the Gaussians prim layouts :class:`GaussianUsdWriter` can write."""
 
-SH_C0 = 0.28209479177387814
-"""Degree-0 real spherical-harmonics constant: colour = SH_C0 * dc + 0.5."""
-
 _EXTENT_SIGMAS = 3.0
 _FLUSH_BYTES = 64 * 2**20
-
-
-def _matrix_to_quat(rotations: np.ndarray) -> np.ndarray:
-    """[..., 3, 3] rotation matrices -> [..., 4] unit quaternions (w, x, y, z) with w >= 0 (float64)."""
-    m = np.asarray(rotations, dtype=np.float64)
-    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
-    # Four candidate magnitudes (4w^2, 4x^2, 4y^2, 4z^2); build from the largest one for accuracy.
-    squares = np.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
-    best = np.argmax(squares, axis=-1)
-    root = np.sqrt(np.maximum(np.take_along_axis(squares, best[..., None], -1)[..., 0], 1e-300))
-    half = 0.5 / root
-    candidates = np.stack([
-        np.stack([0.5 * root, (m[..., 2, 1] - m[..., 1, 2]) * half, (m[..., 0, 2] - m[..., 2, 0]) * half,
-                  (m[..., 1, 0] - m[..., 0, 1]) * half], -1),
-        np.stack([(m[..., 2, 1] - m[..., 1, 2]) * half, 0.5 * root, (m[..., 0, 1] + m[..., 1, 0]) * half,
-                  (m[..., 0, 2] + m[..., 2, 0]) * half], -1),
-        np.stack([(m[..., 0, 2] - m[..., 2, 0]) * half, (m[..., 0, 1] + m[..., 1, 0]) * half, 0.5 * root,
-                  (m[..., 1, 2] + m[..., 2, 1]) * half], -1),
-        np.stack([(m[..., 1, 0] - m[..., 0, 1]) * half, (m[..., 0, 2] + m[..., 2, 0]) * half,
-                  (m[..., 1, 2] + m[..., 2, 1]) * half, 0.5 * root], -1),
-    ], -2)
-    quats = np.take_along_axis(candidates, best[..., None, None], -2)[..., 0, :]
-    quats = quats / np.linalg.norm(quats, axis=-1, keepdims=True)
-    return np.where(quats[..., :1] < 0, -quats, quats)
 
 
 def gaussian_extent(positions: np.ndarray, orientations: np.ndarray, scales: np.ndarray,
@@ -451,7 +425,7 @@ class GaussianUsdWriter:
         inverse[:, :3, 3] = -np.einsum("jki,jk->ji", parent_world[:, :3, :3], parent_world[:, :3, 3])
         inverse[:, 3, 3] = 1.0
         local = inverse @ world
-        quats = _matrix_to_quat(local[:, :3, :3])
+        quats = quat_from_matrix(np.asarray(local[:, :3, :3], dtype=np.float64))
         return (np.ascontiguousarray(local[:, :3, 3], dtype=np.float32),
                 np.ascontiguousarray(quats[:, [1, 2, 3, 0]], dtype=np.float32))
 

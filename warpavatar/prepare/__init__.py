@@ -10,47 +10,12 @@
 Everything but the landmark detector works without MediaPipe installed.
 """
 
-from warpavatar.prepare.calibration import CameraCalibration, match_cameras, read_calibration, read_qca, read_toml
+from warpavatar.prepare.calibration import CameraCalibration, read_calibration
 from warpavatar.prepare.cli import prepare_subject
-from warpavatar.prepare.skeleton_fit import (
-    JOINT_NAMES,
-    JOINT_PARENTS,
-    LANDMARK_NAMES,
-    BodyMeasurements,
-    PoseSmoothing,
-    RestModel,
-    Skeleton,
-    SkeletonFit,
-    build_rest_skeleton,
-    fit_skeleton,
-    forward_kinematics,
-    measure_body,
-)
-from warpavatar.prepare.smoothing import OneEuroSettings, one_euro_filter
-from warpavatar.prepare.triangulation import TriangulationResult, solve_translation, triangulate_points
+from warpavatar.prepare.skeleton_fit import SkeletonFit, fit_skeleton
+from warpavatar.prepare.smoothing import one_euro_filter
+from warpavatar.prepare.triangulation import triangulate_points
 
-__all__ = [
-    "CameraCalibration",
-    "read_calibration",
-    "read_qca",
-    "read_toml",
-    "match_cameras",
-    "triangulate_points",
-    "TriangulationResult",
-    "solve_translation",
-    "LANDMARK_NAMES",
-    "JOINT_NAMES",
-    "JOINT_PARENTS",
-    "Skeleton",
-    "BodyMeasurements",
-    "RestModel",
-    "PoseSmoothing",
-    "SkeletonFit",
-    "measure_body",
-    "build_rest_skeleton",
-    "fit_skeleton",
-    "forward_kinematics",
-    "OneEuroSettings",
-    "one_euro_filter",
-    "prepare_subject",
-]
+# the main entry points; each module's __all__ lists the rest
+__all__ = ["prepare_subject", "CameraCalibration", "read_calibration", "triangulate_points", "SkeletonFit",
+           "fit_skeleton", "one_euro_filter"]

@@ -11,7 +11,7 @@ Two file formats are read:
   ``distortions`` (k1, k2, p1, p2), ``rotation`` (Rodrigues vector, world to camera), ``translation`` (metres)
   and ``fisheye``.
 
-All cameras follow the project's convention (docs/conventions.md, FORMAT.md): x right, y down, z forward, the
+All cameras follow the project's convention (docs/conventions.md, docs/FORMAT.md): x right, y down, z forward, the
 centre of pixel (i, j) at image coordinates (i, j), world units in metres.
 """
 
@@ -241,7 +241,7 @@ class CameraCalibration:
         return cv2.initUndistortRectifyMap(self.K, self.distortion, np.eye(3), self.K, size, cv2.CV_32FC1)
 
     def to_cameras_json(self) -> dict:
-        """The ``cameras.json`` dictionary of FORMAT.md (pinhole: the distortion is not represented)."""
+        """The ``cameras.json`` dictionary of docs/FORMAT.md (pinhole: the distortion is not represented)."""
         return {
             "width": self.width,
             "height": self.height,

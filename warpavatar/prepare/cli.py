@@ -3,7 +3,7 @@
 Monocular: ``warpavatar-prepare clip.mp4 -o subject/`` writes ``subject/train/``. Multi-view:
 ``warpavatar-prepare cam01.mp4 cam02.mp4 ... --calibration Calib.qca.txt -o subject/`` writes the first video to
 ``subject/train/`` and every other one to ``subject/novel_view/<video name>/``, all sharing one skeleton and one
-pose sequence in the calibration's world frame. The folder layout is FORMAT.md's; docs/prepare.md describes
+pose sequence in the calibration's world frame. The folder layout is docs/FORMAT.md's; docs/prepare.md describes
 every step and its conventions.
 """
 
@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import shutil
 import sys
@@ -21,6 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from warpavatar.data.writer import save_npz, staged_folder, write_json, write_png
 from warpavatar.prepare.calibration import CameraCalibration, match_cameras, read_calibration
 from warpavatar.prepare.skeleton_fit import (
     JOINT_NAMES,
@@ -37,7 +37,7 @@ __all__ = ["prepare_subject", "default_focal_px", "reprojection_errors_px", "mai
 
 # A phone's main camera is close to a 26 mm lens on a 36 mm wide full frame: 69 degrees across the long side.
 DEFAULT_FOCAL_OVER_LONG_SIDE = 26.0 / 36.0
-_PNG_OPTIONS = [cv2.IMWRITE_PNG_COMPRESSION, 3]
+_PNG_COMPRESSION = 3  # zlib level of the frames and masks: many files, written fast
 _REPROJECTION_MIN_VISIBILITY = 0.5
 _L = {name: index for index, name in enumerate(LANDMARK_NAMES)}
 # Joints whose pivot is a landmark (or the midpoint of two), for the reprojection error.
@@ -201,8 +201,8 @@ def _track_video(
             world_points.append(observation.world_points)
             if index % write_every == 0:
                 mask = person_mask(observation.segmentation, observation.image_points, observation.visibility)
-                cv2.imwrite(str(folder / "frames" / f"{index:06d}.png"), frame, _PNG_OPTIONS)
-                cv2.imwrite(str(folder / "masks" / f"{index:06d}.png"), mask, _PNG_OPTIONS)
+                write_png(folder / "frames" / f"{index:06d}.png", frame, compression=_PNG_COMPRESSION)
+                write_png(folder / "masks" / f"{index:06d}.png", mask, compression=_PNG_COMPRESSION)
                 written.append(index)
     if not image_points:
         raise ValueError(f"{reader.path}: no frame in the requested range (start {start}, stride {stride})")
@@ -258,22 +258,18 @@ def _monocular_landmarks(track: _Track):
     return world_landmarks, camera, camera.center, directions @ world_axes
 
 
-def _write_json(path: Path, payload: dict) -> None:
-    path.write_text(json.dumps(payload, indent=1) + "\n")
-
-
 def _write_folder(track: _Track, fit: SkeletonFit, *, meta: dict) -> dict:
     """cameras.json, skeleton.json, poses.npz, landmarks.npz and meta.json of one video folder."""
     rows = track.written_frames
-    _write_json(track.folder / "cameras.json", track.camera.to_cameras_json())
-    _write_json(track.folder / "skeleton.json", fit.skeleton.to_json())
-    np.savez(
+    write_json(track.folder / "cameras.json", track.camera.to_cameras_json())
+    write_json(track.folder / "skeleton.json", fit.skeleton.to_json_dict(decimals=6))
+    save_npz(
         track.folder / "poses.npz",
         bone_transforms=fit.bone_transforms[rows].astype(np.float32),
         frame_ids=rows.astype(np.int32),
         joint_positions=fit.joint_positions[rows].astype(np.float32),
     )
-    np.savez(
+    save_npz(
         track.folder / "landmarks.npz",
         image_points=track.image_points[rows].astype(np.float32),
         visibility=track.visibility[rows].astype(np.float32),
@@ -291,7 +287,7 @@ def _write_folder(track: _Track, fit: SkeletonFit, *, meta: dict) -> dict:
         "reprojection_error_px": _error_summary(errors),
         **meta,
     }
-    _write_json(track.folder / "meta.json", meta)
+    write_json(track.folder / "meta.json", meta)
     return meta
 
 
@@ -311,7 +307,7 @@ def prepare_subject(
     overwrite: bool = False,
     progress: bool = True,
 ) -> dict:
-    """Make a subject folder (FORMAT.md) from one video, or from several calibrated synchronized videos.
+    """Make a subject folder (docs/FORMAT.md) from one video, or from several calibrated synchronized videos.
 
     Args:
         videos: video files; the first becomes ``train/``, the others (multi-view) ``novel_view/<stem>/``.
@@ -364,130 +360,123 @@ def prepare_subject(
     require_mediapipe()
     if output.exists() and any(output.iterdir()) and not overwrite:
         raise ValueError(f"output folder {output} is not empty (pass --overwrite to replace it)")
-    # Everything is written to <output>.tmp and renamed into place once complete.
-    final_output = output
-    output = final_output.with_name(final_output.name + ".tmp")
-    if output.exists():
-        shutil.rmtree(output)
-    output.mkdir(parents=True)
-    timings = {}
-    began = time.perf_counter()
+    # Everything is written to <output>.tmp and renamed into place once complete (an empty folder is replaced).
+    with staged_folder(output, overwrite=True) as staging:
+        timings = {}
+        began = time.perf_counter()
 
-    readers = [_VideoReader(video) for video in videos]
-    try:
-        sizes = [reader.size for reader in readers]
-        if calibration is not None:
-            calibrated = match_cameras([video.stem for video in videos], read_calibration(calibration))
-            cameras = [_calibrated_camera_for_video(camera, *size) for camera, size in zip(calibrated, sizes)]
+        readers = [_VideoReader(video) for video in videos]
+        try:
+            sizes = [reader.size for reader in readers]
+            if calibration is not None:
+                calibrated = match_cameras([video.stem for video in videos], read_calibration(calibration))
+                cameras = [_calibrated_camera_for_video(camera, *size) for camera, size in zip(calibrated, sizes)]
+            else:
+                width, height = sizes[0]
+                focal = focal_px if focal_px is not None else default_focal_px(width, height)
+                K = np.array([[focal, 0.0, (width - 1) / 2.0], [0.0, focal, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+                cameras = [CameraCalibration(name=videos[0].stem, width=width, height=height, K=K,
+                                             distortion=np.zeros(5), world_to_camera=np.eye(4))]
+            if len(videos) > 1:
+                available = [max(0, (reader.frame_count - start + stride - 1) // stride) for reader in readers]
+                if min(available) > 0:
+                    common = min(available)
+                    frame_count = common if frame_count is None else min(frame_count, common)
+            tracks = []
+            for index, (reader, camera, size) in enumerate(zip(readers, cameras, sizes)):
+                folder = staging / "train" if index == 0 else staging / "novel_view" / videos[index].stem
+                tracks.append(_track_video(
+                    reader, camera, folder, name=videos[index].stem, output_size=_output_size(*size, max_size),
+                    start=start, stride=stride, frame_count=frame_count,
+                    write_every=1 if index == 0 else novel_view_stride, progress=progress,
+                ))
+        finally:
+            for reader in readers:
+                reader.close()
+        timings["landmarks_s"] = time.perf_counter() - began
+        frame_total = min(track.image_points.shape[0] for track in tracks)
+        if any(track.image_points.shape[0] != frame_total for track in tracks):
+            # A container that announced more frames than it decodes: keep the instants every video has.
+            counts = [track.image_points.shape[0] for track in tracks]
+            print(f"warning: the videos decode {counts} frames; keeping the first {frame_total}", file=sys.stderr)
+            for track in tracks:
+                for index in track.written_frames[track.written_frames >= frame_total]:
+                    (track.folder / "frames" / f"{index:06d}.png").unlink()
+                    (track.folder / "masks" / f"{index:06d}.png").unlink()
+                track.written_frames = track.written_frames[track.written_frames < frame_total]
+                track.image_points = track.image_points[:frame_total]
+                track.visibility = track.visibility[:frame_total]
+                track.world_points = track.world_points[:frame_total]
+
+        fit_began = time.perf_counter()
+        fps = tracks[0].fps
+        extra_meta = {}
+        if len(tracks) == 1:
+            track = tracks[0]
+            if not np.isfinite(track.image_points).all(axis=(1, 2)).any():
+                raise ValueError(f"no person was found in {track.source}")
+            landmarks, camera, centre, directions = _monocular_landmarks(track)
+            track.camera = camera
+            fit = fit_skeleton(
+                landmarks, track.visibility, fps=fps, smoothing=smoothing,
+                ray_origins=centre, ray_directions=directions, ray_weights=track.visibility,
+            )
+            mode = "monocular"
+            extra_meta["focal_px_source"] = "calibration" if calibration else ("--focal-px" if focal_px else "default")
         else:
-            width, height = sizes[0]
-            focal = focal_px if focal_px is not None else default_focal_px(width, height)
-            K = np.array([[focal, 0.0, (width - 1) / 2.0], [0.0, focal, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
-            cameras = [CameraCalibration(name=videos[0].stem, width=width, height=height, K=K,
-                                         distortion=np.zeros(5), world_to_camera=np.eye(4))]
-        if len(videos) > 1:
-            available = [max(0, (reader.frame_count - start + stride - 1) // stride) for reader in readers]
-            if min(available) > 0:
-                common = min(available)
-                frame_count = common if frame_count is None else min(frame_count, common)
-        tracks = []
-        for index, (reader, camera, size) in enumerate(zip(readers, cameras, sizes)):
-            folder = output / "train" if index == 0 else output / "novel_view" / videos[index].stem
-            tracks.append(_track_video(
-                reader, camera, folder, name=videos[index].stem, output_size=_output_size(*size, max_size),
-                start=start, stride=stride, frame_count=frame_count,
-                write_every=1 if index == 0 else novel_view_stride, progress=progress,
-            ))
-    finally:
-        for reader in readers:
-            reader.close()
-    timings["landmarks_s"] = time.perf_counter() - began
-    frame_total = min(track.image_points.shape[0] for track in tracks)
-    if any(track.image_points.shape[0] != frame_total for track in tracks):
-        # A container that announced more frames than it decodes: keep the instants every video has.
-        counts = [track.image_points.shape[0] for track in tracks]
-        print(f"warning: the videos decode {counts} frames; keeping the first {frame_total}", file=sys.stderr)
+            diagonal = float(np.hypot(tracks[0].camera.width, tracks[0].camera.height))
+            options = {"undistort": False, "outlier_threshold_px": 0.02 * diagonal}
+            cameras = [track.camera for track in tracks]
+            # A view whose detector swapped left and right (whole body, arms or legs) is relabeled from the others.
+            pixels, visibility, swaps = correct_label_swaps(
+                np.stack([track.image_points for track in tracks]), np.stack([track.visibility for track in tracks]),
+                cameras, [mirrored_landmark_order(part=part) for part in ("face", "arms", "legs")],
+                min_error_px=0.01 * diagonal, **options,
+            )
+            for view, track in enumerate(tracks):
+                track.image_points, track.visibility = pixels[view], visibility[view]
+                track.label_swaps = int(swaps[view].any(axis=-1).sum())
+            triangulated = triangulate_points(pixels, visibility, cameras, **options)
+            if not (triangulated.confidence > 0).any():
+                raise ValueError("no landmark could be triangulated (is the same person visible in two views?)")
+            fit = fit_skeleton(triangulated.points, triangulated.confidence, fps=fps, smoothing=smoothing)
+            mode = "multi-view"
+            up = fit.joint_positions[:, JOINT_NAMES.index("neck")] - fit.joint_positions[:, 0]
+            up_alignment = float(np.median(up[:, 2] / np.linalg.norm(up, axis=-1)))
+            if up_alignment < 0.5:
+                print(f"warning: the body's median up direction has z = {up_alignment:.2f} in the calibration's world: "
+                      "docs/FORMAT.md expects a z-up world", file=sys.stderr)
+            for view, track in enumerate(tracks):
+                view_errors = triangulated.reprojection_error_px[view][triangulated.inlier_views[view]]
+                track.triangulation_error = _error_summary(view_errors[np.isfinite(view_errors)])
+        timings["fit_s"] = time.perf_counter() - fit_began
+
+        jitter = {
+            "unit": "mm per frame^2 (|p[t+1] - 2 p[t] + p[t-1]| of the joint heads)",
+            "smoothed": {key: round(value, 3) for key, value in joint_jitter_mm(fit.joint_positions).items()},
+            "raw_fit": {key: round(value, 3) for key, value in joint_jitter_mm(fit.raw_joint_positions).items()},
+        }
+        settings = {
+            "mode": mode, "mediapipe": MEDIAPIPE_VERSION, "max_size": max_size, "start": start, "stride": stride,
+            "frame_count": frame_total, "smoothing": dataclasses.asdict(smoothing) if smoothing else None,
+            "calibration": Path(calibration).name if calibration else None,
+        }
+        body = {key: round(value, 4) for key, value in dataclasses.asdict(fit.rest.body).items()}
+        report = {"mode": mode, "frames": frame_total, "fps": fps, "folders": {}, "jitter": jitter,
+                  "body_measurements_m": body, "settings": settings}
         for track in tracks:
-            for index in track.written_frames[track.written_frames >= frame_total]:
-                (track.folder / "frames" / f"{index:06d}.png").unlink()
-                (track.folder / "masks" / f"{index:06d}.png").unlink()
-            track.written_frames = track.written_frames[track.written_frames < frame_total]
-            track.image_points = track.image_points[:frame_total]
-            track.visibility = track.visibility[:frame_total]
-            track.world_points = track.world_points[:frame_total]
-
-    fit_began = time.perf_counter()
-    fps = tracks[0].fps
-    extra_meta = {}
-    if len(tracks) == 1:
-        track = tracks[0]
-        if not np.isfinite(track.image_points).all(axis=(1, 2)).any():
-            raise ValueError(f"no person was found in {track.source}")
-        landmarks, camera, centre, directions = _monocular_landmarks(track)
-        track.camera = camera
-        fit = fit_skeleton(
-            landmarks, track.visibility, fps=fps, smoothing=smoothing,
-            ray_origins=centre, ray_directions=directions, ray_weights=track.visibility,
-        )
-        mode = "monocular"
-        extra_meta["focal_px_source"] = "calibration" if calibration else ("--focal-px" if focal_px else "default")
-    else:
-        diagonal = float(np.hypot(tracks[0].camera.width, tracks[0].camera.height))
-        options = {"undistort": False, "outlier_threshold_px": 0.02 * diagonal}
-        cameras = [track.camera for track in tracks]
-        # A view whose detector swapped left and right (whole body, arms or legs) is relabeled from the others.
-        pixels, visibility, swaps = correct_label_swaps(
-            np.stack([track.image_points for track in tracks]), np.stack([track.visibility for track in tracks]),
-            cameras, [mirrored_landmark_order(part=part) for part in ("face", "arms", "legs")],
-            min_error_px=0.01 * diagonal, **options,
-        )
-        for view, track in enumerate(tracks):
-            track.image_points, track.visibility = pixels[view], visibility[view]
-            track.label_swaps = int(swaps[view].any(axis=-1).sum())
-        triangulated = triangulate_points(pixels, visibility, cameras, **options)
-        if not (triangulated.confidence > 0).any():
-            raise ValueError("no landmark could be triangulated (is the same person visible in two views?)")
-        fit = fit_skeleton(triangulated.points, triangulated.confidence, fps=fps, smoothing=smoothing)
-        mode = "multi-view"
-        up = fit.joint_positions[:, JOINT_NAMES.index("neck")] - fit.joint_positions[:, 0]
-        up_alignment = float(np.median(up[:, 2] / np.linalg.norm(up, axis=-1)))
-        if up_alignment < 0.5:
-            print(f"warning: the body's median up direction has z = {up_alignment:.2f} in the calibration's world: "
-                  "FORMAT.md expects a z-up world", file=sys.stderr)
-        for view, track in enumerate(tracks):
-            view_errors = triangulated.reprojection_error_px[view][triangulated.inlier_views[view]]
-            track.triangulation_error = _error_summary(view_errors[np.isfinite(view_errors)])
-    timings["fit_s"] = time.perf_counter() - fit_began
-
-    jitter = {
-        "unit": "mm per frame^2 (|p[t+1] - 2 p[t] + p[t-1]| of the joint heads)",
-        "smoothed": {key: round(value, 3) for key, value in joint_jitter_mm(fit.joint_positions).items()},
-        "raw_fit": {key: round(value, 3) for key, value in joint_jitter_mm(fit.raw_joint_positions).items()},
-    }
-    settings = {
-        "mode": mode, "mediapipe": MEDIAPIPE_VERSION, "max_size": max_size, "start": start, "stride": stride,
-        "frame_count": frame_total, "smoothing": dataclasses.asdict(smoothing) if smoothing else None,
-        "calibration": Path(calibration).name if calibration else None,
-    }
-    body = {key: round(value, 4) for key, value in dataclasses.asdict(fit.rest.body).items()}
-    report = {"mode": mode, "frames": frame_total, "fps": fps, "folders": {}, "jitter": jitter,
-              "body_measurements_m": body, "settings": settings}
-    for track in tracks:
-        meta = {"jitter": jitter, "prepare": settings, **extra_meta}
-        if track.triangulation_error is not None:
-            meta["triangulation_reprojection_error_px"] = track.triangulation_error
-            meta["left_right_label_fixes"] = track.label_swaps
-        relative = str(track.folder.relative_to(output))
-        report["folders"][relative] = _write_folder(track, fit, meta=meta)
-    if license_file is not None:
-        shutil.copyfile(license_file, output / "LICENSE.txt")
-    timings["total_s"] = time.perf_counter() - began
-    report["timings"] = {key: round(value, 2) for key, value in timings.items()}
-    _write_json(output / "prepare_report.json", report)
-    if final_output.exists():
-        shutil.rmtree(final_output)
-    output.rename(final_output)
-    return report
+            meta = {"jitter": jitter, "prepare": settings, **extra_meta}
+            if track.triangulation_error is not None:
+                meta["triangulation_reprojection_error_px"] = track.triangulation_error
+                meta["left_right_label_fixes"] = track.label_swaps
+            relative = str(track.folder.relative_to(staging))
+            report["folders"][relative] = _write_folder(track, fit, meta=meta)
+        if license_file is not None:
+            shutil.copyfile(license_file, staging / "LICENSE.txt")
+        timings["total_s"] = time.perf_counter() - began
+        report["timings"] = {key: round(value, 2) for key, value in timings.items()}
+        write_json(staging / "prepare_report.json", report)
+        return report
 
 
 def _build_parser() -> argparse.ArgumentParser:

@@ -42,13 +42,14 @@ import math
 
 import numpy as np
 
+from warpavatar.data.types import Skeleton
+from warpavatar.geometry import quat_from_matrix, quat_to_matrix
 from warpavatar.prepare.smoothing import OneEuroSettings, smooth_positions, smooth_quaternions
 
 __all__ = [
     "LANDMARK_NAMES",
     "JOINT_NAMES",
     "JOINT_PARENTS",
-    "Skeleton",
     "BodyMeasurements",
     "RestModel",
     "PoseSmoothing",
@@ -59,8 +60,6 @@ __all__ = [
     "forward_kinematics",
     "joint_jitter_mm",
     "mirrored_landmark_order",
-    "matrix_to_quaternion",
-    "quaternion_to_matrix",
 ]
 
 # MediaPipe Pose's 33 landmarks, in its order.
@@ -97,46 +96,6 @@ _Z = np.array([0.0, 0.0, 1.0])
 _FORWARD = -_Y  # the rest pose faces -y
 # Bend below this sin(angle) uses a pure swing; above the upper one the bend plane fixes the twist.
 _BEND_SIN_LOW, _BEND_SIN_HIGH = 0.2, 0.5
-
-
-@dataclasses.dataclass(frozen=True)
-class Skeleton:
-    """A skeleton in its rest pose (FORMAT.md's skeleton.json).
-
-    Attributes:
-        names: joint names, J of them.
-        parents: parent index of every joint, -1 for the root, parents before children; shape [J] int.
-        heads: rest pivots [m], shape [J, 3] float64, world frame.
-        tails: rest bone ends [m], shape [J, 3] float64.
-        up: the world's up direction, shape [3].
-    """
-
-    names: tuple[str, ...]
-    parents: np.ndarray
-    heads: np.ndarray
-    tails: np.ndarray
-    up: tuple[float, float, float] = (0.0, 0.0, 1.0)
-
-    @property
-    def joint_count(self) -> int:
-        """Number of joints J."""
-        return len(self.names)
-
-    def to_json(self) -> dict:
-        """The skeleton.json dictionary of FORMAT.md."""
-        return {
-            "format": "warpavatar-skeleton/1",
-            "up": [float(value) for value in self.up],
-            "joints": [
-                {
-                    "name": name,
-                    "parent": int(parent),
-                    "head": [round(float(value), 6) for value in head],
-                    "tail": [round(float(value), 6) for value in tail],
-                }
-                for name, parent, head, tail in zip(self.names, self.parents, self.heads, self.tails)
-            ],
-        }
 
 
 @dataclasses.dataclass(frozen=True)
@@ -238,7 +197,7 @@ class SkeletonFit:
 
     Attributes:
         rest: the rest model (skeleton, measurements, rest landmarks).
-        bone_transforms: rest-to-posed rigid transforms, shape [T, J, 4, 4] float64 (FORMAT.md poses.npz).
+        bone_transforms: rest-to-posed rigid transforms, shape [T, J, 4, 4] float64 (docs/FORMAT.md poses.npz).
         joint_positions: posed joint heads [m], shape [T, J, 3] float64.
         local_rotations: rotation of each joint relative to its parent's (the root's: relative to the world),
             shape [T, J, 3, 3].
@@ -329,43 +288,9 @@ def _axis_angle_matrix(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     return np.eye(3) + sine * cross + (1.0 - cosine) * (cross @ cross)
 
 
-def matrix_to_quaternion(rotations: np.ndarray) -> np.ndarray:
-    """Unit quaternions (w, x, y, z) of rotation matrices, shape [..., 3, 3] -> [..., 4] (w >= 0)."""
-    rotations = np.asarray(rotations, dtype=np.float64)
-    m = rotations
-    trace = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
-    # Four candidate formulas; each frame uses the numerically largest component (Shepperd's method).
-    candidates = np.stack([
-        np.stack([1.0 + trace, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0],
-                  m[..., 1, 0] - m[..., 0, 1]], -1),
-        np.stack([m[..., 2, 1] - m[..., 1, 2], 1.0 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2],
-                  m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
-        np.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0],
-                  1.0 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2], m[..., 1, 2] + m[..., 2, 1]], -1),
-        np.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1],
-                  1.0 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2]], -1),
-    ], axis=-2)
-    diagonal = np.stack([trace, m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]], axis=-1)
-    choice = np.argmax(diagonal, axis=-1)
-    quaternion = np.take_along_axis(candidates, choice[..., None, None], axis=-2)[..., 0, :]
-    quaternion = _normalize(quaternion)
-    return np.where(quaternion[..., :1] < 0, -quaternion, quaternion)
-
-
-def quaternion_to_matrix(quaternions: np.ndarray) -> np.ndarray:
-    """Rotation matrices of quaternions (w, x, y, z), shape [..., 4] -> [..., 3, 3] (normalized first)."""
-    q = _normalize(np.asarray(quaternions, dtype=np.float64))
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], axis=-2)
-
-
 def _slerp_rotations(start: np.ndarray, end: np.ndarray, weight: np.ndarray) -> np.ndarray:
     """Interpolate rotations [T, 3, 3] along the shortest arc; weight [T] in [0, 1] (0 gives ``start``)."""
-    relative = matrix_to_quaternion(np.swapaxes(start, -1, -2) @ end)  # w >= 0: shortest arc
+    relative = quat_from_matrix(np.swapaxes(start, -1, -2) @ end)  # w >= 0: shortest arc
     half_angle = np.arccos(np.clip(relative[..., 0], -1.0, 1.0))
     axis = _normalize(relative[..., 1:])
     partial = _axis_angle_matrix(axis, 2.0 * half_angle * weight)
@@ -499,6 +424,14 @@ def build_rest_skeleton(body: BodyMeasurements) -> RestModel:
         landmarks[_L[landmark]] = position
         landmark_joints[_L[landmark]] = _J[joint]
 
+    def limb(joints: list[str], points: list[np.ndarray], parent: str):
+        # Joints in a row: each bone runs from its point to the next; the landmark named like a joint sits at
+        # its pivot and moves with the joint before it (the first with ``parent``).
+        for joint, head, tail in zip(joints, points, points[1:]):
+            place(joint, head, tail)
+        for landmark, holder, position in zip(joints, [parent, *joints[:-1]], points):
+            attach(landmark, holder, position)
+
     torso = body.torso_length
     neck_base = torso * _Z
     mid_ear = neck_base + body.neck_length * _Z
@@ -516,12 +449,7 @@ def build_rest_skeleton(body: BodyMeasurements) -> RestModel:
         elbow = shoulder + body.upper_arm * arm
         wrist = elbow + body.forearm * arm
         hand_centre = wrist + body.hand * arm
-        place(f"{side}_shoulder", shoulder, elbow)
-        place(f"{side}_elbow", elbow, wrist)
-        place(f"{side}_wrist", wrist, hand_centre)
-        attach(f"{side}_shoulder", "chest", shoulder)
-        attach(f"{side}_elbow", f"{side}_shoulder", elbow)
-        attach(f"{side}_wrist", f"{side}_elbow", wrist)
+        limb([f"{side}_shoulder", f"{side}_elbow", f"{side}_wrist"], [shoulder, elbow, wrist, hand_centre], "chest")
         # Palms face the thighs: the index finger's side is forward.
         attach(f"{side}_index", f"{side}_wrist", hand_centre + 0.5 * body.hand_width * _FORWARD)
         attach(f"{side}_pinky", f"{side}_wrist", hand_centre - 0.5 * body.hand_width * _FORWARD)
@@ -529,18 +457,14 @@ def build_rest_skeleton(body: BodyMeasurements) -> RestModel:
         knee = hip - body.thigh * _Z
         ankle = knee - body.shin * _Z
         toe = ankle + body.foot * (math.cos(_FOOT_PITCH_RAD) * _FORWARD - math.sin(_FOOT_PITCH_RAD) * _Z)
-        place(f"{side}_hip", hip, knee)
-        place(f"{side}_knee", knee, ankle)
-        place(f"{side}_ankle", ankle, toe)
-        attach(f"{side}_hip", "pelvis", hip)
-        attach(f"{side}_knee", f"{side}_hip", knee)
-        attach(f"{side}_ankle", f"{side}_knee", ankle)
+        limb([f"{side}_hip", f"{side}_knee", f"{side}_ankle"], [hip, knee, ankle, toe], "pelvis")
         attach(f"{side}_foot_index", f"{side}_ankle", toe)
     lift = -min(heads[:, 2].min(), tails[:, 2].min())
     heads[:, 2] += lift
     tails[:, 2] += lift
     landmarks[:, 2] += lift
-    skeleton = Skeleton(names=JOINT_NAMES, parents=np.asarray(JOINT_PARENTS), heads=heads, tails=tails)
+    skeleton = Skeleton(names=JOINT_NAMES, parents=np.asarray(JOINT_PARENTS), heads=heads, tails=tails,
+                        dtype=np.float64)
     return RestModel(skeleton=skeleton, body=body, landmarks=landmarks, landmark_joints=landmark_joints)
 
 
@@ -840,10 +764,10 @@ def fit_skeleton(
     local_rotations = _local_from_world(world_rotations)
     if smooth and smoothing.rotation is not None:
         quaternions = smooth_quaternions(
-            matrix_to_quaternion(local_rotations), rate_hz=fps, settings=smoothing.rotation,
+            quat_from_matrix(local_rotations), rate_hz=fps, settings=smoothing.rotation,
             confidence=smoothing.gate(joint_confidence),
         )
-        local_rotations = quaternion_to_matrix(quaternions)
+        local_rotations = quat_to_matrix(_normalize(quaternions))
     if smooth and smoothing.translation is not None:
         root_positions = smooth_positions(
             root_positions, rate_hz=fps, settings=smoothing.translation,

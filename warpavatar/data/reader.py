@@ -1,0 +1,458 @@
+"""Reading and validating video folders and subjects (``docs/FORMAT.md``, ``docs/data.md``).
+
+Everything read is checked; a problem raises :class:`~warpavatar.data.checks.VideoFolderError` whose message
+starts with the path of the offending file and says what is wrong with it.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import math
+import os
+import re
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from warpavatar.data.checks import (VideoFolderError, check_intrinsics, check_rigid, float_array, listed,
+                                    positive_int, read_json, read_npz, require_mapping)
+from warpavatar.data.types import DEFAULT_FPS, Camera, Skeleton, Subject, VideoFolder
+
+__all__ = ["FRAME_EXTENSIONS", "load_video_folder", "load_subject", "LazyVideoFolders", "demo_subject_path",
+           "read_skeleton", "read_image"]
+
+FRAME_EXTENSIONS = (".png", ".jpg", ".jpeg")
+"""File extensions of frame and mask images."""
+
+_VIDEO_EXTENSIONS = (".mp4", ".mov", ".avi")
+_FRAME_NAME = re.compile(r"^(\d{6,})\.(png|jpg|jpeg)$", re.IGNORECASE)
+_MASK_THRESHOLD = 128  # a resized mask pixel is subject (255) when its area average reaches this value
+
+
+def _list_frame_files(folder: Path) -> dict[int, Path]:
+    """Map frame id -> file for the images named ``<6-digit id>.png|jpg|jpeg`` in ``folder``."""
+    files: dict[int, Path] = {}
+    badly_named = []
+    for entry in sorted(os.scandir(folder), key=lambda item: item.name):
+        if not entry.is_file() or not entry.name.lower().endswith(FRAME_EXTENSIONS):
+            continue
+        match = _FRAME_NAME.match(entry.name)
+        if match is None:
+            badly_named.append(entry.name)
+            continue
+        frame_id = int(match.group(1))
+        if frame_id in files:
+            raise VideoFolderError(folder / entry.name,
+                                   f"frame id {frame_id} has two files ({files[frame_id].name} and {entry.name})")
+        files[frame_id] = Path(entry.path)
+    if badly_named:
+        raise VideoFolderError(folder, f"image files must be named by their 6-digit frame id (000042.png); "
+                                       f"found {listed(badly_named)}")
+    return files
+
+
+def _check_frame_files(files: dict[int, Path], frame_ids: np.ndarray, folder: Path, poses_path: Path,
+                       what: str) -> None:
+    """Every pose row needs a file, and every file a pose row."""
+    missing = [int(frame_id) for frame_id in frame_ids if int(frame_id) not in files]
+    if missing:
+        names = [f"{frame_id:06d}" for frame_id in missing]
+        raise VideoFolderError(folder, f"{len(missing)} {what} missing for frame ids listed in {poses_path.name} "
+                                       f"(ids {listed(names)})")
+    if len(files) != len(frame_ids):
+        extra = sorted(set(files) - {int(frame_id) for frame_id in frame_ids})
+        raise VideoFolderError(
+            poses_path, f"frame count mismatch: {poses_path.name} has {len(frame_ids)} frames but {folder} holds "
+                        f"{len(files)} {what} (ids without a pose: {listed(f'{i:06d}' for i in extra)})")
+
+
+def _find_video_file(root: Path) -> Path | None:
+    preferred = root / "video.mp4"
+    if preferred.is_file():
+        return preferred
+    candidates = sorted(path for path in root.iterdir()
+                        if path.is_file() and path.suffix.lower() in _VIDEO_EXTENSIONS)
+    if len(candidates) > 1:
+        names = listed(candidate.name for candidate in candidates)
+        raise VideoFolderError(root, f"several video files and no video.mp4 to choose: {names}")
+    return candidates[0] if candidates else None
+
+
+def _read_poses(path: Path, joint_count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    arrays = read_npz(path)
+    for key in ("bone_transforms", "frame_ids"):
+        if key not in arrays:
+            raise VideoFolderError(path, f"has no {key!r} array (keys: {sorted(arrays)})")
+    bone_transforms = arrays["bone_transforms"]
+    if bone_transforms.ndim != 4 or bone_transforms.shape[2:] != (4, 4):
+        raise VideoFolderError(
+            path, f"'bone_transforms' must have shape [T, J, 4, 4], got {list(bone_transforms.shape)}")
+    if not np.issubdtype(bone_transforms.dtype, np.floating):
+        raise VideoFolderError(path, f"'bone_transforms' must be floating point, got {bone_transforms.dtype}")
+    frame_count = bone_transforms.shape[0]
+    if frame_count == 0:
+        raise VideoFolderError(path, "'bone_transforms' has no frames (T = 0)")
+    if bone_transforms.shape[1] != joint_count:
+        raise VideoFolderError(path, f"joint count mismatch: 'bone_transforms' has {bone_transforms.shape[1]} "
+                                     f"joints but skeleton.json has {joint_count}")
+    check_rigid(bone_transforms, path, "'bone_transforms'", ("frame row", "joint"))
+    frame_ids = arrays["frame_ids"]
+    if not np.issubdtype(frame_ids.dtype, np.integer):
+        raise VideoFolderError(path, f"'frame_ids' must be integers, got {frame_ids.dtype}")
+    if frame_ids.shape != (frame_count,):
+        raise VideoFolderError(path, f"frame count mismatch: 'frame_ids' has shape {list(frame_ids.shape)} but "
+                                     f"'bone_transforms' has {frame_count} frames")
+    if np.any(frame_ids < 0) or np.any(frame_ids > np.iinfo(np.int32).max):
+        raise VideoFolderError(path, "'frame_ids' must be non-negative int32 values")
+    if np.any(np.diff(frame_ids) <= 0):
+        raise VideoFolderError(path, "'frame_ids' must be strictly increasing (unique, in time order)")
+    joint_positions = arrays.get("joint_positions")
+    if joint_positions is not None:
+        if joint_positions.shape != (frame_count, joint_count, 3):
+            raise VideoFolderError(path, f"'joint_positions' must have shape [{frame_count}, {joint_count}, 3], "
+                                         f"got {list(joint_positions.shape)}")
+        if not np.issubdtype(joint_positions.dtype, np.floating):
+            raise VideoFolderError(path, f"'joint_positions' must be floating point, got {joint_positions.dtype}")
+        if not np.all(np.isfinite(joint_positions)):
+            raise VideoFolderError(path, "'joint_positions' holds non-finite values (nan or inf)")
+        joint_positions = joint_positions.astype(np.float32)
+    return bone_transforms.astype(np.float32), frame_ids.astype(np.int32), joint_positions
+
+
+def _camera_from_json(entry: Mapping, width: int, height: int, fallback: Mapping, path: Path, what: str) -> Camera:
+    if "K" not in entry and "K" not in fallback:
+        raise VideoFolderError(path, f"{what} has no 'K'")
+    if "world_to_camera" not in entry and "world_to_camera" not in fallback:
+        raise VideoFolderError(path, f"{what} has no 'world_to_camera'")
+    K = float_array(entry.get("K", fallback.get("K")), (3, 3), path, f"{what} 'K'")
+    check_intrinsics(K, path, f"{what} 'K'")
+    world_to_camera = float_array(entry.get("world_to_camera", fallback.get("world_to_camera")), (4, 4), path,
+                                   f"{what} 'world_to_camera'")
+    check_rigid(world_to_camera, path, f"{what} 'world_to_camera'")
+    return Camera(K=K, world_to_camera=world_to_camera, width=width, height=height)
+
+
+def _read_cameras(path: Path, frame_count: int) -> list[Camera]:
+    """Cameras of all T pose rows: one object repeated for a fixed camera."""
+    data = require_mapping(read_json(path), path, "cameras.json")
+    for key in ("width", "height"):
+        if key not in data:
+            raise VideoFolderError(path, f"has no {key!r}")
+    width = positive_int(data["width"], path, "'width'")
+    height = positive_int(data["height"], path, "'height'")
+    frames = data.get("frames")
+    if frames is None:
+        camera = _camera_from_json(data, width, height, {}, path, "the camera")
+        return [camera] * frame_count
+    if not isinstance(frames, list):
+        raise VideoFolderError(path, f"'frames' must be null or a list, got {type(frames).__name__}")
+    if len(frames) != frame_count:
+        raise VideoFolderError(path, f"per-frame camera count mismatch: 'frames' has {len(frames)} entries but "
+                                     f"poses.npz has {frame_count} frames")
+    return [_camera_from_json(require_mapping(entry, path, f"frames[{index}]"), width, height, data, path,
+                              f"frames[{index}]")
+            for index, entry in enumerate(frames)]
+
+
+def _read_meta(path: Path) -> tuple[dict, np.ndarray, float]:
+    if not path.exists():
+        return {}, np.zeros(3, dtype=np.float32), DEFAULT_FPS
+    meta = dict(require_mapping(read_json(path), path, "meta.json"))
+    fps = meta.get("fps", DEFAULT_FPS)
+    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps) or fps <= 0:
+        raise VideoFolderError(path, f"'fps' must be a positive finite number, got {fps!r}")
+    background = meta.get("background")
+    if background is None:
+        background = np.zeros(3)
+    else:
+        background = float_array(background, (3,), path, "'background'")
+        if np.any(background < 0.0) or np.any(background > 1.0):
+            raise VideoFolderError(path, f"'background' must be RGB in 0..1, got {background.tolist()}")
+    return meta, background.astype(np.float32), float(fps)
+
+
+def read_skeleton(path: Path) -> Skeleton:
+    """The skeleton of a skeleton.json file, validated."""
+    return Skeleton.from_json_dict(read_json(path), source=path)
+
+
+def _resize_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    if image.shape[1] == width and image.shape[0] == height:
+        return image
+    shrinking = width <= image.shape[1] and height <= image.shape[0]
+    return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR)
+
+
+def _resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
+    if mask.shape[1] == width and mask.shape[0] == height:
+        return mask
+    averaged = _resize_image(mask, width, height)
+    return np.where(averaged >= _MASK_THRESHOLD, 255, 0).astype(np.uint8)
+
+
+def read_image(path: Path, *, width: int, height: int, sized_by: str = "cameras.json") -> np.ndarray:
+    """A colour image file as BGR uint8 [H,W,3], checked to be ``width`` x ``height`` (as ``sized_by`` says)."""
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+    if image is None:
+        raise VideoFolderError(path, "cannot be read as an image (unreadable or corrupt)")
+    if image.shape[:2] != (height, width):
+        raise VideoFolderError(path, f"image size mismatch: the image is {image.shape[1]}x{image.shape[0]} "
+                                     f"but {sized_by} says {width}x{height}")
+    return image
+
+
+def _read_frame_file(path: Path, width: int, height: int, out_width: int, out_height: int) -> np.ndarray:
+    image = read_image(path, width=width, height=height)
+    return _resize_image(cv2.cvtColor(image, cv2.COLOR_BGR2RGB), out_width, out_height)
+
+
+def _read_mask_file(path: Path, width: int, height: int, out_width: int, out_height: int) -> np.ndarray:
+    mask = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if mask is None:
+        raise VideoFolderError(path, "cannot be read as an image (unreadable or corrupt)")
+    if mask.dtype != np.uint8:
+        raise VideoFolderError(path, f"masks must be 8-bit, got {mask.dtype}")
+    if mask.ndim == 3:
+        if mask.shape[2] in (3, 4) and np.array_equal(mask[..., 0], mask[..., 1]) \
+                and np.array_equal(mask[..., 0], mask[..., 2]):
+            mask = mask[..., 0]  # a grey mask saved as colour
+        else:
+            raise VideoFolderError(path, f"masks must be single-channel, got {mask.shape[2]} channels")
+    if mask.shape != (height, width):
+        raise VideoFolderError(path, f"image size mismatch: the mask is {mask.shape[1]}x{mask.shape[0]} "
+                                     f"but the frames are {width}x{height}")
+    return _resize_mask(mask, out_width, out_height)
+
+
+def _read_into(output: np.ndarray, function, paths: list[Path], *args) -> np.ndarray:
+    """``output[i] = function(paths[i], *args)``, decoded on a few threads (OpenCV releases the GIL)."""
+    def read(index: int) -> None:
+        output[index] = function(paths[index], *args)
+
+    if len(paths) < 4:
+        for index in range(len(paths)):
+            read(index)
+        return output
+    workers = min(8, os.cpu_count() or 1, len(paths))
+    with concurrent.futures.ThreadPoolExecutor(max_workers=workers) as pool:
+        for _ in pool.map(read, range(len(paths))):  # re-raises the first error
+            pass
+    return output
+
+
+def _read_video_frames(path: Path, frame_ids: np.ndarray, width: int, height: int, out_width: int,
+                       out_height: int) -> np.ndarray:
+    capture = cv2.VideoCapture(str(path))
+    if not capture.isOpened():
+        raise VideoFolderError(path, "cannot be opened as a video")
+    images = np.empty((len(frame_ids), out_height, out_width, 3), dtype=np.uint8)
+    try:
+        wanted = {int(frame_id): row for row, frame_id in enumerate(frame_ids)}
+        last = int(frame_ids[-1]) if len(frame_ids) else -1
+        for index in range(last + 1):
+            if not capture.grab():
+                raise VideoFolderError(path, f"frame count mismatch: the video has only {index} frames but "
+                                             f"poses.npz asks for frame id {last}")
+            if index not in wanted:
+                continue
+            ok, image = capture.retrieve()
+            if not ok or image is None:
+                raise VideoFolderError(path, f"frame {index} cannot be decoded")
+            if image.shape[:2] != (height, width):
+                raise VideoFolderError(path, f"image size mismatch: the video is {image.shape[1]}x{image.shape[0]} "
+                                             f"but cameras.json says {width}x{height}")
+            images[wanted[index]] = _resize_image(cv2.cvtColor(image, cv2.COLOR_BGR2RGB), out_width, out_height)
+    finally:
+        capture.release()
+    return images
+
+
+def _check_selection(max_frames, frame_stride, scale) -> None:
+    if max_frames is not None and (isinstance(max_frames, bool) or not isinstance(max_frames, int)):
+        raise TypeError(f"max_frames must be an int or None, got {type(max_frames).__name__}")
+    if max_frames is not None and max_frames < 1:
+        raise ValueError(f"max_frames must be at least 1, got {max_frames}")
+    if isinstance(frame_stride, bool) or not isinstance(frame_stride, int):
+        raise TypeError(f"frame_stride must be an int, got {type(frame_stride).__name__}")
+    if frame_stride < 1:
+        raise ValueError(f"frame_stride must be at least 1, got {frame_stride}")
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)):
+        raise TypeError(f"scale must be a number, got {type(scale).__name__}")
+    if not math.isfinite(scale) or scale <= 0:
+        raise ValueError(f"scale must be positive and finite, got {scale}")
+
+
+def load_video_folder(path: str | os.PathLike, *, max_frames: int | None = None, frame_stride: int = 1,
+                      scale: float = 1.0) -> VideoFolder:
+    """Read and validate one video folder (``docs/data.md``).
+
+    The frames come from ``frames/<id>.png|jpg`` or, when there is no ``frames/`` folder, from a video file
+    (``video.mp4``, else the single ``*.mp4|*.mov|*.avi`` in the folder) read with OpenCV, where frame id k
+    is the video's k-th frame (0-based; frames after the last id are ignored).
+
+    Args:
+        path: the video folder.
+        max_frames: keep at most this many frames (after ``frame_stride``); None keeps all.
+        frame_stride: keep every ``frame_stride``-th pose row (1 keeps all).
+        scale: resize images, masks and intrinsics by this factor: the new size is
+            ``round(W * scale) x round(H * scale)``, images are resampled by area averaging (bilinear when
+            enlarging), masks by area averaging then thresholded at 128 (so they stay 0/255), and ``K`` follows
+            the integer-pixel-centre convention (:meth:`Camera.resized`).
+
+    Returns:
+        The folder's contents; the whole folder's listing, cameras and poses are validated even when only some
+        frames are kept, but only the kept frames are decoded.
+
+    Raises:
+        VideoFolderError: a missing or invalid file (the message names it), see ``docs/data.md``.
+        TypeError, ValueError: bad ``max_frames``, ``frame_stride`` or ``scale``.
+    """
+    _check_selection(max_frames, frame_stride, scale)
+    root = Path(path)
+    if not root.is_dir():
+        raise VideoFolderError(root, "no such video folder")
+    skeleton = read_skeleton(root / "skeleton.json")
+    poses_path = root / "poses.npz"
+    bone_transforms, frame_ids, joint_positions = _read_poses(poses_path, skeleton.joint_count)
+    cameras = _read_cameras(root / "cameras.json", len(frame_ids))
+    meta, background, fps = _read_meta(root / "meta.json")
+
+    frames_dir = root / "frames"
+    video_path = None
+    if frames_dir.is_dir():
+        frame_files = _list_frame_files(frames_dir)
+        _check_frame_files(frame_files, frame_ids, frames_dir, poses_path, "frames")
+    else:
+        video_path = _find_video_file(root)
+        if video_path is None:
+            raise VideoFolderError(frames_dir, "missing: the folder has neither frames/ nor a video file "
+                                               "(video.mp4, *.mp4, *.mov, *.avi)")
+    masks_dir = root / "masks"
+    mask_files = None
+    if masks_dir.is_dir():
+        mask_files = _list_frame_files(masks_dir)
+        _check_frame_files(mask_files, frame_ids, masks_dir, poses_path, "masks")
+
+    rows = np.arange(len(frame_ids))[::frame_stride]
+    if max_frames is not None:
+        rows = rows[:max_frames]
+    frame_ids = frame_ids[rows]
+    bone_transforms = bone_transforms[rows]
+    joint_positions = joint_positions[rows] if joint_positions is not None else None
+
+    width, height = cameras[0].width, cameras[0].height
+    out_width, out_height = width, height
+    if scale != 1.0:
+        out_width, out_height = max(1, round(width * scale)), max(1, round(height * scale))
+    resized_cameras: dict[int, Camera] = {}
+    kept_cameras = []
+    for row in rows:
+        camera = cameras[row]
+        if id(camera) not in resized_cameras:
+            resized_cameras[id(camera)] = camera if scale == 1.0 else camera.resized(out_width, out_height)
+        kept_cameras.append(resized_cameras[id(camera)])
+
+    if video_path is None:
+        paths = [frame_files[int(frame_id)] for frame_id in frame_ids]
+        images = _read_into(np.empty((len(paths), out_height, out_width, 3), np.uint8), _read_frame_file, paths,
+                            width, height, out_width, out_height)
+    else:
+        images = _read_video_frames(video_path, frame_ids, width, height, out_width, out_height)
+    masks = None
+    if mask_files is not None:
+        paths = [mask_files[int(frame_id)] for frame_id in frame_ids]
+        masks = _read_into(np.empty((len(paths), out_height, out_width), np.uint8), _read_mask_file, paths,
+                           width, height, out_width, out_height)
+
+    return VideoFolder(root=root, frame_ids=frame_ids, images=images, masks=masks, cameras=kept_cameras,
+                       skeleton=skeleton, bone_transforms=bone_transforms, joint_positions=joint_positions,
+                       background=background, fps=fps, meta=meta)
+
+
+class LazyVideoFolders(Mapping):
+    """A read-only mapping name -> :class:`VideoFolder` that reads each folder the first time it is asked for.
+
+    Listing names (``keys()``, ``len``, ``in``) reads nothing; ``folders[name]`` reads and validates that
+    folder once and caches it. ``paths`` maps each name to its folder.
+    """
+
+    def __init__(self, paths: Mapping[str, Path], *, skeleton: Skeleton | None = None, scale: float = 1.0):
+        self.paths = dict(paths)
+        self._skeleton = skeleton
+        self._scale = scale
+        self._loaded: dict[str, VideoFolder] = {}
+
+    def __getitem__(self, name: str) -> VideoFolder:
+        if name not in self._loaded:
+            folder = load_video_folder(self.paths[name], scale=self._scale)
+            if self._skeleton is not None:
+                _check_same_skeleton(folder.skeleton, self._skeleton, folder.root / "skeleton.json")
+            self._loaded[name] = folder
+        return self._loaded[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.paths)
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __repr__(self) -> str:
+        return f"LazyVideoFolders({sorted(self.paths)}, loaded={sorted(self._loaded)})"
+
+
+def _check_same_skeleton(skeleton: Skeleton, reference: Skeleton, path: Path) -> None:
+    if skeleton.names != reference.names or not np.array_equal(skeleton.parents, reference.parents):
+        raise VideoFolderError(path, "the skeleton differs from the training folder's (joint names or parents)")
+    if not (np.allclose(skeleton.heads, reference.heads, atol=1e-5)
+            and np.allclose(skeleton.tails, reference.tails, atol=1e-5)):
+        raise VideoFolderError(path, "the skeleton's rest pose differs from the training folder's")
+
+
+
+def load_subject(path: str | os.PathLike, *, scale: float = 1.0) -> Subject:
+    """Read a subject folder: ``train/``, optional ``novel_view/<camera>/`` and ``novel_pose/<name>/``.
+
+    The training folder is read and validated at once; the held-out folders are listed now and read (and
+    checked to share the training skeleton) the first time they are indexed (:class:`LazyVideoFolders`).
+
+    Args:
+        path: the subject folder.
+        scale: image scale applied to every folder (see :func:`load_video_folder`).
+
+    Raises:
+        VideoFolderError: a missing ``train/`` folder or any problem :func:`load_video_folder` reports.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise VideoFolderError(root, "no such subject folder")
+    train_dir = root / "train"
+    if not train_dir.is_dir():
+        raise VideoFolderError(train_dir, "missing: a subject needs a train/ video folder")
+    train = load_video_folder(train_dir, scale=scale)
+
+    def held_out(kind: str) -> LazyVideoFolders:
+        folder = root / kind
+        paths = {}
+        if folder.is_dir():
+            paths = {entry.name: Path(entry.path)
+                     for entry in sorted(os.scandir(folder), key=lambda item: item.name) if entry.is_dir()}
+        return LazyVideoFolders(paths, skeleton=train.skeleton, scale=scale)
+
+    license_path = root / "LICENSE.txt"
+    license_text = license_path.read_text(encoding="utf-8") if license_path.is_file() else None
+    return Subject(root=root, train=train, novel_view=held_out("novel_view"), novel_pose=held_out("novel_pose"),
+                   license_text=license_text)
+
+
+def demo_subject_path() -> Path:
+    """The small demo subject shipped inside the package (``warpavatar/data/demo/robot``).
+
+    A reduced copy of the ``robot`` benchmark subject (CC0): its ``train/``, one ``novel_view/`` and one
+    ``novel_pose/`` folder at 128x128 pixels; its LICENSE.txt says what was reduced.
+    """
+    return Path(__file__).resolve().parent / "demo" / "robot"
+
+
+# ----------------------------------------------------------------------------------------------------------

@@ -1,0 +1,133 @@
+"""Writing video folders atomically: everything goes to a temporary sibling folder that is renamed into place
+once complete, so an interrupted or failed write never leaves a half-written folder under the final name.
+
+:func:`staged_folder` is that mechanism for any writer (``write_video_folder``, the InstantAvatar importer,
+``warpavatar-prepare``); :func:`write_json`, :func:`write_png` and :func:`save_npz` write the files of a
+video folder as docs/FORMAT.md lays them out.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from warpavatar.data.types import Camera, VideoFolder
+
+__all__ = ["staged_folder", "write_json", "write_png", "save_npz", "cameras_json", "write_video_folder"]
+
+
+@contextlib.contextmanager
+def staged_folder(destination: str | os.PathLike, *, overwrite: bool = False) -> Iterator[Path]:
+    """Write a folder atomically: yields the empty temporary folder ``<destination>.tmp`` to write into; when
+    the block ends normally it takes ``destination``'s place (replacing it), otherwise it is removed.
+
+    Args:
+        destination: the folder to create.
+        overwrite: replace an existing ``destination`` instead of raising FileExistsError.
+    """
+    destination = Path(destination)
+    if destination.exists() and not overwrite:
+        raise FileExistsError(f"{destination} already exists (pass overwrite=True to replace it)")
+    tmp = destination.with_name(destination.name + ".tmp")
+    if tmp.exists():
+        shutil.rmtree(tmp)  # left over from an interrupted run
+    destination.parent.mkdir(parents=True, exist_ok=True)
+    tmp.mkdir()
+    try:
+        yield tmp
+        if destination.exists():
+            old = destination.with_name(destination.name + ".old")
+            if old.exists():
+                shutil.rmtree(old)
+            destination.rename(old)
+            tmp.rename(destination)
+            shutil.rmtree(old)
+        else:
+            tmp.rename(destination)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def write_json(path: Path, value) -> None:
+    """``value`` as indented JSON text (UTF-8, final newline)."""
+    path.write_text(json.dumps(value, indent=1) + "\n", encoding="utf-8")
+
+
+def write_png(path: Path, image: np.ndarray, *, compression: int = 9) -> None:
+    """An 8-bit image (BGR or single channel) as a PNG (``compression`` 0-9: zlib level, 9 the smallest)."""
+    if not cv2.imwrite(str(path), image, [cv2.IMWRITE_PNG_COMPRESSION, compression]):
+        raise OSError(f"{path}: cannot be written")
+
+
+def save_npz(path: Path, **arrays) -> None:
+    """Arrays as a compressed .npz archive."""
+    with open(path, "wb") as stream:
+        np.savez_compressed(stream, **arrays)
+
+
+def cameras_json(cameras: list[Camera]) -> dict:
+    """The cameras.json object of a folder's cameras: one fixed camera when they are all equal."""
+    first = cameras[0]
+    fixed = all(camera is first or (np.array_equal(camera.K, first.K) and
+                                    np.array_equal(camera.world_to_camera, first.world_to_camera))
+                for camera in cameras)
+    data = first.to_json_dict()
+    data["frames"] = None if fixed else [
+        {"K": camera.K.astype(np.float64).tolist(),
+         "world_to_camera": camera.world_to_camera.astype(np.float64).tolist()} for camera in cameras]
+    return data
+
+
+def write_video_folder(video: VideoFolder, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
+    """Write ``video`` as a video folder (PNG frames and masks, JSON and .npz files), atomically.
+
+    ``meta.json`` receives ``video.meta`` with ``fps`` and ``background`` updated from the fields.
+
+    Args:
+        video: what to write; its ``cameras`` become a fixed camera when they are all equal.
+        path: the folder to create.
+        overwrite: replace an existing folder instead of raising FileExistsError.
+
+    Returns:
+        ``path`` as a Path.
+    """
+    destination = Path(path)
+    frame_count = video.frame_count
+    if frame_count == 0:
+        raise ValueError("write_video_folder: the video has no frames")
+    if video.images.shape != (frame_count, video.height, video.width, 3) or video.images.dtype != np.uint8:
+        raise ValueError(f"write_video_folder: images must be uint8 [T, H, W, 3] with T={frame_count}, got "
+                         f"{video.images.dtype} {list(video.images.shape)}")
+    if video.masks is not None and (video.masks.shape != video.images.shape[:3] or video.masks.dtype != np.uint8):
+        raise ValueError(f"write_video_folder: masks must be uint8 {list(video.images.shape[:3])}, got "
+                         f"{video.masks.dtype} {list(video.masks.shape)}")
+    if len(video.cameras) != frame_count:
+        raise ValueError(f"write_video_folder: {len(video.cameras)} cameras for {frame_count} frames")
+    with staged_folder(destination, overwrite=overwrite) as tmp:
+        (tmp / "frames").mkdir()
+        for frame_id, image in zip(video.frame_ids, video.images):
+            write_png(tmp / "frames" / f"{int(frame_id):06d}.png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+        if video.masks is not None:
+            (tmp / "masks").mkdir()
+            for frame_id, mask in zip(video.frame_ids, video.masks):
+                write_png(tmp / "masks" / f"{int(frame_id):06d}.png", mask)
+        write_json(tmp / "cameras.json", cameras_json(video.cameras))
+        write_json(tmp / "skeleton.json", video.skeleton.to_json_dict())
+        arrays = {"bone_transforms": video.bone_transforms.astype(np.float32),
+                  "frame_ids": video.frame_ids.astype(np.int32)}
+        if video.joint_positions is not None:
+            arrays["joint_positions"] = video.joint_positions.astype(np.float32)
+        save_npz(tmp / "poses.npz", **arrays)
+        meta = dict(video.meta)
+        meta["fps"] = float(video.fps)
+        meta["background"] = [float(value) for value in video.background]
+        write_json(tmp / "meta.json", meta)
+    return destination
