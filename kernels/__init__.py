@@ -9,4 +9,6 @@ Families:
     knn: exact k-nearest-neighbour graph on a hash grid.
     springs: explicit-Euler mass-spring-damper step and its regularizers.
     skinning: trilinear sampling of a voxel field and linear blend skinning.
+
+:mod:`~warpavatar.kernels.quaternion` holds the quaternion ``@wp.func`` helpers the families share.
 """

@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from .quaternion import quat_conjugate, quat_from_rotation_matrix, quat_multiply, quat_to_matrix
+
 __all__ = [
     "SAMPLE_GRID_LAYOUTS",
     "ROTATION_NEWTON_STEPS",
@@ -95,6 +97,23 @@ def _box_high(box: wp.array(dtype=wp.vec3), box_high: wp.vec3):
     if box.shape[0] == 2:
         return box[1]
     return box_high
+
+
+@wp.func
+def _grid_cell(box: wp.array(dtype=wp.vec3), box_low: wp.vec3, box_high: wp.vec3, p: wp.vec3, depth: int,
+               height: int, width: int):
+    """The cell of point ``p`` in a grid of ``depth x height x width`` samples spanning the box: its lower corner
+    (z0, y0, x0), its upper corner (z1, y1, x1) clamped to the grid, the fractions (fz, fy, fx) and the grid
+    indices per world unit along each axis (sz, sy, sx)."""
+    low = _box_low(box, box_low)
+    high = _box_high(box, box_high)
+    x0, fx, sx = _axis_coordinate(p[0], low[0], high[0], width)
+    y0, fy, sy = _axis_coordinate(p[1], low[1], high[1], height)
+    z0, fz, sz = _axis_coordinate(p[2], low[2], high[2], depth)
+    x1 = wp.min(x0 + 1, width - 1)
+    y1 = wp.min(y0 + 1, height - 1)
+    z1 = wp.min(z0 + 1, depth - 1)
+    return z0, y0, x0, z1, y1, x1, fz, fy, fx, sz, sy, sx
 
 
 @wp.func
@@ -181,15 +200,8 @@ def sample_grid_forward_point_kernel(
 ):
     """One thread per point: values[i, :] = trilinear(grid, points[i]) for every channel."""
     i = wp.tid()
-    low = _box_low(box, box_low)
-    high = _box_high(box, box_high)
-    p = points[i]
-    x0, fx, sx = _axis_coordinate(p[0], low[0], high[0], grid.shape[2])
-    y0, fy, sy = _axis_coordinate(p[1], low[1], high[1], grid.shape[1])
-    z0, fz, sz = _axis_coordinate(p[2], low[2], high[2], grid.shape[0])
-    x1 = wp.min(x0 + 1, grid.shape[2] - 1)
-    y1 = wp.min(y0 + 1, grid.shape[1] - 1)
-    z1 = wp.min(z0 + 1, grid.shape[0] - 1)
+    z0, y0, x0, z1, y1, x1, fz, fy, fx, sz, sy, sx = _grid_cell(
+        box, box_low, box_high, points[i], grid.shape[0], grid.shape[1], grid.shape[2])
     for channel in range(grid.shape[3]):
         values[i, channel] = _trilinear(grid, z0, y0, x0, z1, y1, x1, fz, fy, fx, channel)
 
@@ -205,15 +217,8 @@ def sample_grid_forward_channel_kernel(
 ):
     """One thread per (point, channel): values[i, channel] = trilinear(grid[..., channel], points[i])."""
     i, channel = wp.tid()
-    low = _box_low(box, box_low)
-    high = _box_high(box, box_high)
-    p = points[i]
-    x0, fx, sx = _axis_coordinate(p[0], low[0], high[0], grid.shape[2])
-    y0, fy, sy = _axis_coordinate(p[1], low[1], high[1], grid.shape[1])
-    z0, fz, sz = _axis_coordinate(p[2], low[2], high[2], grid.shape[0])
-    x1 = wp.min(x0 + 1, grid.shape[2] - 1)
-    y1 = wp.min(y0 + 1, grid.shape[1] - 1)
-    z1 = wp.min(z0 + 1, grid.shape[0] - 1)
+    z0, y0, x0, z1, y1, x1, fz, fy, fx, sz, sy, sx = _grid_cell(
+        box, box_low, box_high, points[i], grid.shape[0], grid.shape[1], grid.shape[2])
     values[i, channel] = _trilinear(grid, z0, y0, x0, z1, y1, x1, fz, fy, fx, channel)
 
 
@@ -232,15 +237,8 @@ def sample_grid_backward_point_kernel(
 ):
     """One thread per point, looping channels: scatters grad_grid (atomics) and writes grad_points[i]."""
     i = wp.tid()
-    low = _box_low(box, box_low)
-    high = _box_high(box, box_high)
-    p = points[i]
-    x0, fx, sx = _axis_coordinate(p[0], low[0], high[0], grid.shape[2])
-    y0, fy, sy = _axis_coordinate(p[1], low[1], high[1], grid.shape[1])
-    z0, fz, sz = _axis_coordinate(p[2], low[2], high[2], grid.shape[0])
-    x1 = wp.min(x0 + 1, grid.shape[2] - 1)
-    y1 = wp.min(y0 + 1, grid.shape[1] - 1)
-    z1 = wp.min(z0 + 1, grid.shape[0] - 1)
+    z0, y0, x0, z1, y1, x1, fz, fy, fx, sz, sy, sx = _grid_cell(
+        box, box_low, box_high, points[i], grid.shape[0], grid.shape[1], grid.shape[2])
     grad_fraction = wp.vec3(0.0, 0.0, 0.0)
     for channel in range(grid.shape[3]):
         grad_value = grad_values[i, channel]
@@ -265,15 +263,8 @@ def sample_grid_backward_grid_channel_kernel(
 ):
     """One thread per (point, channel): scatters grad_values[i, channel] onto the 8 cell corners (atomics)."""
     i, channel = wp.tid()
-    low = _box_low(box, box_low)
-    high = _box_high(box, box_high)
-    p = points[i]
-    x0, fx, sx = _axis_coordinate(p[0], low[0], high[0], grad_grid.shape[2])
-    y0, fy, sy = _axis_coordinate(p[1], low[1], high[1], grad_grid.shape[1])
-    z0, fz, sz = _axis_coordinate(p[2], low[2], high[2], grad_grid.shape[0])
-    x1 = wp.min(x0 + 1, grad_grid.shape[2] - 1)
-    y1 = wp.min(y0 + 1, grad_grid.shape[1] - 1)
-    z1 = wp.min(z0 + 1, grad_grid.shape[0] - 1)
+    z0, y0, x0, z1, y1, x1, fz, fy, fx, sz, sy, sx = _grid_cell(
+        box, box_low, box_high, points[i], grad_grid.shape[0], grad_grid.shape[1], grad_grid.shape[2])
     _scatter_trilinear(grad_grid, z0, y0, x0, z1, y1, x1, fz, fy, fx, channel, grad_values[i, channel])
 
 
@@ -385,54 +376,8 @@ def sample_grid_backward(
 
 
 # ---------------------------------------------------------------------------------------------------------
-# Quaternions (w, x, y, z) and the closest rotation of a 3x3 matrix
+# The closest rotation of a 3x3 matrix (quaternions (w, x, y, z): kernels/quaternion.py)
 # ---------------------------------------------------------------------------------------------------------
-
-
-@wp.func
-def quat_multiply(a: wp.vec4, b: wp.vec4):
-    """Hamilton product ``a * b`` of (w, x, y, z) quaternions (apply ``b`` first, then ``a``)."""
-    return wp.vec4(
-        a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
-        a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
-        a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
-        a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0],
-    )
-
-
-@wp.func
-def quat_conjugate(q: wp.vec4):
-    return wp.vec4(q[0], -q[1], -q[2], -q[3])
-
-
-@wp.func
-def matrix_from_quat(q: wp.vec4):
-    """Rotation matrix of a unit (w, x, y, z) quaternion."""
-    w = q[0]
-    x = q[1]
-    y = q[2]
-    z = q[3]
-    return wp.mat33(
-        1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
-        2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
-        2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
-    )
-
-
-@wp.func
-def quat_from_rotation_matrix(r: wp.mat33):
-    """Unit (w, x, y, z) quaternion of a rotation matrix (Shepperd: pivot on the largest of 4 candidates)."""
-    trace = r[0, 0] + r[1, 1] + r[2, 2]
-    q = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    if trace >= r[0, 0] and trace >= r[1, 1] and trace >= r[2, 2]:
-        q = wp.vec4(1.0 + trace, r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1])
-    elif r[0, 0] >= r[1, 1] and r[0, 0] >= r[2, 2]:
-        q = wp.vec4(r[2, 1] - r[1, 2], 1.0 + 2.0 * r[0, 0] - trace, r[0, 1] + r[1, 0], r[0, 2] + r[2, 0])
-    elif r[1, 1] >= r[2, 2]:
-        q = wp.vec4(r[0, 2] - r[2, 0], r[0, 1] + r[1, 0], 1.0 + 2.0 * r[1, 1] - trace, r[1, 2] + r[2, 1])
-    else:
-        q = wp.vec4(r[1, 0] - r[0, 1], r[0, 2] + r[2, 0], r[1, 2] + r[2, 1], 1.0 + 2.0 * r[2, 2] - trace)
-    return wp.normalize(q)
 
 
 @wp.func
@@ -469,7 +414,7 @@ def closest_rotation(a: wp.mat33):
     wp.svd3(a, u, sigma, v)
     q = quat_from_rotation_matrix(u * wp.transpose(v))
     for _step in range(ROTATION_NEWTON_STEPS):
-        m = wp.transpose(matrix_from_quat(q)) * a
+        m = wp.transpose(quat_to_matrix(q)) * a
         gradient = wp.vec3(m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1])
         hessian = _rotation_hessian(0.5 * (m + wp.transpose(m)))
         omega = wp.vec3(0.0, 0.0, 0.0)
@@ -494,7 +439,7 @@ def closest_rotation_backward(a: wp.mat33, q: wp.vec4, grad_q: wp.vec4):
     """
     body = quat_multiply(quat_conjugate(q), grad_q)
     grad_omega = wp.vec3(0.5 * body[1], 0.5 * body[2], 0.5 * body[3])
-    r = matrix_from_quat(q)
+    r = quat_to_matrix(q)
     m = wp.transpose(r) * a
     hessian = _rotation_hessian(0.5 * (m + wp.transpose(m)))
     k = wp.vec3(0.0, 0.0, 0.0)

@@ -36,6 +36,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from .quaternion import quat_to_matrix
+
 __all__ = [
     "TILE_SIZE",
     "PIXELS_PER_TILE",
@@ -120,24 +122,9 @@ SH_C3_D = wp.constant(1.119528997770346)
 
 
 @wp.func
-def quat_to_rotation(quat: wp.vec4) -> wp.mat33:
-    """Rotation matrix of a quaternion stored (w, x, y, z); it is normalized first."""
-    q = wp.normalize(quat)
-    w = q[0]
-    x = q[1]
-    y = q[2]
-    z = q[3]
-    return wp.mat33(
-        1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
-        2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
-        2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
-    )  # fmt: skip
-
-
-@wp.func
 def camera_covariance(world_to_camera_rotation: wp.mat33, quat: wp.vec4, scale: wp.vec3) -> wp.mat33:
     """Camera-space 3D covariance ``W R S S^T R^T W^T`` [world units^2]."""
-    transform = world_to_camera_rotation @ quat_to_rotation(quat) @ wp.diag(scale)
+    transform = world_to_camera_rotation @ quat_to_matrix(wp.normalize(quat)) @ wp.diag(scale)
     return transform @ wp.transpose(transform)
 
 

@@ -146,6 +146,18 @@ def cpu_cooperative_blocks():
 # ------------------------------------------------------------------------------------------------------------
 
 
+def test_the_references_cover_every_op_with_the_same_signature():
+    import inspect
+
+    from warpavatar import _torch_impl
+
+    assert sorted(_torch_impl.__all__) == sorted(ops.__all__)
+    for name in ops.__all__:
+        ours, theirs = inspect.signature(getattr(ops, name)), inspect.signature(getattr(_torch_impl, name))
+        assert [(p.name, p.kind, p.default) for p in ours.parameters.values()] == \
+            [(p.name, p.kind, p.default) for p in theirs.parameters.values()], name
+
+
 @pytest.mark.parametrize(
     "seed, sh_degree, width, height, gaussian_count",
     [(0, None, 56, 44, 200), (1, 0, 40, 32, 120), (2, 1, 64, 48, 300), (3, 2, 48, 40, 160), (4, 3, 56, 44, 250)],

@@ -8,13 +8,6 @@ from warpavatar._torch_impl.skinning import inverse_lbs, lbs, sample_grid
 from warpavatar._torch_impl.splat import rasterize_gaussians
 from warpavatar._torch_impl.springs import damping_loss, isometry_loss, spring_step
 
-__all__ = [
-    "rasterize_gaussians",
-    "knn_graph",
-    "spring_step",
-    "isometry_loss",
-    "damping_loss",
-    "sample_grid",
-    "lbs",
-    "inverse_lbs",
-]
+# the same names as warpavatar.ops (tests/test_splat.py checks that the two lists agree)
+__all__ = ["rasterize_gaussians", "knn_graph", "spring_step", "isometry_loss", "damping_loss", "sample_grid", "lbs",
+           "inverse_lbs"]

@@ -11,8 +11,9 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-__all__ = ["sample_grid", "lbs", "inverse_lbs", "quat_multiply", "quat_conjugate", "quat_from_rotation_matrix",
-           "closest_rotation_quat"]
+from warpavatar.geometry import quat_conjugate, quat_from_matrix, quat_multiply
+
+__all__ = ["sample_grid", "lbs", "inverse_lbs", "closest_rotation_quat"]
 
 
 def sample_grid(grid: torch.Tensor, points: torch.Tensor, bbox_min, bbox_max) -> torch.Tensor:
@@ -40,46 +41,6 @@ def sample_grid(grid: torch.Tensor, points: torch.Tensor, bbox_min, bbox_max) ->
     return sampled.view(channel_count, point_count).t()
 
 
-def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Hamilton product of (w, x, y, z) quaternions ``[..., 4]``."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ], dim=-1)
-
-
-def quat_conjugate(q: torch.Tensor) -> torch.Tensor:
-    """Conjugate of (w, x, y, z) quaternions ``[..., 4]``."""
-    return q * q.new_tensor([1.0, -1.0, -1.0, -1.0])
-
-
-def quat_from_rotation_matrix(rotation: torch.Tensor) -> torch.Tensor:
-    """Unit (w, x, y, z) quaternions ``[N, 4]`` of rotation matrices ``[N, 3, 3]``, with w >= 0.
-
-    Each of the four classic candidates is proportional to the quaternion; the one built on the largest of
-    (trace, r00, r11, r22) is normalized, which avoids square roots of small numbers.
-    """
-    r = rotation
-    trace = r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2]
-    candidates = torch.stack([
-        torch.stack([1.0 + trace, r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1]], -1),
-        torch.stack([r[:, 2, 1] - r[:, 1, 2], 1.0 + 2.0 * r[:, 0, 0] - trace, r[:, 0, 1] + r[:, 1, 0],
-                     r[:, 0, 2] + r[:, 2, 0]], -1),
-        torch.stack([r[:, 0, 2] - r[:, 2, 0], r[:, 0, 1] + r[:, 1, 0], 1.0 + 2.0 * r[:, 1, 1] - trace,
-                     r[:, 1, 2] + r[:, 2, 1]], -1),
-        torch.stack([r[:, 1, 0] - r[:, 0, 1], r[:, 0, 2] + r[:, 2, 0], r[:, 1, 2] + r[:, 2, 1],
-                     1.0 + 2.0 * r[:, 2, 2] - trace], -1),
-    ], dim=1)  # [N, 4 candidates, 4]
-    pivot = torch.stack([trace, r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]], -1).argmax(-1)
-    chosen = candidates[torch.arange(r.shape[0], device=r.device), pivot]
-    q = chosen / chosen.norm(dim=-1, keepdim=True)
-    return torch.where(q[:, :1] < 0, -q, q)
-
-
 def closest_rotation_quat(linear: torch.Tensor) -> torch.Tensor:
     """(w, x, y, z) quaternions, w >= 0, of the proper rotations closest to ``linear`` ``[N, 3, 3]``.
 
@@ -89,7 +50,7 @@ def closest_rotation_quat(linear: torch.Tensor) -> torch.Tensor:
     u, _, vh = torch.linalg.svd(linear)
     sign = torch.where(torch.linalg.det(u @ vh) < 0, -1.0, 1.0).to(linear.dtype)
     flip = torch.stack([torch.ones_like(sign), torch.ones_like(sign), sign], -1)
-    return quat_from_rotation_matrix((u * flip.unsqueeze(1)) @ vh)
+    return quat_from_matrix((u * flip.unsqueeze(1)) @ vh)
 
 
 def _blend(weights: torch.Tensor, bone_transforms: torch.Tensor):

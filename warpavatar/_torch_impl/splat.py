@@ -13,7 +13,9 @@ import math
 
 import torch
 
-__all__ = ["rasterize_gaussians", "project_gaussians", "sh_basis"]
+from warpavatar.geometry import quat_to_matrix, sh_basis
+
+__all__ = ["rasterize_gaussians", "project_gaussians"]
 
 TILE_SIZE = 16
 NEAR_PLANE = 0.01
@@ -23,52 +25,6 @@ RADIUS_SIGMAS = 3.33
 ALPHA_THRESHOLD = 1.0 / 255.0
 ALPHA_MAX = 0.999
 TRANSMITTANCE_MIN = 1e-4
-
-
-def _quat_to_rotation(quats: torch.Tensor) -> torch.Tensor:
-    """[N, 4] (w, x, y, z) quaternions, normalized here, to [N, 3, 3] rotation matrices."""
-    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
-    rows = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]  # fmt: skip
-    return torch.stack(rows, dim=-1).reshape(quats.shape[:-1] + (3, 3))
-
-
-def sh_basis(degree: int, directions: torch.Tensor) -> torch.Tensor:
-    """Real spherical-harmonics basis up to ``degree`` (0..3) of [N, 3] directions (normalized here).
-
-    Returns [N, (degree + 1) ** 2], ordered as the 3DGS coefficients.
-    """
-    x, y, z = torch.nn.functional.normalize(directions, dim=-1).unbind(-1)
-    basis = [torch.full_like(x, 0.28209479177387814)]
-    if degree >= 1:
-        c1 = 0.4886025119029199
-        basis += [-c1 * y, c1 * z, -c1 * x]
-    if degree >= 2:
-        zz = z * z
-        basis += [
-            1.0925484305920792 * x * y,
-            -1.0925484305920792 * z * y,
-            0.9461746957575601 * zz - 0.31539156525252005,
-            -1.0925484305920792 * z * x,
-            0.5462742152960396 * (x * x - y * y),
-        ]
-    if degree >= 3:
-        c1_, s1 = x * x - y * y, 2 * x * y
-        c2, s2 = x * c1_ - y * s1, x * s1 + y * c1_
-        band = -2.285228997322329 * zz + 0.4570457994644658
-        basis += [
-            -0.5900435899266435 * s2,
-            1.445305721320277 * z * s1,
-            band * y,
-            z * (1.865881662950577 * zz - 1.119528997770346),
-            band * x,
-            1.445305721320277 * z * c1_,
-            -0.5900435899266435 * c2,
-        ]
-    return torch.stack(basis, dim=-1)
 
 
 def project_gaussians(means, quats, scales, K, world_to_camera, width: int, height: int):
@@ -96,7 +52,7 @@ def project_gaussians(means, quats, scales, K, world_to_camera, width: int, heig
         [fx / safe_z, zeros, -fx * tx / safe_z**2, zeros, fy / safe_z, -fy * ty / safe_z**2], dim=-1
     ).reshape(-1, 2, 3)
 
-    transform = rotation @ _quat_to_rotation(quats) * scales[:, None, :]
+    transform = rotation @ quat_to_matrix(torch.nn.functional.normalize(quats, dim=-1)) * scales[:, None, :]
     covariance_camera = transform @ transform.transpose(-1, -2)
     covariance_2d = jacobian @ covariance_camera @ jacobian.transpose(-1, -2)
     a = covariance_2d[:, 0, 0] + BLUR_EPS2D
@@ -136,23 +92,9 @@ def _tile_boxes(means2d: torch.Tensor, radii: torch.Tensor, tiles_x: int, tiles_
     return torch.stack([x0, x1, y0, y1], dim=-1).long()
 
 
-def rasterize_gaussians(
-    means: torch.Tensor,
-    quats: torch.Tensor,
-    scales: torch.Tensor,
-    opacities: torch.Tensor,
-    colors: torch.Tensor,
-    K: torch.Tensor,
-    world_to_camera: torch.Tensor,
-    width: int,
-    height: int,
-    *,
-    background: torch.Tensor | None = None,
-    sh_degree: int | None = None,
-    densify_grad_out: torch.Tensor | None = None,
-    return_info: bool = False,
-):
-    """Reference of :func:`warpavatar.ops.rasterize_gaussians` (same arguments and outputs)."""
+def rasterize_gaussians(means, quats, scales, opacities, colors, K, world_to_camera, width: int, height: int, *,
+                        background=None, sh_degree: int | None = None, densify_grad_out=None, return_info=False):
+    """Reference of :func:`warpavatar.ops.rasterize_gaussians` (same arguments, types and outputs)."""
     device, dtype = means.device, means.dtype
     means2d, conics, depths, radii = project_gaussians(means, quats, scales, K, world_to_camera, width, height)
 

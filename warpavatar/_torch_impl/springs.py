@@ -18,17 +18,8 @@ def _valid_edges(edges: torch.Tensor, node_count: int) -> tuple[torch.Tensor, to
     return valid, edges[valid, 0], edges[valid, 1]
 
 
-def spring_step(
-    x: torch.Tensor,
-    v: torch.Tensor,
-    edges: torch.Tensor,
-    rest_offset: torch.Tensor,
-    stiffness: torch.Tensor,
-    damping: torch.Tensor,
-    mass: torch.Tensor,
-    force: torch.Tensor,
-    dt: float,
-) -> tuple[torch.Tensor, torch.Tensor]:
+def spring_step(x, v, edges, rest_offset, stiffness, damping, mass, force, dt: float
+                ) -> tuple[torch.Tensor, torch.Tensor]:
     """Semi-implicit Euler step: ``a = (F - gamma v - sum_e k_e (x_i - x_j - L_e)) / m``, ``v' = v + dt a``,
     ``x' = x + dt v'``; returns ``(x_next [M, 3], v_next [M, 3])``."""
     valid, receiver, sender = _valid_edges(edges, x.shape[0])
