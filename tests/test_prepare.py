@@ -13,7 +13,6 @@ import cv2
 import numpy as np
 import pytest
 
-from warpavatar.geometry import quat_from_matrix, quat_to_matrix
 from warpavatar.prepare import calibration as calib
 from warpavatar.prepare import skeleton_fit as sf
 from warpavatar.prepare.landmarks import mediapipe_available, person_mask
@@ -585,18 +584,6 @@ def test_fit_skeleton_errors():
         sf.fit_skeleton(np.zeros((2, 33, 3)), np.ones((2, 33)), body=BODY, ray_origins=np.zeros(3))
     with pytest.raises(ValueError, match="must be finite and positive"):
         sf.BodyMeasurements(**{**BODY.__dict__, "thigh": -1.0})
-
-
-def test_rotation_conversions_round_trip():
-    rng = np.random.default_rng(0)
-    rotations = np.stack([_axis_angle(rng.normal(size=3), angle) for angle in np.linspace(0, math.pi, 25)])
-    quaternions = quat_from_matrix(rotations)
-    np.testing.assert_allclose(quat_to_matrix(quaternions), rotations, atol=1e-12)
-    assert (quaternions[:, 0] >= 0).all()
-
-
-# ------------------------------------------------------------------------------------------------------------------
-# Person mask.
 
 
 def test_person_mask_follows_the_tracked_person():
