@@ -134,6 +134,11 @@ class Extension:
     """Name in the registry, the config, the checkpoint and (for its avatar part) the avatar."""
     switch: ClassVar[str] = ""
     """The option that turns it on (``--<switch>`` in kebab-case); its name when empty."""
+    switch_modes: ClassVar[tuple[str, ...]] = ()
+    """When set, the switch takes one of these words instead of on/off (e.g. ``auto``, ``on``, ``off``): ``off``
+    turns the extension off, and its options receive the word in their field named like the switch."""
+    default_mode: ClassVar[str] = ""
+    """The switch's word when nothing sets it (with :attr:`switch_modes`)."""
     title: ClassVar[str] = ""
     """Title of its group of options in ``--help``."""
     summary: ClassVar[str] = ""
@@ -157,6 +162,25 @@ class Extension:
     def switch_name(cls) -> str:
         """The option that turns it on."""
         return cls.switch or cls.name
+
+    @classmethod
+    def switch_default(cls):
+        """The switch's value when nothing sets it: a word of :attr:`switch_modes`, else on or off."""
+        return cls.default_mode if cls.switch_modes else cls.enabled_by_default
+
+    @classmethod
+    def switch_enables(cls, value) -> bool:
+        """Whether a value of the switch turns the extension on.
+
+        Raises:
+            ValueError: a word that is not one of :attr:`switch_modes`.
+        """
+        if not cls.switch_modes:
+            return bool(value)
+        if value not in cls.switch_modes:
+            raise ValueError(f"--{cls.switch_name().replace('_', '-')} must be one of {', '.join(cls.switch_modes)}, "
+                             f"got {value!r}")
+        return value != "off"
 
     @classmethod
     def check(cls, options, config) -> None:

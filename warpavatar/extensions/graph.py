@@ -146,15 +146,15 @@ class NodeGraph(AvatarPart):
         return _BlendNodes.apply(node_displacement.contiguous(), blend, blend_transposed)
 
     def node_displacement(self, bone_transforms: torch.Tensor) -> torch.Tensor:
-        """Canonical displacement [M,3] of every node for a pose [J+E,4,4] (subclasses look it up)."""
+        """Canonical displacement [M,3] of every node for a pose [J,4,4] (subclasses look it up)."""
         raise NotImplementedError
 
     def deform_canonical(self, canonical, bones, frame):
         """Displace the canonical Gaussians (before skinning, without moving where their weights are read) by
         the blend of the nodes' displacements: the frame's explicit input, else :meth:`node_displacement`."""
         displacement = frame.input(self.name)
-        if displacement is None:
-            displacement = self.node_displacement(bones)
+        if displacement is None:  # learned per instant: looked up by the pose as given
+            displacement = self.node_displacement(frame.bone_transforms)
         return canonical.displaced(self.gaussian_displacement(canonical.rest_means, displacement))
 
     def isometry(self, node_displacement: torch.Tensor) -> torch.Tensor:

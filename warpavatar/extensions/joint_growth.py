@@ -260,15 +260,18 @@ class ExtraJoints(AvatarPart):
         identity[:, 0] = 1.0
         return torch.where(matched > 0, rotations, identity)
 
-    def transforms(self, bone_transforms: torch.Tensor, rotations: torch.Tensor | None = None) -> torch.Tensor:
+    def transforms(self, bone_transforms: torch.Tensor, rotations: torch.Tensor | None = None, *,
+                   key_pose: torch.Tensor | None = None) -> torch.Tensor:
         """Skinning transforms [E,4,4] of the grown joints for a pose.
 
         Args:
-            bone_transforms: [J,4,4] the skeleton's rest-to-posed transforms.
+            bone_transforms: [J,4,4] the skeleton's rest-to-posed transforms (the grown joints follow them).
             rotations: [E,4] (w, x, y, z) rotations to use instead of the decoded ones (explicit animation).
+            key_pose: [J,4,4] the pose that says which training instant this is (default ``bone_transforms``;
+                the given pose when another part refined it).
         """
         if rotations is None:
-            rotations = self.rotations_for_pose(bone_transforms)
+            rotations = self.rotations_for_pose(bone_transforms if key_pose is None else key_pose)
         elif rotations.shape != (self.count, 4):
             raise ValueError(f"rotations must have shape [{self.count}, 4] (w, x, y, z), got {list(rotations.shape)}")
         else:
@@ -283,8 +286,9 @@ class ExtraJoints(AvatarPart):
 
     # ---------------------------------------------------------------------------------------- part hooks
     def skinning_transforms(self, bones: torch.Tensor, frame) -> torch.Tensor:
-        """Append the grown joints' transforms; the frame's explicit input, if any, is their rotations [E,4]."""
-        return torch.cat([bones, self.transforms(bones, frame.input(self.name))])
+        """Append the grown joints' transforms; the frame's explicit input, if any, is their rotations [E,4]; without
+        one, the given pose says which training instant's rotations to replay."""
+        return torch.cat([bones, self.transforms(bones, frame.input(self.name), key_pose=frame.bone_transforms)])
 
     def added_joint_parents(self) -> torch.Tensor:
         return self.parents

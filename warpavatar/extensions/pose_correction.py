@@ -89,10 +89,13 @@ class PoseCorrection(AvatarPart):
     def _encode(self, points: torch.Tensor) -> torch.Tensor:
         return box_encoding(points, self.bbox_min, self.bbox_max, self.frequencies)
 
-    def forward(self, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, bone_transforms: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Corrected canonical (means [N,3], unit quats [N,4], scales [N,3]) for this pose."""
-        code = self.frame_code(bone_transforms) if self.frame_codes.shape[0] else None
+    def forward(self, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, bone_transforms: torch.Tensor,
+                *, key_pose: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Corrected canonical (means [N,3], unit quats [N,4], scales [N,3]) for this pose; ``key_pose`` [J,4,4]
+        says which training instant's code applies (default: the pose itself)."""
+        code = None
+        if self.frame_codes.shape[0]:
+            code = self.frame_code(bone_transforms if key_pose is None else key_pose)
         outputs = self._outputs(means, bone_transforms, code)
         if torch.is_grad_enabled():  # a pose without gradients (a refresh, a preview) keeps the training one's
             self.last_outputs = outputs
@@ -103,7 +106,7 @@ class PoseCorrection(AvatarPart):
     def deform_canonical(self, canonical, bones, frame):
         """The corrected canonical Gaussians for this pose (read from the skeleton's transforms in ``bones``)."""
         means, quats, scales = self(canonical.means, canonical.quats, canonical.scales,
-                                    bones[: self.parents.shape[0]])
+                                    bones[: self.parents.shape[0]], key_pose=frame.bone_transforms)
         return canonical.replace(means=means, quats=quats, scales=scales)
 
     def _offset_scale(self) -> torch.Tensor:

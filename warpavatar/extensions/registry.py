@@ -17,9 +17,11 @@ _REGISTRY: dict[str, type[Extension]] = {}
 
 
 def _fields(cls: type[Extension]) -> dict[str, dataclasses.Field]:
+    """The option fields of an extension (its switch's field, with :attr:`Extension.switch_modes`, is not one)."""
     if not dataclasses.is_dataclass(cls.options_type):
         raise TypeError(f"{cls.__name__}.options_type must be a dataclass")
-    return {f.name: f for f in dataclasses.fields(cls.options_type)}
+    return {f.name: f for f in dataclasses.fields(cls.options_type)
+            if not (cls.switch_modes and f.name == cls.switch_name())}
 
 
 def register(cls: type[Extension]) -> type[Extension]:
@@ -37,6 +39,11 @@ def register(cls: type[Extension]) -> type[Extension]:
         raise ValueError(f"an extension called {cls.name!r} is registered already ({_REGISTRY[cls.name].__name__})")
     own = _fields(cls)
     switch = cls.switch_name()
+    if cls.switch_modes:
+        if cls.default_mode not in cls.switch_modes or "off" not in cls.switch_modes:
+            raise ValueError(f"{cls.__name__}: switch_modes must hold 'off' and its default_mode")
+        if switch not in {f.name for f in dataclasses.fields(cls.options_type)}:
+            raise ValueError(f"{cls.__name__}: its options need a field {switch!r} for the switch's word")
     for other in _REGISTRY.values():
         if switch == other.switch_name():
             raise ValueError(f"{cls.__name__} is switched on by {switch!r}, as {other.__name__} is")

@@ -56,9 +56,14 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
     seen: set[str] = set()
     for ext in registered():
         switch = ext.switch_name()
-        main.add_argument("--" + _flag(switch), dest=switch, default=None, action=argparse.BooleanOptionalAction,
-                          help=f"{ext.summary} (default: {default_text(switch, ext.enabled_by_default)})"
-                          .replace("%", "%%"))
+        seen.add(switch)
+        help_text = f"{ext.summary} (default: {default_text(switch, ext.switch_default())})".replace("%", "%%")
+        if ext.switch_modes:
+            main.add_argument("--" + _flag(switch), dest=switch, default=None, choices=ext.switch_modes,
+                              metavar="{" + ",".join(ext.switch_modes) + "}", help=help_text)
+        else:
+            main.add_argument("--" + _flag(switch), dest=switch, default=None,
+                              action=argparse.BooleanOptionalAction, help=help_text)
         for f in fields(ext.options_type):
             if f.metadata["product"] and f.name not in seen:
                 seen.add(f.name)

@@ -159,9 +159,13 @@ class FitConfig:
             raise ValueError(f"unknown config fields: {unknown}")
         extensions = {}
         for ext in registered():
-            if values.get(ext.switch_name(), ext.enabled_by_default):
+            switch = values.get(ext.switch_name(), ext.switch_default())
+            if ext.switch_enables(switch):
                 names = {f.name for f in fields(ext.options_type)}
-                extensions[ext.name] = ext.options_type(**{k: v for k, v in values.items() if k in names})
+                chosen = {k: v for k, v in values.items() if k in names}
+                if ext.switch_modes:
+                    chosen[ext.switch_name()] = switch
+                extensions[ext.name] = ext.options_type(**chosen)
         return cls(**{k: v for k, v in values.items() if k in core}, extensions=extensions)
 
     def enabled(self, name: str) -> bool:
@@ -198,9 +202,11 @@ def _flag(name: str) -> str:
 
 
 def option_owners() -> dict[str, list]:
-    """Each extension option's name -> the extensions that have it (two for a shared option)."""
+    """Each extension option's name -> the extensions that have it (two for a shared option); an extension's
+    field that holds its switch's word is the switch, not an option."""
     owners: dict[str, list] = {}
     for ext in registered():
         for f in fields(ext.options_type):
-            owners.setdefault(f.name, []).append(ext)
+            if not (ext.switch_modes and f.name == ext.switch_name()):
+                owners.setdefault(f.name, []).append(ext)
     return owners
