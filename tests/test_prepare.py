@@ -615,6 +615,7 @@ def _validate_folder(folder: Path, *, expected_frames: int) -> dict:
     cameras = json.loads((folder / "cameras.json").read_text())
     skeleton = json.loads((folder / "skeleton.json").read_text())
     meta = json.loads((folder / "meta.json").read_text())
+    assert meta["poses"] == "estimated"  # so that warpavatar-fit --refine-poses auto refines them
     poses = np.load(folder / "poses.npz")
     transforms = poses["bone_transforms"]
     frame_ids = poses["frame_ids"]

@@ -18,7 +18,7 @@ import numpy as np
 
 from warpavatar.data.checks import (VideoFolderError, check_intrinsics, check_rigid, float_array, listed,
                                     positive_int, read_json, read_npz, require_mapping)
-from warpavatar.data.types import DEFAULT_FPS, Camera, Skeleton, Subject, VideoFolder
+from warpavatar.data.types import DEFAULT_FPS, POSE_SOURCES, Camera, Skeleton, Subject, VideoFolder
 
 __all__ = ["FRAME_EXTENSIONS", "load_video_folder", "load_subject", "LazyVideoFolders", "demo_subject_path",
            "read_skeleton", "read_image"]
@@ -163,6 +163,9 @@ def _read_meta(path: Path) -> tuple[dict, np.ndarray, float]:
     fps = meta.get("fps", DEFAULT_FPS)
     if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps) or fps <= 0:
         raise VideoFolderError(path, f"'fps' must be a positive finite number, got {fps!r}")
+    if meta.get("poses", POSE_SOURCES[0]) not in POSE_SOURCES:
+        raise VideoFolderError(path, f"'poses' must be one of {', '.join(map(repr, POSE_SOURCES))}, "
+                                     f"got {meta['poses']!r}")
     background = meta.get("background")
     if background is None:
         background = np.zeros(3)

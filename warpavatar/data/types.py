@@ -16,7 +16,8 @@ import numpy as np
 
 from warpavatar.data.checks import VideoFolderError, float_array, listed, require_mapping
 
-__all__ = ["SKELETON_FORMAT", "DEFAULT_FPS", "Skeleton", "Camera", "VideoFolder", "Subject"]
+__all__ = ["SKELETON_FORMAT", "DEFAULT_FPS", "ESTIMATED_POSES", "POSE_SOURCES", "Skeleton", "Camera", "VideoFolder",
+           "Subject"]
 
 
 SKELETON_FORMAT = "warpavatar-skeleton/1"
@@ -24,6 +25,13 @@ SKELETON_FORMAT = "warpavatar-skeleton/1"
 
 DEFAULT_FPS = 30.0
 """Frames per second of a folder whose meta.json does not say."""
+
+ESTIMATED_POSES = "estimated"
+"""meta.json's ``"poses"`` of a folder whose poses were estimated from its images (``warpavatar-prepare``): not
+exact, so a fit refines them (``--refine-poses auto``)."""
+
+POSE_SOURCES = ("exact", ESTIMATED_POSES)
+"""The values meta.json's ``"poses"`` may take; a folder that does not say has exact poses (rendered, captured)."""
 
 
 @dataclass

@@ -8,6 +8,7 @@ state. The registry holds them in the order their hooks run; :func:`register` ad
 
 Built in, in hook order:
 
+- ``pose_refinement`` (``--refine-poses auto|on|off``): per-training-frame corrections of the given poses.
 - ``joint_growth`` (``--grow-joints``): ToMiE's skeleton growth.
 - ``backward_mapping`` (``--backward-mapping``): TAGA's backward mapping and cycle losses.
 - ``pose_correction`` (``--pose-correction``): a pose-conditioned correction of the canonical Gaussians.
@@ -22,13 +23,14 @@ from warpavatar.extensions.dynamics import DynamicsExtension
 from warpavatar.extensions.joint_growth import JointGrowthExtension
 from warpavatar.extensions.lighting import LightingExtension
 from warpavatar.extensions.pose_correction import PoseCorrectionExtension
+from warpavatar.extensions.pose_refinement import PoseRefinementExtension
 from warpavatar.extensions.registry import get_extension, load_entry_points, register, registered, unregister
 from warpavatar.extensions.secondary_motion import SecondaryMotionExtension
 
 __all__ = ["Extension", "FitContext", "StepContext", "LossTerm", "NoOptions", "option", "register", "unregister",
            "registered", "get_extension", "load_entry_points"]
 
-for _extension in (JointGrowthExtension, BackwardMappingExtension, PoseCorrectionExtension,
+for _extension in (PoseRefinementExtension, JointGrowthExtension, BackwardMappingExtension, PoseCorrectionExtension,
                    SecondaryMotionExtension, DynamicsExtension, LightingExtension):
     register(_extension)
 load_entry_points()

@@ -17,15 +17,18 @@ One training step calls, in this order::
       ... backward ...
     after_backward(step)        gradients are there (pool them, make them sparse, ...)
       ... optimizers step ...
+    after_step(step)            parameters may be projected onto constraints
 
 When density control clones, splits and prunes Gaussians, it calls ``before_densify(visible_count)`` while the
 old Gaussians still exist, then ``on_gaussians_renumbered(source_index)``. At the end ``finish()`` runs before
-the avatar is written; ``state_dict``/``load_state_dict`` carry everything a resumed fit needs.
+the avatar is written and ``write_outputs(folder)`` after; ``state_dict``/``load_state_dict`` carry everything
+a resumed fit needs.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, ClassVar, NamedTuple
 
 import torch
@@ -208,6 +211,9 @@ class Extension:
     def after_backward(self, step: StepContext) -> None:
         """The gradients of this step exist; the optimizers have not stepped yet."""
 
+    def after_step(self, step: StepContext) -> None:
+        """The optimizers have stepped (project parameters onto constraints here)."""
+
     def before_densify(self, visible_count: torch.Tensor) -> None:
         """Density control is about to renumber the Gaussians; ``visible_count`` [N]: steps each was seen in
         since the last round."""
@@ -222,6 +228,9 @@ class Extension:
 
     def finish(self) -> None:
         """The fit is over; runs before the avatar is written."""
+
+    def write_outputs(self, folder: Path) -> None:
+        """Write this extension's own files into the fit's output folder (after the avatar)."""
 
     def summary_lines(self) -> list[str]:
         """What ``warpavatar-fit`` prints about this extension at the end."""

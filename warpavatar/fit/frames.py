@@ -28,7 +28,7 @@ class TrainingFrames:
         device: the training device.
 
     Attributes:
-        indices: [T] the frames' rows in the video folder.
+        indices: [T] the frames' rows in the video folder; ``frame_ids`` [T] their frame numbers.
         images: [T,H,W,3] uint8; ``masks``: [T,H,W] uint8 or None.
         bone_transforms: [T,J,4,4] float32 rest-to-posed transforms.
         intervals: [T] seconds from each frame to the one before (:func:`~warpavatar.model.parts.frame_intervals`),
@@ -52,6 +52,7 @@ class TrainingFrames:
         self.bone_transforms = torch.as_tensor(video.bone_transforms[self.indices], dtype=torch.float32,
                                                device=device)
         frame_ids = video.frame_ids[self.indices]
+        self.frame_ids = frame_ids
         self.intervals = frame_intervals(frame_ids, video.fps).to(device)
         self.seconds = self.intervals.tolist()  # the same on the host: no device read per step
         self.times = torch.as_tensor(frame_ids, dtype=torch.float32, device=device) / float(video.fps)

@@ -153,6 +153,8 @@ class Trainer:
             extension.after_backward(step)
         for optimizer in optimizers:
             optimizer.step()
+        for extension in self.extensions:
+            extension.after_step(step)
         self.density.accumulate(grad_out, info["radii"], camera)
         self.density.after_step(number, self.gaussians, self.extensions)
         self.step += 1
@@ -253,6 +255,8 @@ class Trainer:
             extension.finish()
         self.avatar.save(self.output_dir / "avatar.pt", config=self.config.to_dict())
         write_canonical_ply(self.gaussians, self.output_dir / "canonical.ply")
+        for extension in self.extensions:
+            extension.write_outputs(self.output_dir)
         self.save_checkpoint()
         write_previews(self.avatar, self.frames, self.output_dir / "previews", count=self.config.preview_frames)
 

@@ -78,11 +78,16 @@ class Avatar(torch.nn.Module):
         self.shading_origin: torch.Tensor | None = None
 
     # ------------------------------------------------------------------------------------------------ parts
-    def add_part(self, part: AvatarPart) -> AvatarPart:
-        """Attach a part under its name (replacing one of the same name)."""
+    def add_part(self, part: AvatarPart, *, first: bool = False) -> AvatarPart:
+        """Attach a part under its name (replacing one of the same name), after the others or, with ``first``,
+        before them (a part that refines the skeleton's pose must act before the parts that build on it)."""
         if not part.name:
             raise ValueError(f"{type(part).__name__} has no name")
-        self.parts[part.name] = part
+        if first:
+            others = [(name, other) for name, other in self.parts.items() if name != part.name]
+            self.parts = torch.nn.ModuleDict([(part.name, part), *others])
+        else:
+            self.parts[part.name] = part
         return part
 
     def part(self, name: str) -> AvatarPart | None:
@@ -123,18 +128,19 @@ class Avatar(torch.nn.Module):
         """
         return self._skinning_transforms(self._frame(bone_transforms, None, inputs))
 
-    def _frame(self, bone_transforms: torch.Tensor, frame_index: int | None,
-               inputs: Mapping[str, Any] | None) -> PoseFrame:
-        if bone_transforms.shape != (self.joint_count, 4, 4):
-            raise ValueError(f"bone_transforms must have shape [{self.joint_count}, 4, 4] for this avatar's "
-                             f"skeleton, got {list(bone_transforms.shape)}")
+    def _frame(self, bone_transforms: torch.Tensor, frame_index: int | None, inputs: Mapping[str, Any] | None,
+               skeleton_pose: torch.Tensor | None = None) -> PoseFrame:
+        for name, pose in (("bone_transforms", bone_transforms), ("skeleton_pose", skeleton_pose)):
+            if pose is not None and pose.shape != (self.joint_count, 4, 4):
+                raise ValueError(f"{name} must have shape [{self.joint_count}, 4, 4] for this avatar's skeleton, "
+                                 f"got {list(pose.shape)}")
         if inputs and not set(inputs) <= set(self.parts.keys()):
             raise ValueError(f"inputs for parts this avatar does not have: {sorted(set(inputs) - set(self.parts))} "
                              f"(its parts: {', '.join(self.parts) or 'none'})")
-        return PoseFrame(bone_transforms, frame_index, inputs or {})
+        return PoseFrame(bone_transforms, frame_index, inputs or {}, skeleton_pose)
 
     def _skinning_transforms(self, frame: PoseFrame) -> torch.Tensor:
-        bones = frame.bone_transforms
+        bones = frame.bone_transforms if frame.skeleton_pose is None else frame.skeleton_pose
         for part in self.parts.values():
             bones = part.skinning_transforms(bones, frame)
         return bones
@@ -170,7 +176,8 @@ class Avatar(torch.nn.Module):
 
     # ----------------------------------------------------------------------------------------------- posing
     def pose(self, bone_transforms: torch.Tensor, *, sh_degree: int | None = None, frame_index: int | None = None,
-             grid: torch.Tensor | None = None, inputs: Mapping[str, Any] | None = None) -> PosedGaussians:
+             grid: torch.Tensor | None = None, inputs: Mapping[str, Any] | None = None,
+             skeleton_pose: torch.Tensor | None = None) -> PosedGaussians:
         """Pose the canonical Gaussians.
 
         Args:
@@ -179,10 +186,12 @@ class Avatar(torch.nn.Module):
             frame_index: index of the frame in its prepared sequence, for parts that keep state over time.
             grid: precomputed skinning grid (:meth:`VoxelSkinningField.grid_weights`), to share across calls.
             inputs: explicit inputs of parts by part name (see :class:`~warpavatar.model.parts.PoseFrame`).
+            skeleton_pose: [J,4,4] the skeleton's transforms to skin with, while ``bone_transforms`` still says
+                which instant this is (test-time pose refinement).
         """
         gaussians = self.gaussians
         degree = gaussians.sh_degree if sh_degree is None else min(sh_degree, gaussians.sh_degree)
-        frame = self._frame(bone_transforms, frame_index, inputs)
+        frame = self._frame(bone_transforms, frame_index, inputs, skeleton_pose)
         bones = self._skinning_transforms(frame)
         canonical = CanonicalGaussians(means=gaussians.means, quats=gaussians.normalized_quats,
                                        scales=gaussians.scales, offset=None, rest_means=gaussians.means)
@@ -202,19 +211,20 @@ class Avatar(torch.nn.Module):
     def render(self, camera, bone_transforms: torch.Tensor, *, background: torch.Tensor | None = None,
                sh_degree: int | None = None, frame_index: int | None = None, grid: torch.Tensor | None = None,
                densify_grad_out: torch.Tensor | None = None, return_info: bool = False,
-               inputs: Mapping[str, Any] | None = None):
+               inputs: Mapping[str, Any] | None = None, skeleton_pose: torch.Tensor | None = None):
         """Render the avatar in a pose through a camera (:meth:`pose`, then :meth:`rasterize`).
 
         Args:
             camera: object with ``K`` [3,3], ``world_to_camera`` [4,4] (numpy or torch), ``width``, ``height``.
             bone_transforms: [J,4,4] pose.
             background: [3] colour in 0..1 (default black).
-            inputs: see :meth:`pose`.
+            inputs, skeleton_pose: see :meth:`pose`.
 
         Returns:
             ``(image [H,W,3], alpha [H,W], depth [H,W])``, plus the rasterizer's info dict when ``return_info``.
         """
-        posed = self.pose(bone_transforms, sh_degree=sh_degree, frame_index=frame_index, grid=grid, inputs=inputs)
+        posed = self.pose(bone_transforms, sh_degree=sh_degree, frame_index=frame_index, grid=grid, inputs=inputs,
+                          skeleton_pose=skeleton_pose)
         return self.rasterize(posed, camera, background=background, densify_grad_out=densify_grad_out,
                               return_info=return_info)
 

@@ -65,15 +65,19 @@ class PoseFrame:
     """What posing one frame is told.
 
     Attributes:
-        bone_transforms: [J,4,4] the skeleton's rest-to-posed transforms.
+        bone_transforms: [J,4,4] the skeleton's rest-to-posed transforms as given: what says which instant this
+            is (parts look up what they learned per training instant by it).
         frame_index: index of the frame in the prepared sequence (None outside one).
         inputs: explicit inputs of parts for this frame, by part name (e.g. the state a fit is training, or
             rotations a user gives grown joints); a part without one looks its state up itself.
+        skeleton_pose: [J,4,4] the skeleton's transforms to skin with instead of ``bone_transforms`` (a pose
+            refined for this frame at test time), or None.
     """
 
     bone_transforms: torch.Tensor
     frame_index: int | None = None
     inputs: Mapping[str, Any] = field(default_factory=dict)
+    skeleton_pose: torch.Tensor | None = None
 
     def input(self, name: str) -> Any | None:
         """The explicit input for part ``name``, or None."""

@@ -20,6 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from warpavatar.data.types import ESTIMATED_POSES
 from warpavatar.data.writer import save_npz, staged_folder, write_json, write_png
 from warpavatar.prepare.calibration import CameraCalibration, match_cameras, read_calibration
 from warpavatar.prepare.skeleton_fit import (
@@ -282,6 +283,7 @@ def _write_folder(track: _Track, fit: SkeletonFit, *, meta: dict) -> dict:
         "fps": round(track.fps, 6),
         "source": track.source,
         "camera": track.name,
+        "poses": ESTIMATED_POSES,  # estimated from the images: --refine-poses auto refines them while fitting
         "frame_ids_step": int(rows[1] - rows[0]) if rows.size > 1 else 1,
         "video_rotation_deg": track.rotation_deg,
         "reprojection_error_px": _error_summary(errors),

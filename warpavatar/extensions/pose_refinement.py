@@ -1,0 +1,287 @@
+"""Refining the given poses while fitting (``--refine-poses``): a learned correction of every training frame's pose.
+
+Poses estimated from a real video (``warpavatar-prepare``) are off by several degrees per joint and centimetres
+at the root; a fit that trusts them exactly blurs the avatar to cover the disagreement. As the avatar methods
+that work on real monocular video do (InstantAvatar, GART, 3DGS-Avatar), each training frame ``t`` gets a
+learned correction, zero at the start:
+
+* a rotation ``exp([d_tj])`` (axis-angle ``d_tj`` [rad]) of every joint ``j`` in its own posed frame, composed
+  after its given rotation relative to its parent, so the joints below it follow;
+* a translation ``u_t`` [world units] of the root(s).
+
+Each step's images move the corrections of the step's frame; every step also pulls all frames' corrections
+towards zero (the given pose) and penalizes the refined motion's acceleration per video frame (estimation noise
+is rough in time, motion mostly is not), which is what constrains what one camera cannot see (a limb turned
+towards or away from it). After each step the corrections' mean over all frames is removed: a correction shared
+by every frame is one the canonical shape can take up just as well, so only frame-to-frame errors are corrected.
+
+The corrected skinning transforms are rebuilt down the skeleton
+(:func:`warpavatar.model.kinematics.corrected_transforms`): a joint keeps its pivot's offset from its parent's,
+expressed in the parent's frame, so the skeleton stays rigid. A pose equal to a training frame's (a novel view
+of a training instant, the training motion replayed or exported) gets that frame's refined pose; any other
+pose is used as given.
+
+``--refine-poses auto`` (the default) refines the poses of folders whose ``meta.json`` says they are estimated
+(``"poses": "estimated"``, written by ``warpavatar-prepare``) and trusts the others; ``on`` and ``off`` force it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from warpavatar.data.types import ESTIMATED_POSES
+from warpavatar.extensions.base import Extension, LossTerm, option
+from warpavatar.geometry import match_pose
+from warpavatar.model.kinematics import ancestor_jumps, corrected_transforms
+from warpavatar.model.parts import AvatarPart
+
+__all__ = ["PoseRefinement", "PoseRefinementOptions", "PoseRefinementExtension"]
+
+
+def _acceleration(values: torch.Tensor, gaps: torch.Tensor) -> torch.Tensor:
+    """Second derivatives in time [per video frame squared] of samples ``values`` [T,...] taken ``gaps`` [T-1]
+    video frames apart (unequal spacing allowed), at the T-2 inner samples."""
+    gaps = gaps.reshape(-1, *([1] * (values.dim() - 1)))
+    slopes = (values[1:] - values[:-1]) / gaps
+    return (slopes[1:] - slopes[:-1]) * (2.0 / (gaps[1:] + gaps[:-1]))
+
+
+class PoseRefinement(AvatarPart):
+    """Per-training-frame corrections of the given poses (see the module docstring).
+
+    Args:
+        frame_poses: [T,J,4,4] the training frames' given poses, in the order of the corrections.
+        heads: [J,3] rest-pose pivots [world units].
+        parents: [J] parent index of each joint.
+        frame_ids: [T] the frames' numbers (for the exported poses).
+    """
+
+    name = "pose_refinement"
+
+    def __init__(self, frame_poses: torch.Tensor, heads: torch.Tensor, parents: torch.Tensor,
+                 frame_ids: torch.Tensor):
+        super().__init__()
+        frame_count, joint_count = frame_poses.shape[:2]
+        self.register_buffer("frame_poses", frame_poses.detach().float().clone())
+        self.register_buffer("heads", torch.as_tensor(heads, dtype=torch.float32).clone())
+        self.register_buffer("parents", torch.as_tensor(parents).long().clone())
+        self.register_buffer("frame_ids", torch.as_tensor(frame_ids).long().clone())
+        self.rotation = torch.nn.Parameter(torch.zeros(frame_count, joint_count, 3, device=self.frame_poses.device))
+        self.translation = torch.nn.Parameter(torch.zeros(frame_count, 3, device=self.frame_poses.device))
+        self._jumps = ancestor_jumps(self.parents.tolist(), device=self.frame_poses.device)
+        self._table: tuple[tuple[int, int, torch.device], torch.Tensor] | None = None
+
+    @property
+    def joint_count(self) -> int:
+        return int(self.parents.shape[0])
+
+    def _apply(self, fn, recurse=True):  # keep the ancestor tables on the module's device
+        module = super()._apply(fn, recurse)
+        self._jumps = [fn(jump) for jump in self._jumps]
+        self._table = None
+        return module
+
+    def refined(self, index: int | torch.Tensor | slice) -> torch.Tensor:
+        """The refined pose [J,4,4] of training frame ``index`` ([K,J,4,4] for a slice), differentiable."""
+        return corrected_transforms(self.frame_poses[index], self.heads, self._jumps, self.rotation[index],
+                                    self.translation[index])
+
+    @torch.no_grad()
+    def refined_poses(self) -> torch.Tensor:
+        """Every training frame's refined pose [T,J,4,4], computed once per change of the corrections."""
+        key = (self.rotation._version, self.translation._version, self.rotation.device)
+        if self._table is None or self._table[0] != key:
+            self._table = (key, torch.stack([self.refined(t) for t in range(self.frame_poses.shape[0])]))
+        return self._table[1]
+
+    def skinning_transforms(self, bones: torch.Tensor, frame) -> torch.Tensor:
+        """The skeleton's transforms refined: the frame's explicit input is a training frame's index, or the
+        refined pose [J,4,4] itself (a fit); without one, a training instant's refined pose is looked up. A frame
+        posed with an explicit skeleton pose (``PoseFrame.skeleton_pose``, test-time refinement) keeps it."""
+        if frame.skeleton_pose is not None:
+            return bones
+        choice = frame.input(self.name)
+        joints = self.joint_count
+        if isinstance(choice, torch.Tensor):  # a fit passes the refined pose it is training
+            skeleton = choice
+        elif choice is not None:
+            skeleton = self.refined(int(choice)) if torch.is_grad_enabled() else self.refined_poses()[int(choice)]
+        else:
+            best, matched = match_pose(self.frame_poses, frame.bone_transforms)
+            skeleton = torch.where(matched > 0, self.refined_poses()[best], bones[:joints])
+        return torch.cat([skeleton, bones[joints:]])
+
+    def corrections(self) -> dict[str, torch.Tensor]:
+        """Per training frame [T]: mean correction angle over the joints [deg] and root offset [world units]."""
+        with torch.no_grad():
+            angles = torch.rad2deg(self.rotation.norm(dim=-1)).mean(-1)
+            return {"angle_deg": angles, "root_offset": self.translation.norm(dim=-1)}
+
+    def write_poses(self, path: str | Path) -> None:
+        """The refined training poses as a poses.npz of docs/FORMAT.md (bone_transforms, frame_ids,
+        joint_positions: the posed pivots)."""
+        poses = self.refined_poses().cpu()
+        pivots = (poses[:, :, :3, :3] @ self.heads.cpu()[None, :, :, None])[..., 0] + poses[:, :, :3, 3]
+        with open(path, "wb") as stream:
+            np.savez_compressed(stream, bone_transforms=poses.numpy().astype(np.float32),
+                                frame_ids=self.frame_ids.cpu().numpy().astype(np.int32),
+                                joint_positions=pivots.numpy().astype(np.float32))
+
+    @classmethod
+    def from_file_state(cls, state: dict, *, device="cpu") -> "PoseRefinement":
+        weights = state["state_dict"]
+        part = cls(weights["frame_poses"], weights["heads"], weights["parents"], weights["frame_ids"])
+        part.load_state_dict(weights)
+        return part.to(device)
+
+
+@dataclass
+class PoseRefinementOptions:
+    refine_poses: str = option("auto", "when to refine the training poses (see --refine-poses)",
+                               choices=("auto", "on", "off"))
+    refine_poses_from: int = option(1000, "first step that refines the poses (the Gaussians take shape before: "
+                                    "pose gradients of a blurred avatar mislead)")
+    lr_pose_rotation: float = option(2e-3, "Adam learning rate of the joints' correction angles [rad]")
+    lr_pose_translation: float = option(1e-3, "Adam learning rate of the root's correction, times the canonical "
+                                        "extent")
+    lambda_pose_prior: float = option(3.0, "weight of the mean squared correction over all frames and joints "
+                                      "(angles in rad, the root's offset in units of the canonical extent): "
+                                      "keeps the poses near the given ones where the images do not need otherwise")
+    lambda_pose_smooth: float = option(1.0, "weight of the refined motion's mean squared acceleration over all "
+                                       "frames (joints' positions in units of the canonical extent, and "
+                                       "rotation matrices, per video frame squared, from the frame numbers of the "
+                                       "neighbouring training frames): estimation noise is not smooth in time, "
+                                       "motion mostly is; the prior fades where training frames lie far apart")
+
+    def __post_init__(self):
+        for name in ("lr_pose_rotation", "lr_pose_translation", "lambda_pose_prior", "lambda_pose_smooth"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
+        if self.refine_poses_from < 0:
+            raise ValueError(f"refine_poses_from must be non-negative, got {self.refine_poses_from}")
+
+
+class PoseRefinementExtension(Extension):
+    """Refines each training frame's pose with the avatar: Adam on the corrections from ``refine_poses_from`` on
+    (learning rates decaying to a tenth by the last step), the step's frame pulled by its images, every frame
+    pulled towards its given pose and towards a motion smooth in time."""
+
+    name = "pose_refinement"
+    switch = "refine_poses"
+    switch_modes = ("auto", "on", "off")
+    default_mode = "auto"
+    title = "pose refinement (--refine-poses)"
+    summary = ("refine every training frame's pose (each joint's rotation, the root's position) with the avatar: "
+               "'auto' does it when meta.json says the poses are estimated (warpavatar-prepare writes so), 'on' "
+               "and 'off' force it; the refined poses are saved (poses_refined.npz) and novel views and replays "
+               "of training instants use them")
+    options_type = PoseRefinementOptions
+    presets = {"quick": {"refine_poses_from": 400}}
+    part: PoseRefinement | None = None
+
+    def attach(self) -> None:
+        fit = self.fit
+        meta = getattr(fit.frames.video, "meta", {}) or {}
+        self.estimated = meta.get("poses") == ESTIMATED_POSES
+        if self.options.refine_poses == "auto" and not self.estimated:
+            return  # exact poses (a rendered subject): nothing to refine
+        skeleton = fit.frames.skeleton
+        part = PoseRefinement(fit.frames.bone_transforms, torch.as_tensor(skeleton.heads, dtype=torch.float32),
+                              torch.as_tensor(skeleton.parents), torch.as_tensor(fit.frames.frame_ids))
+        self.part = fit.avatar.add_part(part.to(fit.device), first=True)
+        ids = torch.as_tensor(np.asarray(fit.frames.frame_ids, dtype=np.float32), device=fit.device)
+        # video frames between consecutive training frames (1 where none was skipped) [T-1]: the acceleration
+        # is measured per video frame, so the smoothness prior fades where training frames lie far apart in time
+        self.gaps = (ids[1:] - ids[:-1]).abs().clamp(min=1.0)
+        self.base_lr = (self.options.lr_pose_rotation, self.options.lr_pose_translation * fit.extent)
+        self.optimizer = torch.optim.Adam([{"params": [part.rotation], "lr": self.base_lr[0]},
+                                           {"params": [part.translation], "lr": self.base_lr[1]}])
+
+    def _training(self, step) -> bool:
+        return self.part is not None and step.step >= self.options.refine_poses_from
+
+    def begin_step(self, step) -> None:
+        if self.part is None:
+            return
+        training = self._training(step)
+        self.part.requires_grad_(training)
+        if training:  # decays exponentially to a tenth by the last step: large moves first, then settle
+            span = max(1, self.fit.config.iterations - self.options.refine_poses_from)
+            decay = 0.1 ** (min(step.step - self.options.refine_poses_from, span) / span)
+            for group, base in zip(self.optimizer.param_groups, self.base_lr):
+                group["lr"] = base * decay
+
+    def frame_input(self, step) -> torch.Tensor | int | None:
+        """The step frame's refined pose [J,4,4] while refining, else its index. While refining, every training
+        frame's refined pose is computed (one batched pass down the skeleton) for the smoothness prior."""
+        self.refined = None
+        if self.part is None:
+            return None
+        if not self._training(step):
+            return step.index
+        self.refined = self.part.refined(slice(None))  # [T,J,4,4]
+        return self.refined[step.index]
+
+    def losses(self, step) -> dict[str, LossTerm]:
+        """The prior (mean squared correction) and the smoothness prior (mean squared acceleration of the refined
+        motion), both averaged over every training frame: each step sees one frame's images but moves every
+        frame's pose towards the priors, so information spreads along the motion at every step."""
+        if self.refined is None:
+            return {}
+        part = self.part
+        scale = 1.0 / self.fit.extent
+        prior = part.rotation.square().sum(-1).mean() + (part.translation * scale).square().sum(-1).mean()
+        terms = {"pose_prior": LossTerm(self.options.lambda_pose_prior, prior)}
+        if self.refined.shape[0] >= 3:  # the refined motion's acceleration: noise is not smooth
+            pivots = ((self.refined[:, :, :3, :3] @ part.heads[:, :, None])[..., 0] + self.refined[:, :, :3, 3]) * scale
+            rotations = self.refined[:, :, :3, :3]
+            smooth = (_acceleration(pivots, self.gaps).square().sum(-1).mean()
+                      + _acceleration(rotations, self.gaps).square().sum((-2, -1)).mean())
+            terms["pose_smooth"] = LossTerm(self.options.lambda_pose_smooth, smooth)
+        return terms
+
+    def optimizers(self, step) -> list[torch.optim.Optimizer]:
+        return [self.optimizer] if self._training(step) else []
+
+    @torch.no_grad()
+    def after_step(self, step) -> None:
+        """Keep the corrections' mean over the training frames at zero: a correction shared by every frame is
+        one the canonical shape can take up just as well (the fit's gauge), so only frame-to-frame errors are
+        corrected and the avatar keeps the given poses' average."""
+        if self._training(step):
+            self.part.rotation.sub_(self.part.rotation.mean(dim=0, keepdim=True))
+            self.part.translation.sub_(self.part.translation.mean(dim=0, keepdim=True))
+
+    def log_values(self) -> dict[str, float]:
+        if self.part is None:
+            return {}
+        corrections = self.part.corrections()
+        return {"pose_correction_deg": float(corrections["angle_deg"].mean()),
+                "pose_root_offset": float(corrections["root_offset"].mean())}
+
+    def write_outputs(self, folder: Path) -> None:
+        if self.part is not None:
+            self.part.write_poses(folder / "poses_refined.npz")
+
+    def summary_lines(self) -> list[str]:
+        if self.part is None:
+            return ["poses used as given: meta.json does not say they are estimated (--refine-poses on refines "
+                    "them anyway)"]
+        corrections = self.part.corrections()
+        return [f"poses refined: {float(corrections['angle_deg'].mean()):.2f} deg per joint and "
+                f"{float(corrections['root_offset'].mean()) * 1000:.1f} mm at the root on average "
+                "(poses_refined.npz)"]
+
+    def state_dict(self) -> dict:
+        if self.part is None:
+            return {}
+        return {"part": self.part.state_dict(), "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        if self.part is not None:
+            self.part.load_state_dict(state["part"])
+            self.optimizer.load_state_dict(state["optimizer"])
