@@ -12,8 +12,10 @@ learned correction, zero at the start:
 Each step's images move the corrections of the step's frame; every step also pulls all frames' corrections
 towards zero (the given pose) and penalizes the refined motion's acceleration per video frame (estimation noise
 is rough in time, motion mostly is not), which is what constrains what one camera cannot see (a limb turned
-towards or away from it). After each step the corrections' mean over all frames is removed: a correction shared
-by every frame is one the canonical shape can take up just as well, so only frame-to-frame errors are corrected.
+towards or away from it); a third prior holds the joints' slow drift along each frame's camera axis, which no
+image of that camera sees, to the given pose. After each step the corrections' mean over all frames is removed:
+a correction shared by every frame is one the canonical shape can take up just as well, so only frame-to-frame
+errors are corrected.
 
 The corrected skinning transforms are rebuilt down the skeleton
 (:func:`warpavatar.model.kinematics.corrected_transforms`): a joint keeps its pivot's offset from its parent's,
@@ -48,6 +50,10 @@ def _acceleration(values: torch.Tensor, gaps: torch.Tensor) -> torch.Tensor:
     gaps = gaps.reshape(-1, *([1] * (values.dim() - 1)))
     slopes = (values[1:] - values[:-1]) / gaps
     return (slopes[1:] - slopes[:-1]) * (2.0 / (gaps[1:] + gaps[:-1]))
+
+
+_DEPTH_WINDOW = 5
+"""Training frames over which the depth prior averages the pivots' moves along the camera axis (odd)."""
 
 
 class PoseRefinement(AvatarPart):
@@ -157,8 +163,15 @@ class PoseRefinementOptions:
                                        "neighbouring training frames): estimation noise is not smooth in time, "
                                        "motion mostly is; the prior fades where training frames lie far apart")
 
+    lambda_pose_depth: float = option(30.0, "weight of the mean squared move of the joints' pivots along each "
+                                      "frame's camera axis, averaged over 5 consecutive training frames (units of "
+                                      "the canonical extent): one camera does not see depth, so a slow drift along "
+                                      "its axis is held to the given pose while frame-to-frame corrections (noise "
+                                      "the smoothness prior removes) stay free")
+
     def __post_init__(self):
-        for name in ("lr_pose_rotation", "lr_pose_translation", "lambda_pose_prior", "lambda_pose_smooth"):
+        for name in ("lr_pose_rotation", "lr_pose_translation", "lambda_pose_prior", "lambda_pose_smooth",
+                     "lambda_pose_depth"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
         if self.refine_poses_from < 0:
@@ -197,6 +210,11 @@ class PoseRefinementExtension(Extension):
         # video frames between consecutive training frames (1 where none was skipped) [T-1]: the acceleration
         # is measured per video frame, so the smoothness prior fades where training frames lie far apart in time
         self.gaps = (ids[1:] - ids[:-1]).abs().clamp(min=1.0)
+        with torch.no_grad():  # the given pivots [T,J,3] (extent units) and each frame's camera axis in the world
+            poses = part.frame_poses
+            pivots = (poses[:, :, :3, :3] @ part.heads[:, :, None])[..., 0] + poses[:, :, :3, 3]
+            self.given_pivots = pivots / fit.extent
+            self.view_axes = torch.stack([camera.world_to_camera[2, :3] for camera in fit.frames.cameras]).float()
         self.base_lr = (self.options.lr_pose_rotation, self.options.lr_pose_translation * fit.extent)
         self.optimizer = torch.optim.Adam([{"params": [part.rotation], "lr": self.base_lr[0]},
                                            {"params": [part.translation], "lr": self.base_lr[1]}])
@@ -236,8 +254,14 @@ class PoseRefinementExtension(Extension):
         scale = 1.0 / self.fit.extent
         prior = part.rotation.square().sum(-1).mean() + (part.translation * scale).square().sum(-1).mean()
         terms = {"pose_prior": LossTerm(self.options.lambda_pose_prior, prior)}
+        pivots = ((self.refined[:, :, :3, :3] @ part.heads[:, :, None])[..., 0] + self.refined[:, :, :3, 3]) * scale
+        if self.options.lambda_pose_depth > 0:  # what each frame's camera cannot see: moves along its axis
+            depth = ((pivots - self.given_pivots) * self.view_axes[:, None, :]).sum(-1)  # [T,J]
+            if depth.shape[0] >= _DEPTH_WINDOW:  # slow drift only: a frame-to-frame correction is free
+                depth = torch.nn.functional.avg_pool1d(depth.T[:, None, :], _DEPTH_WINDOW, stride=1,
+                                                       padding=_DEPTH_WINDOW // 2, count_include_pad=False)[:, 0].T
+            terms["pose_depth"] = LossTerm(self.options.lambda_pose_depth, depth.square().mean())
         if self.refined.shape[0] >= 3:  # the refined motion's acceleration: noise is not smooth
-            pivots = ((self.refined[:, :, :3, :3] @ part.heads[:, :, None])[..., 0] + self.refined[:, :, :3, 3]) * scale
             rotations = self.refined[:, :, :3, :3]
             smooth = (_acceleration(pivots, self.gaps).square().sum(-1).mean()
                       + _acceleration(rotations, self.gaps).square().sum((-2, -1)).mean())

@@ -1,0 +1,62 @@
+"""The alignment of tools/monocular_protocol.py: a similarity transform from skeletons, and calibrated cameras
+carried into the monocular world without changing what they see."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+
+def _tool():
+    path = Path(__file__).resolve().parents[1] / "tools" / "monocular_protocol.py"
+    spec = importlib.util.spec_from_file_location("monocular_protocol", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_similarity_transform_recovers_a_known_one_and_rejects_degenerate_points():
+    tool = _tool()
+    generator = np.random.default_rng(0)
+    points = generator.normal(size=(60, 3))
+    rotation = Rotation.random(random_state=1).as_matrix()
+    mapped = 1.7 * points @ rotation.T + np.array([0.3, -2.0, 5.0])
+    scale, found, translation = tool.similarity_transform(points, mapped)
+    assert scale == pytest.approx(1.7, rel=1e-10)
+    assert np.allclose(found, rotation, atol=1e-10) and np.isclose(np.linalg.det(found), 1.0)
+    assert np.allclose(translation, [0.3, -2.0, 5.0], atol=1e-10)
+    # with noise it is the least-squares fit: the residual is no larger than for the true transform
+    noisy = mapped + 0.05 * generator.normal(size=mapped.shape)
+    scale, found, translation = tool.similarity_transform(points, noisy)
+    fitted = ((scale * points @ found.T + translation - noisy) ** 2).sum()
+    assert fitted <= ((mapped - noisy) ** 2).sum() + 1e-9
+    # a mirror image is not a rotation: the result stays proper
+    _, mirrored, _ = tool.similarity_transform(points, points * np.array([-1.0, 1.0, 1.0]))
+    assert np.isclose(np.linalg.det(mirrored), 1.0)
+    with pytest.raises(ValueError, match="span a plane"):
+        tool.similarity_transform(np.outer(np.arange(5.0), [1.0, 2.0, 3.0]), generator.normal(size=(5, 3)))
+    with pytest.raises(ValueError, match="matching"):
+        tool.similarity_transform(points[:2], mapped[:2])
+
+
+def test_a_camera_carried_into_the_monocular_world_sees_the_same_pixels():
+    tool = _tool()
+    generator = np.random.default_rng(2)
+    rotation, scale, translation = Rotation.random(random_state=3).as_matrix(), 0.8, np.array([1.0, 0.5, -0.2])
+    world_to_camera = np.eye(4)
+    world_to_camera[:3, :3] = Rotation.random(random_state=4).as_matrix()
+    world_to_camera[:3, 3] = [0.1, 0.2, 6.0]
+    K = np.array([[900.0, 0.0, 288.0], [0.0, 900.0, 512.0], [0.0, 0.0, 1.0]])
+    mono_points = 0.5 * generator.normal(size=(20, 3))
+    calibrated_points = scale * mono_points @ rotation.T + translation
+
+    def project(points, w2c):
+        local = points @ w2c[:3, :3].T + w2c[:3, 3]
+        pixels = local @ K.T
+        return pixels[:, :2] / pixels[:, 2:]
+
+    carried = tool.camera_into_monocular_world(world_to_camera, scale, rotation, translation)
+    assert np.allclose(carried[:3, :3] @ carried[:3, :3].T, np.eye(3), atol=1e-12)  # still rigid
+    assert np.allclose(project(mono_points, carried), project(calibrated_points, world_to_camera), atol=1e-9)
