@@ -1,5 +1,8 @@
 """Shared pytest set-up: every kernel test runs once per available device (CPU always, CUDA when present)."""
 
+import importlib.util
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -51,3 +54,12 @@ def small_avatar(skeleton, *, seed: int, per_bone: int, cells: int, distill_step
         field.distillation_loss(prior).backward()
         optimizer.step()
     return Avatar(skeleton, gaussians, field)
+
+
+def load_tool(name: str):
+    """The script ``tools/<name>.py`` as a module (the tools are scripts, not part of the package)."""
+    path = Path(__file__).resolve().parents[1] / "tools" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

@@ -4,8 +4,10 @@ input (each must raise VideoFolderError naming the file), resizing, the video-fi
 import json
 import pickle
 import shutil
+from dataclasses import replace
 
 import cv2
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -109,6 +111,18 @@ def test_demo_subject_loads():
         rows = np.clip(np.round(pixels[..., 1]).astype(int), 0, video.height - 1)
         inside = video.masks[np.arange(video.frame_count)[:, None], rows, columns] > 0
         assert inside.mean() > 0.9, (video.root, inside.mean())
+
+
+def test_a_folder_without_a_declared_background_is_rewritten_without_one(tmp_path):
+    # real footage declares no background: read back and written again it must not gain a black one, which would
+    # make its frames, room and all, a fit's target (--target auto)
+    real = replace(_video(), background=np.zeros(3), meta={"source": "a phone"})
+    first = load_video_folder(write_video_folder(real, tmp_path / "real"))
+    assert "background" not in first.meta
+    again = load_video_folder(write_video_folder(first, tmp_path / "again"))
+    assert "background" not in again.meta and again.background.tolist() == [0.0, 0.0, 0.0]
+    rendered = load_video_folder(write_video_folder(replace(real, meta={"background": [0, 0, 0]}), tmp_path / "r"))
+    assert rendered.meta["background"] == [0.0, 0.0, 0.0]
 
 
 def test_write_and_load_round_trip(folder):

@@ -1,20 +1,14 @@
 """The alignment of tools/monocular_protocol.py: a similarity transform from skeletons, and calibrated cameras
 carried into the monocular world without changing what they see."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
+from conftest import load_tool
 from scipy.spatial.transform import Rotation
 
 
 def _tool():
-    path = Path(__file__).resolve().parents[1] / "tools" / "monocular_protocol.py"
-    spec = importlib.util.spec_from_file_location("monocular_protocol", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("monocular_protocol")
 
 
 def test_similarity_transform_recovers_a_known_one_and_rejects_degenerate_points():

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import load_tool
 from scipy.spatial.transform import Rotation
 
 from warpavatar import data
@@ -178,13 +179,7 @@ def test_corrected_transforms_move_every_root_of_a_forest():
 # --- the pose-noise tool -------------------------------------------------------------------------------------------
 
 def _perturb_tool():
-    import importlib.util
-    from pathlib import Path
-    path = Path(__file__).resolve().parents[1] / "tools" / "perturb_poses.py"
-    spec = importlib.util.spec_from_file_location("perturb_poses", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("perturb_poses")
 
 
 def _local_angles_deg(poses, reference, parents):
@@ -432,3 +427,16 @@ def test_eval_rejects_a_negative_number_of_refinement_steps(tmp_path, capsys):
     assert main([str(tmp_path), str(tmp_path), "--refine-poses", "-3"]) != 0
     error = capsys.readouterr().err.strip()
     assert "--refine-poses" in error and "Traceback" not in error and len(error.splitlines()) == 1
+
+
+def test_evaluation_reports_metrics_with_and_without_test_time_refinement(noisy_fit):
+    from warpavatar.evaluate import evaluate_avatar
+    trainer, _ = noisy_fit
+    held_out = data.load_video_folder(data.demo_subject_path() / "novel_view" / "cam_090", scale=0.5,
+                                      max_frames=2)
+    result = evaluate_avatar(trainer.avatar, held_out, progress=False, refine_steps=3)
+    assert result["refined"]["steps"] == 3
+    for key in ("psnr", "ssim", "psnr_masked", "ssim_masked"):
+        assert math.isfinite(result[key]) and math.isfinite(result["refined"][key])
+        assert all(math.isfinite(frame[f"refined_{key}"]) for frame in result["frames"])
+    assert "refined" not in evaluate_avatar(trainer.avatar, held_out, progress=False)

@@ -1,7 +1,7 @@
 """Real footage measured honestly: fit one camera of a calibrated multi-view video, evaluate on the others.
 
     python tools/monocular_protocol.py DEMO -o OUT [--train-camera cam01] [--preset default] [--device cuda]
-        [--scale 1] [--holdout-every 5] [--eval-refine-steps 0] [fit flags...]
+        [--holdout-every 5] [--eval-refine-steps 0] [--eval-scale 1] [fit flags...]
 
 DEMO holds ``videos/*.mp4`` (synchronized) and ``calibration/`` (one ``.toml`` or ``.qca.txt``), as
 ``../shared/raw/pose2sim_demo`` does. What is done, and why it does not cheat:
@@ -27,6 +27,7 @@ Writes ``OUT/protocol_<modes>.json`` and prints a markdown table.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -156,6 +157,8 @@ def main(argv=None) -> int:
                         help="withhold every n-th instant of the training camera from the fit (default: 5)")
     parser.add_argument("--eval-refine-steps", type=int, default=0,
                         help="also report metrics after this many test-time pose refinement steps (default: 0)")
+    parser.add_argument("--eval-scale", type=float, default=1.0,
+                        help="image scale of the evaluation (default: 1, the prepared frames' size)")
     parser.add_argument("--refine-modes", default="off,on",
                         help="the --refine-poses values to fit and compare, comma-separated (default: off,on)")
     parser.add_argument("--preset", default="default", help="fit preset (default: default)")
@@ -189,9 +192,15 @@ def main(argv=None) -> int:
         prepare_subject([train_video, *others], multi_folder, calibration=calibrations[0],
                         novel_view_stride=args.holdout_every, license_file=licence)
     subject_folder = args.output / "subject"
-    alignment = build_evaluation_subject(data.load_video_folder(mono_folder / "train"), data.load_subject(multi_folder),
-                                         subject_folder, train_camera=args.train_camera,
-                                         holdout_every=args.holdout_every, overwrite=True)
+    made = subject_folder / "alignment.json"
+    alignment = json.loads(made.read_text()) if made.exists() else None
+    if alignment is None or alignment.get("holdout_every") != args.holdout_every:  # (re)make the subject
+        alignment = build_evaluation_subject(data.load_video_folder(mono_folder / "train"),
+                                             data.load_subject(multi_folder), subject_folder,
+                                             train_camera=args.train_camera, holdout_every=args.holdout_every,
+                                             overwrite=True)
+        alignment["holdout_every"] = args.holdout_every
+        write_json_atomic(made, alignment)
     print(f"alignment: scale {alignment['scale']:.4f}, joints {alignment['alignment_rms'] * 1000:.0f} mm rms apart")
     rows = []
     modes = [mode.strip() for mode in args.refine_modes.split(",") if mode.strip()]
@@ -203,7 +212,8 @@ def main(argv=None) -> int:
         trainer = Trainer(subject.train, config, args.output / f"fit_{mode}", device=args.device)
         trainer.fit(progress=False)
         minutes = (time.time() - start) / 60
-        full = data.load_subject(subject_folder) if config.image_scale != 1.0 else subject
+        full = (subject if config.image_scale == args.eval_scale
+                else data.load_subject(subject_folder, scale=args.eval_scale))
         for name, folder in full.novel_view.items():
             result = evaluate_avatar(trainer.avatar, folder, progress=False, refine_steps=args.eval_refine_steps)
             refined = result.get("refined") or {}

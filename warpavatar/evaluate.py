@@ -144,7 +144,10 @@ def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = N
             lpips_available = value is not None
             record["lpips"] = value
         if refine_steps:
-            pose = refine_frame_pose(avatar, video.cameras[t], bones, gt, mask=mask, background=background,
+            target = gt
+            if mask is not None and "background" not in video.meta:  # real footage: the subject, cut out (the
+                target = gt * mask[..., None] + background * (1.0 - mask[..., None])  # fit's target; no room)
+            pose = refine_frame_pose(avatar, video.cameras[t], bones, target, mask=mask, background=background,
                                      steps=refine_steps, grid=grid)
             refined, _, _ = avatar.render(video.cameras[t], bones, background=background, grid=grid,
                                           skeleton_pose=pose)

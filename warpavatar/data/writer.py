@@ -89,7 +89,8 @@ def cameras_json(cameras: list[Camera]) -> dict:
 def write_video_folder(video: VideoFolder, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
     """Write ``video`` as a video folder (PNG frames and masks, JSON and .npz files), atomically.
 
-    ``meta.json`` receives ``video.meta`` with ``fps`` and ``background`` updated from the fields.
+    ``meta.json`` receives ``video.meta`` with ``fps`` and ``background`` updated from the fields (``background``
+    only where the folder declares one or the field is not black: real footage declares none).
 
     Args:
         video: what to write; its ``cameras`` become a fixed camera when they are all equal.
@@ -128,6 +129,9 @@ def write_video_folder(video: VideoFolder, path: str | os.PathLike, *, overwrite
         save_npz(tmp / "poses.npz", **arrays)
         meta = dict(video.meta)
         meta["fps"] = float(video.fps)
-        meta["background"] = [float(value) for value in video.background]
+        if "background" in meta or np.any(np.asarray(video.background) != 0):
+            # only a folder whose frames were rendered over a flat colour declares one: declaring black for real
+            # footage (the field's default) would make its frames, room and all, the fit's target
+            meta["background"] = [float(value) for value in video.background]
         write_json(tmp / "meta.json", meta)
     return destination
