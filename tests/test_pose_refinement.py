@@ -243,6 +243,9 @@ def test_pose_noise_tool_is_exact_in_size_reproducible_and_shared_by_views(tmp_p
     (dict(refine_poses="on", lr_pose_rotation=-1e-3), "lr_pose_rotation"),
     (dict(refine_poses="on", lambda_pose_smooth=float("nan")), "lambda_pose_smooth"),
     (dict(refine_poses="on", refine_poses_from=-5), "refine_poses_from"),
+    (dict(refine_poses="on", refine_poses_until=-1), "refine_poses_until"),
+    (dict(refine_poses="on", refine_poses_from=500, refine_poses_until=300), r"refine_poses_until \(300\) must lie"),
+    (dict(refine_poses="on", iterations=100, refine_poses_from=10, refine_poses_until=200), "the last step"),
 ])
 def test_bad_refinement_options_are_clear_errors(values, match):
     with pytest.raises(ValueError, match=match):
@@ -440,3 +443,21 @@ def test_evaluation_reports_metrics_with_and_without_test_time_refinement(noisy_
         assert math.isfinite(result[key]) and math.isfinite(result["refined"][key])
         assert all(math.isfinite(frame[f"refined_{key}"]) for frame in result["frames"])
     assert "refined" not in evaluate_avatar(trainer.avatar, held_out, progress=False)
+
+
+def test_poses_stay_fixed_after_the_last_refining_step(tmp_path):
+    _perturb_tool().perturb_folder(data.demo_subject_path() / "train", tmp_path / "train", rotation_deg=5.0,
+                                   translation=0.03, seed=2)
+    video = data.load_video_folder(tmp_path / "train", scale=0.5)
+    config = _fit_config(iterations=50, max_train_frames=6, refine_poses_from=10, refine_poses_until=30,
+                         densify_from=20, densify_every=20, densify_until=40, gaussian_only_steps=20,
+                         field_warmup_steps=10)
+    trainer = Trainer(video, config, tmp_path / "fit")
+    trainer.fit(progress=False, stop_at=31)
+    part = trainer.avatar.part("pose_refinement")
+    at_the_last_step = part.rotation.detach().clone()
+    assert at_the_last_step.abs().max() > 1e-4
+    resumed = Trainer(video, config, tmp_path / "fit")
+    resumed.fit(resume=True, progress=False)
+    assert resumed.step == 50
+    assert torch.equal(resumed.avatar.part("pose_refinement").rotation.detach(), at_the_last_step)

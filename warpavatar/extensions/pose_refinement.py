@@ -151,6 +151,8 @@ class PoseRefinementOptions:
                                choices=("auto", "on", "off"))
     refine_poses_from: int = option(1000, "first step that refines the poses (the Gaussians take shape before: "
                                     "pose gradients of a blurred avatar mislead)")
+    refine_poses_until: int = option(0, "last step that refines the poses; the Gaussians finish on them fixed "
+                                     "after it (0: the fit's last step)")
     lr_pose_rotation: float = option(2e-3, "Adam learning rate of the joints' correction angles [rad]")
     lr_pose_translation: float = option(1e-3, "Adam learning rate of the root's correction, times the canonical "
                                         "extent")
@@ -176,6 +178,9 @@ class PoseRefinementOptions:
                 raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
         if self.refine_poses_from < 0:
             raise ValueError(f"refine_poses_from must be non-negative, got {self.refine_poses_from}")
+        if self.refine_poses_until < 0:
+            raise ValueError(f"refine_poses_until must be non-negative (0: the last step), got "
+                             f"{self.refine_poses_until}")
 
 
 class PoseRefinementExtension(Extension):
@@ -195,6 +200,13 @@ class PoseRefinementExtension(Extension):
     options_type = PoseRefinementOptions
     presets = {"quick": {"refine_poses_from": 400}}
     part: PoseRefinement | None = None
+
+    @classmethod
+    def check(cls, options, config) -> None:
+        until = options.refine_poses_until
+        if until and not options.refine_poses_from <= until <= config.iterations:
+            raise ValueError(f"refine_poses_until ({until}) must lie between refine_poses_from "
+                             f"({options.refine_poses_from}) and the last step ({config.iterations}), or be 0")
 
     def attach(self) -> None:
         fit = self.fit
@@ -219,8 +231,11 @@ class PoseRefinementExtension(Extension):
         self.optimizer = torch.optim.Adam([{"params": [part.rotation], "lr": self.base_lr[0]},
                                            {"params": [part.translation], "lr": self.base_lr[1]}])
 
+    def _last_step(self) -> int:
+        return self.options.refine_poses_until or self.fit.config.iterations
+
     def _training(self, step) -> bool:
-        return self.part is not None and step.step >= self.options.refine_poses_from
+        return self.part is not None and self.options.refine_poses_from <= step.step <= self._last_step()
 
     def begin_step(self, step) -> None:
         if self.part is None:
@@ -228,7 +243,7 @@ class PoseRefinementExtension(Extension):
         training = self._training(step)
         self.part.requires_grad_(training)
         if training:  # decays exponentially to a tenth by the last step: large moves first, then settle
-            span = max(1, self.fit.config.iterations - self.options.refine_poses_from)
+            span = max(1, self._last_step() - self.options.refine_poses_from)
             decay = 0.1 ** (min(step.step - self.options.refine_poses_from, span) / span)
             for group, base in zip(self.optimizer.param_groups, self.base_lr):
                 group["lr"] = base * decay
