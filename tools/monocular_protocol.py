@@ -30,6 +30,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -73,10 +74,10 @@ def camera_into_monocular_world(world_to_camera: np.ndarray, scale: float, rotat
     return out
 
 
-def _subset(video, rows, root=None):
-    from dataclasses import replace
+def _subset(video, rows):
+    """The frames ``rows`` of ``video``, as a new VideoFolder."""
     rows = np.asarray(rows, dtype=np.int64)
-    return replace(video, root=root or video.root, frame_ids=video.frame_ids[rows], images=video.images[rows],
+    return replace(video, frame_ids=video.frame_ids[rows], images=video.images[rows],
                    masks=None if video.masks is None else video.masks[rows],
                    cameras=[video.cameras[i] for i in rows], bone_transforms=video.bone_transforms[rows],
                    joint_positions=None if video.joint_positions is None else video.joint_positions[rows])
@@ -95,8 +96,6 @@ def build_evaluation_subject(mono_train, calibrated, output: Path, *, train_came
         ``{"scale", "rotation", "translation", "alignment_rms": [world units of the calibration]}`` and the
         folder names.
     """
-    from dataclasses import replace
-
     from warpavatar import data
 
     cal_train = calibrated.train
@@ -115,7 +114,7 @@ def build_evaluation_subject(mono_train, calibrated, output: Path, *, train_came
 
     held = [row for row, frame in enumerate(mono_train.frame_ids.tolist())
             if holdout_every > 1 and frame % holdout_every == holdout_every // 2]
-    kept = [row for row in range(mono_train.frame_count) if row not in set(held)]
+    kept = sorted(set(range(mono_train.frame_count)) - set(held))
     folders = {"train": _subset(mono_train, kept)}
     if held:
         folders[f"novel_view/{train_camera}_heldout"] = _subset(mono_train, held)
@@ -131,7 +130,7 @@ def build_evaluation_subject(mono_train, calibrated, output: Path, *, train_came
         poses = mono_train.bone_transforms[[mono_rows[f] for f in view.frame_ids.tolist()]]
         folders[f"novel_view/{name}"] = replace(view, cameras=cameras, skeleton=mono_train.skeleton,
                                                 bone_transforms=poses, joint_positions=None,
-                                                meta={**view.meta, **{"poses": mono_train.meta.get("poses")},
+                                                meta={**view.meta, "poses": mono_train.meta.get("poses"),
                                                       "aligned_from_calibration": True})
     with data.staged_folder(output, overwrite=overwrite) as staging:
         for relative, video in folders.items():

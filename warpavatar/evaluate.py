@@ -37,20 +37,21 @@ def write_json_atomic(path: str | os.PathLike, value) -> Path:
 
 def refine_frame_pose(avatar, camera, bone_transforms: torch.Tensor, image: torch.Tensor, *,
                       mask: torch.Tensor | None = None, background: torch.Tensor | None = None, steps: int = 100,
-                      lr_rotation: float = 5e-3, lr_translation: float = 2e-3, grid: torch.Tensor | None = None
-                      ) -> torch.Tensor:
+                      lr_rotation: float = 5e-3, lr_translation: float = 2e-3, lambda_ssim: float = 0.2,
+                      lambda_mask: float = 0.1, grid: torch.Tensor | None = None) -> torch.Tensor:
     """Optimize one frame's skeleton pose against its image with the avatar frozen.
 
     Starts from the pose the avatar uses for the frame (a training instant's refined pose, else the given one)
     and learns a correction of every joint's rotation and of the root's position
-    (:func:`~warpavatar.model.kinematics.corrected_transforms`) by Adam on the fit's photometric loss (L1 and
-    D-SSIM, 0.8 / 0.2) plus the alpha-against-mask term (0.1) when there is a mask.
+    (:func:`~warpavatar.model.kinematics.corrected_transforms`) by Adam on a fit's image loss
+    (:func:`~warpavatar.metrics.image_loss_terms`; the weights default to the fit's defaults).
 
     Args:
         avatar: the fitted avatar (its parameters are not changed).
         camera: the frame's camera; image: [H,W,3] its ground truth in 0..1; mask: [H,W] in 0..1 or None.
         bone_transforms: [J,4,4] the frame's pose as given (it still names the instant for the avatar's parts).
         steps: optimizer steps; lr_rotation [rad] and lr_translation [world units] their Adam learning rates.
+        lambda_ssim, lambda_mask: weights of D-SSIM and of the mask term in the image loss.
         grid: the avatar's skinning grid (computed when None).
 
     Returns:
@@ -76,9 +77,9 @@ def refine_frame_pose(avatar, camera, bone_transforms: torch.Tensor, image: torc
                 pose = corrected_transforms(start, heads, jumps, rotation, translation)
                 render, alpha, _ = avatar.render(camera, bone_transforms, background=background, grid=grid,
                                                  skeleton_pose=pose)
-                loss = 0.8 * (render - image).abs().mean() + 0.2 * (1.0 - metrics.ssim_map(render, image).mean())
-                if mask is not None:
-                    loss = loss + 0.1 * (alpha - mask).abs().mean()
+                terms = metrics.image_loss_terms(render, image, lambda_ssim=lambda_ssim, alpha=alpha, mask=mask,
+                                                 lambda_mask=lambda_mask)
+                loss = sum(weight * value for weight, value in terms.values())
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
@@ -145,8 +146,8 @@ def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = N
             record["lpips"] = value
         if refine_steps:
             target = gt
-            if mask is not None and "background" not in video.meta:  # real footage: the subject, cut out (the
-                target = gt * mask[..., None] + background * (1.0 - mask[..., None])  # fit's target; no room)
+            if mask is not None and not video.declares_background:  # real footage: the subject cut out, as a fit
+                target = gt * mask[..., None] + background * (1.0 - mask[..., None])  # compares (not the room)
             pose = refine_frame_pose(avatar, video.cameras[t], bones, target, mask=mask, background=background,
                                      steps=refine_steps, grid=grid)
             refined, _, _ = avatar.render(video.cameras[t], bones, background=background, grid=grid,

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["psnr", "ssim", "ssim_map", "lpips", "SSIM_WINDOW_SIZE", "SSIM_SIGMA"]
+__all__ = ["psnr", "ssim", "ssim_map", "lpips", "image_loss_terms", "SSIM_WINDOW_SIZE", "SSIM_SIGMA"]
 
 SSIM_WINDOW_SIZE = 11
 """Taps of SSIM's Gaussian window (per axis)."""
@@ -205,6 +205,20 @@ def ssim_map(pred: torch.Tensor, target: torch.Tensor, *, padding: str = "valid"
     if channels_last:
         return values[0].permute(1, 2, 0)
     return values
+
+
+def image_loss_terms(image: torch.Tensor, target: torch.Tensor, *, lambda_ssim: float,
+                     alpha: torch.Tensor | None = None, mask: torch.Tensor | None = None,
+                     lambda_mask: float = 0.0) -> dict[str, tuple[float, torch.Tensor]]:
+    """The image terms a fit minimizes, ``{name: (weight, value)}``: ``l1`` (weight ``1 - lambda_ssim``) and
+    ``dssim`` (1 - SSIM, weight ``lambda_ssim``) of ``image`` against ``target`` [H,W,3], and ``mask`` (L1 of the
+    rendered ``alpha`` against ``mask`` [H,W], weight ``lambda_mask``) when both are given and the weight is
+    positive. Differentiable."""
+    terms = {"l1": (1.0 - lambda_ssim, (image - target).abs().mean()),
+             "dssim": (lambda_ssim, 1.0 - ssim_map(image, target).mean())}
+    if alpha is not None and mask is not None and lambda_mask > 0:
+        terms["mask"] = (lambda_mask, (alpha - mask).abs().mean())
+    return terms
 
 
 def ssim(pred, target, *, mask=None) -> float:

@@ -311,6 +311,17 @@ class VideoFolder:
         return int(self.images.shape[2]) if self.images.ndim == 4 else int(self.cameras[0].width)
 
     @property
+    def declares_background(self) -> bool:
+        """True when meta.json declares the flat colour the frames were rendered over (then each frame, edge pixels
+        and all, is its own ground truth); real footage declares none."""
+        return "background" in self.meta
+
+    @property
+    def poses_estimated(self) -> bool:
+        """True when meta.json says the poses were estimated from the images (:data:`ESTIMATED_POSES`)."""
+        return self.meta.get("poses") == ESTIMATED_POSES
+
+    @property
     def fixed_camera(self) -> bool:
         """True when every frame is seen by the same camera object."""
         return all(camera is self.cameras[0] for camera in self.cameras)

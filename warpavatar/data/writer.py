@@ -129,7 +129,7 @@ def write_video_folder(video: VideoFolder, path: str | os.PathLike, *, overwrite
         save_npz(tmp / "poses.npz", **arrays)
         meta = dict(video.meta)
         meta["fps"] = float(video.fps)
-        if "background" in meta or np.any(np.asarray(video.background) != 0):
+        if video.declares_background or np.any(np.asarray(video.background) != 0):
             # only a folder whose frames were rendered over a flat colour declares one: declaring black for real
             # footage (the field's default) would make its frames, room and all, the fit's target
             meta["background"] = [float(value) for value in video.background]

@@ -35,10 +35,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from warpavatar.data.types import ESTIMATED_POSES
 from warpavatar.extensions.base import Extension, LossTerm, option
 from warpavatar.geometry import match_pose
-from warpavatar.model.kinematics import ancestor_jumps, corrected_transforms
+from warpavatar.model.kinematics import ancestor_jumps, corrected_transforms, posed_pivots
 from warpavatar.model.parts import AvatarPart
 
 __all__ = ["PoseRefinement", "PoseRefinementOptions", "PoseRefinementExtension"]
@@ -101,7 +100,7 @@ class PoseRefinement(AvatarPart):
         """Every training frame's refined pose [T,J,4,4], computed once per change of the corrections."""
         key = (self.rotation._version, self.translation._version, self.rotation.device)
         if self._table is None or self._table[0] != key:
-            self._table = (key, torch.stack([self.refined(t) for t in range(self.frame_poses.shape[0])]))
+            self._table = (key, self.refined(slice(None)))
         return self._table[1]
 
     def skinning_transforms(self, bones: torch.Tensor, frame) -> torch.Tensor:
@@ -131,7 +130,7 @@ class PoseRefinement(AvatarPart):
         """The refined training poses as a poses.npz of docs/FORMAT.md (bone_transforms, frame_ids,
         joint_positions: the posed pivots)."""
         poses = self.refined_poses().cpu()
-        pivots = (poses[:, :, :3, :3] @ self.heads.cpu()[None, :, :, None])[..., 0] + poses[:, :, :3, 3]
+        pivots = posed_pivots(poses, self.heads.cpu())
         with open(path, "wb") as stream:
             np.savez_compressed(stream, bone_transforms=poses.numpy().astype(np.float32),
                                 frame_ids=self.frame_ids.cpu().numpy().astype(np.int32),
@@ -164,7 +163,6 @@ class PoseRefinementOptions:
                                        "rotation matrices, per video frame squared, from the frame numbers of the "
                                        "neighbouring training frames): estimation noise is not smooth in time, "
                                        "motion mostly is; the prior fades where training frames lie far apart")
-
     lambda_pose_depth: float = option(30.0, "weight of the mean squared move of the joints' pivots along each "
                                       "frame's camera axis, averaged over 5 consecutive training frames (units of "
                                       "the canonical extent): one camera does not see depth, so a slow drift along "
@@ -210,9 +208,7 @@ class PoseRefinementExtension(Extension):
 
     def attach(self) -> None:
         fit = self.fit
-        meta = getattr(fit.frames.video, "meta", {}) or {}
-        self.estimated = meta.get("poses") == ESTIMATED_POSES
-        if self.options.refine_poses == "auto" and not self.estimated:
+        if self.options.refine_poses == "auto" and not fit.frames.video.poses_estimated:
             return  # exact poses (a rendered subject): nothing to refine
         skeleton = fit.frames.skeleton
         part = PoseRefinement(fit.frames.bone_transforms, torch.as_tensor(skeleton.heads, dtype=torch.float32),
@@ -223,9 +219,7 @@ class PoseRefinementExtension(Extension):
         # is measured per video frame, so the smoothness prior fades where training frames lie far apart in time
         self.gaps = (ids[1:] - ids[:-1]).abs().clamp(min=1.0)
         with torch.no_grad():  # the given pivots [T,J,3] (extent units) and each frame's camera axis in the world
-            poses = part.frame_poses
-            pivots = (poses[:, :, :3, :3] @ part.heads[:, :, None])[..., 0] + poses[:, :, :3, 3]
-            self.given_pivots = pivots / fit.extent
+            self.given_pivots = posed_pivots(part.frame_poses, part.heads) / fit.extent
             self.view_axes = torch.stack([camera.world_to_camera[2, :3] for camera in fit.frames.cameras]).float()
         self.base_lr = (self.options.lr_pose_rotation, self.options.lr_pose_translation * fit.extent)
         self.optimizer = torch.optim.Adam([{"params": [part.rotation], "lr": self.base_lr[0]},
@@ -260,16 +254,17 @@ class PoseRefinementExtension(Extension):
         return self.refined[step.index]
 
     def losses(self, step) -> dict[str, LossTerm]:
-        """The prior (mean squared correction) and the smoothness prior (mean squared acceleration of the refined
-        motion), both averaged over every training frame: each step sees one frame's images but moves every
-        frame's pose towards the priors, so information spreads along the motion at every step."""
+        """The priors, each averaged over every training frame: the mean squared correction, the joints' slow drift
+        along each frame's camera axis, and the refined motion's mean squared acceleration. Each step sees one
+        frame's images but moves every frame's pose towards the priors, so information spreads along the motion
+        at every step."""
         if self.refined is None:
             return {}
         part = self.part
         scale = 1.0 / self.fit.extent
         prior = part.rotation.square().sum(-1).mean() + (part.translation * scale).square().sum(-1).mean()
         terms = {"pose_prior": LossTerm(self.options.lambda_pose_prior, prior)}
-        pivots = ((self.refined[:, :, :3, :3] @ part.heads[:, :, None])[..., 0] + self.refined[:, :, :3, 3]) * scale
+        pivots = posed_pivots(self.refined, part.heads) * scale
         if self.options.lambda_pose_depth > 0:  # what each frame's camera cannot see: moves along its axis
             depth = ((pivots - self.given_pivots) * self.view_axes[:, None, :]).sum(-1)  # [T,J]
             if depth.shape[0] >= _DEPTH_WINDOW:  # slow drift only: a frame-to-frame correction is free

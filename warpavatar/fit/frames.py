@@ -66,7 +66,7 @@ class TrainingFrames:
         # frames rendered over a declared flat background are their own target (their edge pixels mix the
         # subject with that colour, as a render does); otherwise the mask cuts the foreground out
         self.composite_target = self.masks is not None and (
-            target == "masked" or (target == "auto" and "background" not in video.meta))
+            target == "masked" or (target == "auto" and not video.declares_background))
         self.skeleton = video.skeleton
 
     @property

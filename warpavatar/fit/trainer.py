@@ -27,7 +27,7 @@ from warpavatar.fit.frames import TrainingFrames
 from warpavatar.fit.init import initial_gaussians
 from warpavatar.fit.outputs import write_canonical_ply, write_previews
 from warpavatar.fit.skinning import SkinningStage
-from warpavatar.metrics import psnr, ssim_map
+from warpavatar.metrics import image_loss_terms, psnr
 from warpavatar.model import Avatar, GaussianModel, VoxelSkinningField
 
 __all__ = ["Trainer"]
@@ -106,10 +106,9 @@ class Trainer:
     def _core_losses(self, step: StepContext) -> dict[str, LossTerm]:
         """The photometric loss (L1 and D-SSIM), the mask and scale terms, and the skinning field's."""
         config = self.config
-        terms = {"l1": LossTerm(1.0 - config.lambda_ssim, (step.image - step.target).abs().mean()),
-                 "dssim": LossTerm(config.lambda_ssim, 1.0 - ssim_map(step.image, step.target).mean())}
-        if step.mask is not None and config.lambda_mask > 0:
-            terms["mask"] = LossTerm(config.lambda_mask, (step.alpha - step.mask).abs().mean())
+        image_terms = image_loss_terms(step.image, step.target, lambda_ssim=config.lambda_ssim, alpha=step.alpha,
+                                       mask=step.mask, lambda_mask=config.lambda_mask)
+        terms = {name: LossTerm(*term) for name, term in image_terms.items()}
         if config.lambda_scale > 0:
             terms["scale"] = LossTerm(config.lambda_scale,
                                       torch.relu(self.gaussians.scales - 0.05 * self.extent).mean())

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["axis_angle_to_matrix", "skeleton_levels", "ancestor_jumps", "corrected_transforms"]
+__all__ = ["axis_angle_to_matrix", "skeleton_levels", "ancestor_jumps", "posed_pivots", "corrected_transforms"]
 
 
 def axis_angle_to_matrix(vectors: torch.Tensor) -> torch.Tensor:
@@ -64,6 +64,12 @@ def ancestor_jumps(parents, *, device=None) -> list[torch.Tensor]:
     return [torch.as_tensor(jump, dtype=torch.long, device=device) for jump in jumps]
 
 
+def posed_pivots(bone_transforms: torch.Tensor, heads: torch.Tensor) -> torch.Tensor:
+    """The joints' pivots [...,J,3] in a pose: the rest pivots ``heads`` [J,3] moved by ``bone_transforms``
+    [...,J,4,4] (the ``joint_positions`` of a poses.npz)."""
+    return (bone_transforms[..., :3, :3] @ heads[:, :, None])[..., 0] + bone_transforms[..., :3, 3]
+
+
 def corrected_transforms(bone_transforms: torch.Tensor, heads: torch.Tensor, jumps: list[torch.Tensor],
                          rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
     """Poses [...,J,4,4] (rest-to-posed transforms) with every joint turned by ``exp(rotation[..., j])`` in its own
@@ -86,7 +92,7 @@ def corrected_transforms(bone_transforms: torch.Tensor, heads: torch.Tensor, jum
     """
     count = bone_transforms.shape[-3]
     given_rotation = bone_transforms[..., :3, :3]
-    pivots = (given_rotation @ heads[:, :, None])[..., 0] + bone_transforms[..., :3, 3]
+    pivots = posed_pivots(bone_transforms, heads)
     turn = given_rotation @ axis_angle_to_matrix(rotation) @ given_rotation.transpose(-1, -2)  # about the pivot
     is_root = (jumps[0] == count).to(bone_transforms.dtype)[:, None]
     shift = pivots - (turn @ pivots[..., None])[..., 0] + is_root * translation[..., None, :]
