@@ -244,6 +244,8 @@ def test_pose_noise_tool_is_exact_in_size_reproducible_and_shared_by_views(tmp_p
     (dict(refine_poses="on", lambda_pose_smooth=float("nan")), "lambda_pose_smooth"),
     (dict(refine_poses="on", refine_poses_from=-5), "refine_poses_from"),
     (dict(refine_poses="on", refine_poses_until=-1), "refine_poses_until"),
+    (dict(refine_poses="on", lr_pose_final=0.0), r"lr_pose_final must lie in \(0, 1\]"),
+    (dict(refine_poses="on", lr_pose_final=1.5), r"lr_pose_final must lie in \(0, 1\]"),
     (dict(refine_poses="on", refine_poses_from=500, refine_poses_until=300), r"refine_poses_until \(300\) must lie"),
     (dict(refine_poses="on", iterations=100, refine_poses_from=10, refine_poses_until=200), "the last step"),
 ])
@@ -463,3 +465,11 @@ def test_poses_stay_fixed_after_the_last_refining_step(tmp_path):
     resumed.fit(resume=True, progress=False)
     assert resumed.step == 50
     assert torch.equal(resumed.avatar.part("pose_refinement").rotation.detach(), at_the_last_step)
+
+
+def test_refinement_stops_three_quarters_of_the_way_by_default():
+    from warpavatar.extensions.pose_refinement import PoseRefinementOptions, refinement_last_step
+    assert refinement_last_step(PoseRefinementOptions(refine_poses_from=1000), 8000) == 6250
+    assert refinement_last_step(PoseRefinementOptions(refine_poses_from=400), 2000) == 1600
+    assert refinement_last_step(PoseRefinementOptions(refine_poses_from=10, refine_poses_until=30), 50) == 30
+    assert refinement_last_step(PoseRefinementOptions(refine_poses_from=10, refine_poses_until=50), 50) == 50

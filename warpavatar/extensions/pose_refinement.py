@@ -23,6 +23,12 @@ expressed in the parent's frame, so the skeleton stays rigid. A pose equal to a 
 of a training instant, the training motion replayed or exported) gets that frame's refined pose; any other
 pose is used as given.
 
+Adam moves each frame's correction by about ten times its learning rate at every visit of that frame, whether
+the image's gradient is signal or noise, so the poses would jitter by a fraction of a pixel until the end and
+the Gaussians never lock in: the learning rates decay to ``--lr-pose-final`` (1 %) of their value, and the
+refinement stops three quarters of the way through the fit (``--refine-poses-until``), after which the Gaussians
+fit fixed poses.
+
 ``--refine-poses auto`` (the default) refines the poses of folders whose ``meta.json`` says they are estimated
 (``"poses": "estimated"``, written by ``warpavatar-prepare``) and trusts the others; ``on`` and ``off`` force it.
 """
@@ -40,7 +46,7 @@ from warpavatar.geometry import match_pose
 from warpavatar.model.kinematics import ancestor_jumps, corrected_transforms, posed_pivots
 from warpavatar.model.parts import AvatarPart
 
-__all__ = ["PoseRefinement", "PoseRefinementOptions", "PoseRefinementExtension"]
+__all__ = ["PoseRefinement", "PoseRefinementOptions", "PoseRefinementExtension", "refinement_last_step"]
 
 
 def _acceleration(values: torch.Tensor, gaps: torch.Tensor) -> torch.Tensor:
@@ -151,11 +157,17 @@ class PoseRefinementOptions:
     refine_poses_from: int = option(1000, "first step that refines the poses (the Gaussians take shape before: "
                                     "pose gradients of a blurred avatar mislead)")
     refine_poses_until: int = option(0, "last step that refines the poses; the Gaussians finish on them fixed "
-                                     "after it (0: the fit's last step)")
+                                     "after it, so that they lock in (0: three quarters of the way from "
+                                     "--refine-poses-from to the fit's last step; give the last step to refine "
+                                     "until the end)")
     lr_pose_rotation: float = option(2e-3, "Adam learning rate of the joints' correction angles [rad]")
     lr_pose_translation: float = option(1e-3, "Adam learning rate of the root's correction, times the canonical "
                                         "extent")
-    lambda_pose_prior: float = option(3.0, "weight of the mean squared correction over all frames and joints "
+    lr_pose_final: float = option(0.01, "fraction of the pose learning rates left at the last refining step (they "
+                                  "decay exponentially from --refine-poses-from on): Adam moves every frame's "
+                                  "pose by about ten times its rate at each of its visits, signal or noise, so "
+                                  "what is left at the end is the poses' final jitter")
+    lambda_pose_prior: float = option(10.0, "weight of the mean squared correction over all frames and joints "
                                       "(angles in rad, the root's offset in units of the canonical extent): "
                                       "keeps the poses near the given ones where the images do not need otherwise")
     lambda_pose_smooth: float = option(1.0, "weight of the refined motion's mean squared acceleration over all "
@@ -174,6 +186,8 @@ class PoseRefinementOptions:
                      "lambda_pose_depth"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
+        if not 0 < self.lr_pose_final <= 1:
+            raise ValueError(f"lr_pose_final must lie in (0, 1], got {self.lr_pose_final}")
         if self.refine_poses_from < 0:
             raise ValueError(f"refine_poses_from must be non-negative, got {self.refine_poses_from}")
         if self.refine_poses_until < 0:
@@ -181,9 +195,19 @@ class PoseRefinementOptions:
                              f"{self.refine_poses_until}")
 
 
+def refinement_last_step(options: PoseRefinementOptions, iterations: int) -> int:
+    """The last step that refines the poses: ``refine_poses_until``, or by default three quarters of the way from
+    ``refine_poses_from`` to the fit's last step ``iterations`` (the Gaussians then lock in on fixed poses)."""
+    if options.refine_poses_until:
+        return options.refine_poses_until
+    start = min(options.refine_poses_from, iterations)
+    return start + (3 * (iterations - start)) // 4
+
+
 class PoseRefinementExtension(Extension):
-    """Refines each training frame's pose with the avatar: Adam on the corrections from ``refine_poses_from`` on
-    (learning rates decaying to a tenth by the last step), the step's frame pulled by its images, every frame
+    """Refines each training frame's pose with the avatar: Adam on the corrections from ``refine_poses_from`` to
+    :func:`refinement_last_step` (learning rates decaying to ``lr_pose_final`` of their value there; the
+    Gaussians then finish on fixed poses), the step's frame pulled by its images, every frame
     pulled towards its given pose and towards a motion smooth in time."""
 
     name = "pose_refinement"
@@ -226,7 +250,7 @@ class PoseRefinementExtension(Extension):
                                            {"params": [part.translation], "lr": self.base_lr[1]}])
 
     def _last_step(self) -> int:
-        return self.options.refine_poses_until or self.fit.config.iterations
+        return refinement_last_step(self.options, self.fit.config.iterations)
 
     def _training(self, step) -> bool:
         return self.part is not None and self.options.refine_poses_from <= step.step <= self._last_step()
@@ -236,9 +260,9 @@ class PoseRefinementExtension(Extension):
             return
         training = self._training(step)
         self.part.requires_grad_(training)
-        if training:  # decays exponentially to a tenth by the last step: large moves first, then settle
+        if training:  # decays exponentially to lr_pose_final by the last step: large moves first, then settle
             span = max(1, self._last_step() - self.options.refine_poses_from)
-            decay = 0.1 ** (min(step.step - self.options.refine_poses_from, span) / span)
+            decay = self.options.lr_pose_final ** (min(step.step - self.options.refine_poses_from, span) / span)
             for group, base in zip(self.optimizer.param_groups, self.base_lr):
                 group["lr"] = base * decay
 
