@@ -149,8 +149,10 @@ def run_batch(subjects: list[BatchSubject], out_root: str | os.PathLike, *, conf
         to_fit.append(subject)
 
     events = Queue(actor_options={"num_cpus": 0})
-    task = ray.remote(_subject_task).options(num_gpus=gpus_per_fit, num_cpus=cpus_per_fit, max_retries=max_retries,
-                                             retry_exceptions=list(INFRASTRUCTURE_ERRORS))
+    # resources given to ray.remote itself (not .options): a GPU task then gets Ray's default max_calls=1, a fresh
+    # worker process per fit, whose GPU memory is freed when it ends
+    task = ray.remote(num_gpus=gpus_per_fit, num_cpus=cpus_per_fit, max_retries=max_retries,
+                      retry_exceptions=list(INFRASTRUCTURE_ERRORS))(_subject_task)
     options = dict(config=config, device=device, preset_name=preset_name, evaluate=evaluate)
     pending = {task.remote(events, subject, str(subject.output(out_root)), options,
                            (test_kill or {}).get(subject.name)): subject for subject in to_fit}
