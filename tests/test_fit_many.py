@@ -119,6 +119,12 @@ def test_a_rerun_skips_finished_subjects_and_force_fits_again(batch, tmp_path):
     assert summary["alice"]["gaussians"] > 0 and summary["alice"]["eval"]  # the earlier run's result
     assert (out_root / "alice" / "avatar.pt").stat().st_mtime_ns == stamp
 
+    # finished with other options: not skipped as if it were this fit, not fitted over either
+    assert fit_many.main([str(root / "alice"), "-o", str(out_root), *TINY, "--lambda-ssim", "0.3"]) == 1
+    result = _summary(out_root)["alice"]
+    assert result["status"] == "failed" and "(lambda_ssim)" in result["error"] and "--force" in result["error"]
+    assert (out_root / "alice" / "avatar.pt").stat().st_mtime_ns == stamp
+
     assert fit_many.main([str(root / "alice"), "-o", str(out_root), "--force", *TINY]) == 0
     result = _summary(out_root)["alice"]
     assert result["status"] == "done" and result["resume_step"] == 0 and result["eval"] == {}

@@ -47,7 +47,7 @@ def fit_subject(subject: BatchSubject, output: str | os.PathLike, *, config, dev
         The result: ``subject``, ``status`` (``"done"`` or ``"failed"``), ``error`` (the one-line message of a
         failed subject, else None), ``output``, ``fit_seconds`` (this attempt), ``resume_step``, ``steps``,
         ``gaussians``, ``device``, ``preset`` and ``eval`` (``{"novel_view/<name>": metrics}``, empty without
-        ``evaluate`` or held-out folders). A done result is also the done marker's content.
+        ``evaluate`` or held-out folders). The done marker holds a done result and the fit's ``config``.
     """
     output = Path(output)
     result = {"subject": subject.name, "status": "failed", "error": None, "output": str(output),
@@ -89,7 +89,7 @@ def _fit(subject: BatchSubject, output: Path, *, config, device: str, evaluate: 
         result["eval"] = evaluate_held_out(trainer.avatar, held_out, progress=False)
         write_json_atomic(output / "eval.json", result["eval"])
     result["status"] = "done"
-    write_json_atomic(output / DONE_NAME, result)
+    write_json_atomic(output / DONE_NAME, {**result, "config": config.to_dict()})
     del trainer
     if torch.cuda.is_available():
         torch.cuda.empty_cache()  # the next fit of this worker, or a fit sharing the GPU, gets the memory back

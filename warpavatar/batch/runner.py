@@ -6,6 +6,7 @@ Ray is imported here only, when a batch runs; without it :func:`import_ray` says
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import time
@@ -97,7 +98,8 @@ def run_batch(subjects: list[BatchSubject], out_root: str | os.PathLike, *, conf
     """Fit every subject in its own Ray task on the connected cluster (see :func:`connect_ray`).
 
     Subjects finished by an earlier run (their done marker) are skipped unless ``force``, which fits them again
-    from the start. Each task asks for ``gpus_per_fit`` GPUs (a fraction shares one) and ``cpus_per_fit`` CPUs;
+    from the start; one finished with other options fails (with the options that differ) rather than be
+    skipped. Each task asks for ``gpus_per_fit`` GPUs (a fraction shares one) and ``cpus_per_fit`` CPUs;
     a task whose worker dies, or that raises one of :data:`INFRASTRUCTURE_ERRORS`, runs again up to
     ``max_retries`` times, continuing from the subject's checkpoint. A subject with invalid input fails alone.
 
@@ -119,8 +121,9 @@ def run_batch(subjects: list[BatchSubject], out_root: str | os.PathLike, *, conf
 
     Returns:
         One result per subject, in the order given: :func:`~warpavatar.batch.job.fit_subject`'s, with
-        ``status`` ``"skipped"`` for a subject an earlier run finished, and ``attempts`` (how many times its task
-        started) and ``wall_seconds`` (from its first start to its end, as the driver saw them).
+        ``status`` ``"skipped"`` for a subject an earlier run finished with the same options, and ``attempts``
+        (how many times its task started) and ``wall_seconds`` (from its first start to its end, as the driver
+        saw them).
     """
     import tqdm
 
@@ -135,12 +138,22 @@ def run_batch(subjects: list[BatchSubject], out_root: str | os.PathLike, *, conf
     write = write or bar.write
     results: dict[str, dict] = {}
     to_fit = []
+    current = json.loads(config.to_json())
     for subject in subjects:
         output = subject.output(out_root)
         earlier = finished_result(output)
         if earlier is not None and not force:
-            results[subject.name] = {**earlier, "status": "skipped", "attempts": 0, "wall_seconds": 0.0}
-            write(f"{subject.name}: skipped, finished by an earlier run (--force fits it again)")
+            changed = sorted(key for key in current.keys() | earlier.get("config", {}).keys()
+                             if current.get(key) != earlier.get("config", {}).get(key))
+            result = {key: value for key, value in earlier.items() if key != "config"}
+            if changed:
+                result.update(status="failed", error=f"{output}: finished by an earlier run with other options "
+                                                     f"({', '.join(changed)}); --force fits it again with these")
+            else:
+                result.update(status="skipped", error=None)
+            results[subject.name] = {**result, "attempts": 0, "wall_seconds": 0.0}
+            write(one_line_result(results[subject.name]) if changed else
+                  f"{subject.name}: skipped, finished by an earlier run (--force fits it again)")
             bar.update(1)
             continue
         if force:

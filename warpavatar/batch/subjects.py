@@ -80,8 +80,8 @@ def read_subjects(arguments: list[str | os.PathLike]) -> list[BatchSubject]:
 
 
 def finished_result(output: str | os.PathLike) -> dict | None:
-    """The result an earlier run recorded for a finished fit in ``output`` (its done marker, when both it and
-    ``avatar.pt`` exist), or None."""
+    """The result an earlier run recorded for a finished fit in ``output`` (its done marker, with the fit's
+    ``config``, when both it and ``avatar.pt`` exist), or None."""
     output = Path(output)
     marker = output / DONE_NAME
     if not (marker.is_file() and (output / "avatar.pt").is_file()):

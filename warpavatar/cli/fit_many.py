@@ -21,8 +21,9 @@ the end and written to OUT_ROOT/fit-many-summary.json and .csv.
 Without --ray-address a local Ray instance starts on this machine; --ray-address auto or HOST:PORT joins a running
 cluster (every node must see the subject folders and OUT_ROOT at the same paths). A task whose worker dies is run
 again (--max-retries) and continues from the subject's last checkpoint; a subject whose input is invalid fails
-alone; subjects finished by an earlier run are skipped unless --force. Exit status: 0 when every subject is done
-or skipped, 1 when one failed, 2 for a bad option. Needs Ray: pip install -e ".[cluster]".
+alone; subjects finished by an earlier run with the same options are skipped unless --force (with other options
+they fail, saying which). Exit status: 0 when every subject is done or skipped, 1 when one failed, 2 for a bad
+option. Needs Ray: pip install -e ".[cluster]".
 
 Every warpavatar-fit option (after the batch options below) applies to every fit.
 """
