@@ -5,6 +5,7 @@ finished."""
 import csv
 import json
 import shutil
+import subprocess
 import sys
 
 import pytest
@@ -108,7 +109,7 @@ def test_a_killed_worker_is_retried_and_resumes_to_the_uninterrupted_result(batc
         assert torch.equal(value, resumed_tensors[name]), name
 
 
-def test_a_rerun_skips_finished_subjects_and_force_fits_again(batch, tmp_path):
+def test_a_rerun_skips_finished_subjects_and_force_fits_again_on_a_joined_cluster(ray_cluster, batch, tmp_path):
     root, first_out, _ = batch
     out_root = tmp_path / "out"
     shutil.copytree(first_out, out_root)
@@ -125,7 +126,13 @@ def test_a_rerun_skips_finished_subjects_and_force_fits_again(batch, tmp_path):
     assert result["status"] == "failed" and "(lambda_ssim)" in result["error"] and "--force" in result["error"]
     assert (out_root / "alice" / "avatar.pt").stat().st_mtime_ns == stamp
 
-    assert fit_many.main([str(root / "alice"), "-o", str(out_root), "--force", *TINY]) == 0
+    # --force fits it again; this run is another process that joins the running cluster (--ray-address)
+    address = ray_cluster.get_runtime_context().gcs_address
+    command = [sys.executable, "-m", "warpavatar.cli.fit_many", str(root / "alice"), "-o", str(out_root), "--force",
+               "--ray-address", address, *TINY]
+    run = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "alice: done in" in run.stdout and "on Ray (0 GPUs, 2 CPUs)" in run.stdout, run.stdout
     result = _summary(out_root)["alice"]
     assert result["status"] == "done" and result["resume_step"] == 0 and result["eval"] == {}
     assert (out_root / "alice" / "avatar.pt").stat().st_mtime_ns != stamp

@@ -25,7 +25,7 @@ alone; subjects finished by an earlier run with the same options are skipped unl
 they fail, saying which). Exit status: 0 when every subject is done or skipped, 1 when one failed, 2 for a bad
 option. Needs Ray: pip install -e ".[cluster]".
 
-Every warpavatar-fit option (after the batch options below) applies to every fit.
+Every warpavatar-fit option applies to every fit (see warpavatar-fit --help).
 """
 
 #: test hook: ``SUBJECT:STEP`` kills the first attempt of that subject's task after STEP steps (SIGKILL)
