@@ -154,6 +154,8 @@ def test_subjects_from_folders_and_list_files_and_a_name_clash(tmp_path):
     assert subjects[0].path == tmp_path / "day1" / "eve" and str(subjects[1].path) == "/abs/frank"
     with pytest.raises(ValueError, match="two subjects are called 'eve'"):
         read_subjects([tmp_path / "day1" / "list.txt", tmp_path / "other" / "eve"])
+    with pytest.raises(ValueError, match="grace: the subject is given twice"):
+        read_subjects([tmp_path / "grace", tmp_path / "day1" / ".." / "grace"])
 
 
 def test_without_ray_the_command_says_how_to_install_it(tmp_path, monkeypatch, capsys):

@@ -73,6 +73,8 @@ def read_subjects(arguments: list[str | os.PathLike]) -> list[BatchSubject]:
         path = Path(os.path.normpath(path.expanduser().absolute()))
         subject = BatchSubject(name=path.name, path=path)
         if subject.name in subjects:
+            if subjects[subject.name].path == path:
+                raise ValueError(f"{path}: the subject is given twice")
             raise ValueError(f"two subjects are called {subject.name!r} ({subjects[subject.name].path} and {path}): "
                              "their outputs would share one folder; rename one of the folders")
         subjects[subject.name] = subject
