@@ -28,10 +28,12 @@ def _minutes(seconds) -> str:
 
 
 def one_line_result(result: dict) -> str:
-    """The progress line of a subject whose task ended: done (time, Gaussians, held-out masked PSNR) or failed
-    (its error)."""
+    """The progress line of a subject whose task ended, done (time, Gaussians, held-out masked PSNR) or failed
+    (its error), or that an earlier run finished (skipped)."""
     if result["status"] == "failed":
         return f"{result['subject']}: failed: {result['error']}"
+    if result["status"] == "skipped":
+        return f"{result['subject']}: skipped, finished by an earlier run (--force fits it again)"
     held_out = ", ".join(f"{label} {metrics['psnr_masked']:.2f} dB" for label, metrics in result["eval"].items()
                          if metrics.get("psnr_masked") is not None)
     retried = f" after {result['attempts']} attempts" if result.get("attempts", 1) > 1 else ""

@@ -91,6 +91,43 @@ def _task_error(error: BaseException) -> str:
     return f"{type(error).__name__}: {text}" if text else type(error).__name__
 
 
+def _flat_options(values: dict, prefix: str = "") -> dict:
+    """A config's values with nested dicts (the extensions' options) flattened to dotted names."""
+    flat = {}
+    for key, value in values.items():
+        if isinstance(value, dict):
+            flat.update(_flat_options(value, f"{prefix}{key}."))
+        else:
+            flat[prefix + key] = value
+    return flat
+
+
+def _earlier_results(subjects: list[BatchSubject], out_root: Path, *, config, force: bool):
+    """The results of subjects an earlier run finished (``"skipped"``; ``"failed"`` where it used other options)
+    and the subjects to fit; with ``force`` every subject is fitted, its checkpoint and done marker removed."""
+    from warpavatar.fit.checkpoint import CHECKPOINT_NAME
+
+    current = _flat_options(json.loads(config.to_json()))
+    results, to_fit = {}, []
+    for subject in subjects:
+        output = subject.output(out_root)
+        earlier = None if force else finished_result(output)
+        if earlier is None:
+            if force:
+                for name in (DONE_NAME, CHECKPOINT_NAME):
+                    (output / name).unlink(missing_ok=True)
+            to_fit.append(subject)
+            continue
+        used = _flat_options(earlier.get("config", {}))
+        changed = sorted(key for key in current.keys() | used.keys() if current.get(key) != used.get(key))
+        result = {key: value for key, value in earlier.items() if key != "config"}
+        result.update(status="failed" if changed else "skipped", attempts=0, wall_seconds=0.0,
+                      error=f"{output}: finished by an earlier run with other options ({', '.join(changed)}); "
+                            "--force fits it again with these" if changed else None)
+        results[subject.name] = result
+    return results, to_fit
+
+
 def run_batch(subjects: list[BatchSubject], out_root: str | os.PathLike, *, config, device: str, preset_name: str,
               gpus_per_fit: float, cpus_per_fit: float, max_retries: int = 3, evaluate: bool = False,
               force: bool = False, progress: bool = True, test_kill: dict[str, int] | None = None,
@@ -130,36 +167,17 @@ def run_batch(subjects: list[BatchSubject], out_root: str | os.PathLike, *, conf
     ray = import_ray()
     from ray.util.queue import Queue
 
-    from warpavatar.fit.checkpoint import CHECKPOINT_NAME
-
     out_root = Path(out_root)
     out_root.mkdir(parents=True, exist_ok=True)
     bar = tqdm.tqdm(total=len(subjects), disable=not progress, desc="subjects", unit="fit")
     write = write or bar.write
-    results: dict[str, dict] = {}
-    to_fit = []
-    current = json.loads(config.to_json())
-    for subject in subjects:
-        output = subject.output(out_root)
-        earlier = finished_result(output)
-        if earlier is not None and not force:
-            changed = sorted(key for key in current.keys() | earlier.get("config", {}).keys()
-                             if current.get(key) != earlier.get("config", {}).get(key))
-            result = {key: value for key, value in earlier.items() if key != "config"}
-            if changed:
-                result.update(status="failed", error=f"{output}: finished by an earlier run with other options "
-                                                     f"({', '.join(changed)}); --force fits it again with these")
-            else:
-                result.update(status="skipped", error=None)
-            results[subject.name] = {**result, "attempts": 0, "wall_seconds": 0.0}
-            write(one_line_result(results[subject.name]) if changed else
-                  f"{subject.name}: skipped, finished by an earlier run (--force fits it again)")
-            bar.update(1)
-            continue
-        if force:
-            for name in (DONE_NAME, CHECKPOINT_NAME):
-                (output / name).unlink(missing_ok=True)
-        to_fit.append(subject)
+    results, to_fit = _earlier_results(subjects, out_root, config=config, force=force)
+    for result in results.values():
+        write(one_line_result(result))
+        bar.update(1)
+    if not to_fit:
+        bar.close()
+        return [results[subject.name] for subject in subjects]
 
     events = Queue(actor_options={"num_cpus": 0})
     # resources given to ray.remote itself (not .options): a GPU task then gets Ray's default max_calls=1, a fresh
@@ -173,14 +191,14 @@ def run_batch(subjects: list[BatchSubject], out_root: str | os.PathLike, *, conf
     first_start: dict[str, float] = {}
 
     def drain_events() -> None:
-        for name, event, values in events.get_nowait_batch(events.qsize()) if events.qsize() else []:
-            if event != "started":
-                continue
-            attempts[name] += 1
-            first_start.setdefault(name, time.time())
-            again = f", attempt {attempts[name]}" if attempts[name] > 1 else ""
-            resume = f", resuming from step {values['resume_step']}" if values["resume_step"] else ""
-            write(f"{name}: started on {values['host']}{again}{resume}")
+        count = events.qsize()
+        for name, event, values in events.get_nowait_batch(count) if count else []:
+            if event == "started":
+                attempts[name] += 1
+                first_start.setdefault(name, time.time())
+                again = f", attempt {attempts[name]}" if attempts[name] > 1 else ""
+                resume = f", resuming from step {values['resume_step']}" if values["resume_step"] else ""
+                write(f"{name}: started on {values['host']}{again}{resume}")
 
     try:
         while pending:
