@@ -82,6 +82,7 @@ def test_two_subjects_land_in_their_folders_and_a_bad_one_fails_alone(batch):
         assert all(5.0 < metrics["psnr_masked"] < 60.0 for metrics in result["eval"].values()), result["eval"]
     broken = summary["broken"]
     assert broken["status"] == "failed" and "cameras.json" in broken["error"], broken
+    assert broken["attempts"] == 1  # an input error is not retried
     assert not (out_root / "broken" / "avatar.pt").exists()
     with open(out_root / f"{SUMMARY_NAME}.csv", newline="") as f:
         rows = {row["subject"]: row for row in csv.DictReader(f)}
