@@ -79,6 +79,9 @@ def test_there_is_no_import_cycle():
     ("warpavatar.data", "warpavatar.model"),
     ("warpavatar.geometry", "warpavatar.model"),
     ("warpavatar.fit", "warpavatar.cli"),
+    ("warpavatar.fit", "warpavatar.batch"),
+    ("warpavatar.evaluate", "warpavatar.batch"),
+    ("warpavatar.batch", "warpavatar.cli"),
     ("warpavatar.model", "warpavatar.evaluate"),
 ])
 def test_data_flows_one_way(lower, higher):

@@ -23,7 +23,7 @@ import tqdm
 from warpavatar import metrics
 from warpavatar.model.kinematics import ancestor_jumps, corrected_transforms
 
-__all__ = ["evaluate_avatar", "refine_frame_pose", "write_json_atomic"]
+__all__ = ["evaluate_avatar", "evaluate_held_out", "refine_frame_pose", "write_json_atomic"]
 
 
 def write_json_atomic(path: str | os.PathLike, value) -> Path:
@@ -91,6 +91,22 @@ def refine_frame_pose(avatar, camera, bone_transforms: torch.Tensor, image: torc
 
 
 @torch.no_grad()
+def evaluate_held_out(avatar, subject, *, progress: bool = True) -> dict[str, dict]:
+    """Measure ``avatar`` on every held-out folder of a :class:`~warpavatar.data.Subject`.
+
+    Returns:
+        ``{"novel_view/<name>" or "novel_pose/<name>": the means of :func:`evaluate_avatar` (without the
+        per-frame list)}``, novel views first, each kind in name order; empty for a subject without held-out
+        folders.
+    """
+    results = {}
+    for kind, folders in (("novel_view", subject.novel_view), ("novel_pose", subject.novel_pose)):
+        for name in folders:
+            result = evaluate_avatar(avatar, folders[name], progress=progress)
+            results[f"{kind}/{name}"] = {key: value for key, value in result.items() if key != "frames"}
+    return results
+
+
 def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = None, progress: bool = True,
                     refine_steps: int = 0) -> dict:
     """Render ``avatar`` for every frame of ``video`` and measure it.

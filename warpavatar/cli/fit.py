@@ -30,25 +30,33 @@ def build_parser() -> argparse.ArgumentParser:
                         help="the video folder to fit (or a subject folder holding train/); omit with --demo")
     parser.add_argument("-o", "--output", type=Path, default=None,
                         help="output folder (default: ./warpavatar-out/<folder name>)")
-    parser.add_argument("--preset", choices=preset_names(), default=None,
-                        help="named configuration: 'default' (quality, GPU) or 'quick' (small, CPU, minutes); "
-                             "default: 'default' on CUDA, 'quick' on CPU and with --demo")
-    parser.add_argument("--device", default=default_device(), help="torch device: cpu or cuda (default: %(default)s)")
     parser.add_argument("--resume", action="store_true",
                         help="continue from checkpoint.pt in the output folder (same options required)")
     parser.add_argument("--demo", action="store_true",
                         help="fit the small built-in demo subject (a reduced robot) and evaluate it on its held-out "
                              "view and pose")
+    add_fit_options(parser)
+    return parser
+
+
+def add_fit_options(parser: argparse.ArgumentParser, *, device_help: str | None = None) -> None:
+    """The options of one fit, shared with ``warpavatar-fit-many``: ``--preset``, ``--device``, ``--no-progress``
+    and one flag per configuration field. With ``device_help``, ``--device`` defaults to None (the caller
+    chooses) and is explained by that text."""
+    parser.add_argument("--preset", choices=preset_names(), default=None,
+                        help="named configuration: 'default' (quality, GPU) or 'quick' (small, CPU, minutes); "
+                             "default: 'default' on CUDA, 'quick' on CPU and with --demo")
+    parser.add_argument("--device", default=None if device_help else default_device(),
+                        help=device_help or "torch device: cpu or cuda (default: %(default)s)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     add_config_arguments(parser)
-    return parser
 
 
 @friendly_errors
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from warpavatar import data
-    from warpavatar.evaluate import evaluate_avatar, write_json_atomic
+    from warpavatar.evaluate import evaluate_held_out, write_json_atomic
     from warpavatar.fit import Trainer
 
     device = resolve_device(args.device)
@@ -76,15 +84,10 @@ def main(argv=None) -> int:
     for line in trainer.summary_lines():
         print(line)
     if args.demo:
-        subject = data.load_subject(subject_root)
-        results = {}
-        for kind, folders in (("novel_view", subject.novel_view), ("novel_pose", subject.novel_pose)):
-            for name in folders:
-                held_out = folders[name]
-                result = evaluate_avatar(trainer.avatar, held_out, progress=False)
-                results[f"{kind}/{name}"] = {k: v for k, v in result.items() if k != "frames"}
-                print(f"  {kind}/{name}: masked PSNR {result['psnr_masked']:.2f} dB, "
-                      f"full-frame PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}")
+        results = evaluate_held_out(trainer.avatar, data.load_subject(subject_root), progress=False)
+        for label, result in results.items():
+            print(f"  {label}: masked PSNR {result['psnr_masked']:.2f} dB, "
+                  f"full-frame PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}")
         write_json_atomic(output / "demo_eval.json", results)
         print(f"demo result in {output.resolve()} (avatar.pt, canonical.ply, previews/, demo_eval.json)")
     return 0

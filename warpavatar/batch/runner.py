@@ -1,0 +1,224 @@
+"""The Ray side of a batch: one task per subject with the resources a fit needs, bounded retries that resume
+from the subject's checkpoint, a progress line per subject and an overall bar.
+
+Ray is imported here only, when a batch runs; without it :func:`import_ray` says how to install it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import time
+from pathlib import Path
+from typing import Callable
+
+from warpavatar.batch.job import fit_subject
+from warpavatar.batch.report import one_line_result
+from warpavatar.batch.subjects import DONE_NAME, BatchSubject, finished_result
+
+__all__ = ["run_batch", "connect_ray", "cluster_gpu_count", "import_ray", "RAY_INSTALL_HINT",
+           "INFRASTRUCTURE_ERRORS"]
+
+RAY_INSTALL_HINT = ('warpavatar-fit-many needs Ray, an optional dependency: pip install -e ".[cluster]" '
+                    '(or pip install "ray>=2.9")')
+
+
+def _infrastructure_errors() -> tuple[type[BaseException], ...]:
+    import torch
+
+    # a disk or network file system that failed, a GPU shared with other fits that ran out of memory; a dead
+    # worker (killed, lost node) is retried by Ray whatever the exception list says
+    return (OSError, torch.cuda.OutOfMemoryError)
+
+
+#: exceptions of a task that Ray retries (the subject's own input errors are results, never raised)
+INFRASTRUCTURE_ERRORS = _infrastructure_errors()
+
+
+def import_ray():
+    """The ``ray`` module.
+
+    Raises:
+        ModuleNotFoundError: Ray is not installed (the message says how to install it).
+    """
+    try:
+        import ray
+    except ImportError as error:
+        raise ModuleNotFoundError(RAY_INSTALL_HINT) from error
+    return ray
+
+
+def connect_ray(address: str | None) -> bool:
+    """Join the Ray cluster at ``address`` (``auto`` or ``HOST:PORT``), or start a local Ray instance on this
+    machine when ``address`` is None; keep a connection this process already has. Returns whether this call
+    connected (the caller then shuts Ray down when done)."""
+    import logging
+
+    ray = import_ray()
+    if ray.is_initialized():
+        return False
+    options = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING)
+    if address is None:
+        ray.init(**options)
+    else:
+        ray.init(address=address, **options)
+    return True
+
+
+def cluster_gpu_count() -> float:
+    """The GPUs of the connected Ray cluster (0 where it has none)."""
+    return float(import_ray().cluster_resources().get("GPU", 0.0))
+
+
+def _subject_task(events, subject: BatchSubject, output: str, options: dict, kill_at_step: int | None) -> dict:
+    """The Ray task of one subject: :func:`~warpavatar.batch.job.fit_subject`, reporting its start."""
+    host = socket.gethostname()
+
+    def report(event: str, values: dict) -> None:
+        events.put((subject.name, event, {**values, "host": host}))
+
+    return fit_subject(subject, output, report=report, kill_at_step=kill_at_step, **options)
+
+
+def _task_error(error: BaseException) -> str:
+    """One line for a task that failed after its retries: the exception it raised, or why its worker died."""
+    cause = getattr(error, "cause", None)
+    if isinstance(cause, BaseException):
+        error = cause
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    text = lines[-1] if lines else ""
+    return f"{type(error).__name__}: {text}" if text else type(error).__name__
+
+
+def _flat_options(values: dict, prefix: str = "") -> dict:
+    """A config's values with nested dicts (the extensions' options) flattened to dotted names."""
+    flat = {}
+    for key, value in values.items():
+        if isinstance(value, dict):
+            flat.update(_flat_options(value, f"{prefix}{key}."))
+        else:
+            flat[prefix + key] = value
+    return flat
+
+
+def _earlier_results(subjects: list[BatchSubject], out_root: Path, *, config, force: bool):
+    """The results of subjects an earlier run finished (``"skipped"``; ``"failed"`` where it used other options)
+    and the subjects to fit; with ``force`` every subject is fitted, its checkpoint and done marker removed."""
+    from warpavatar.fit.checkpoint import CHECKPOINT_NAME
+
+    current = _flat_options(json.loads(config.to_json()))
+    results, to_fit = {}, []
+    for subject in subjects:
+        output = subject.output(out_root)
+        earlier = None if force else finished_result(output)
+        if earlier is None:
+            if force:
+                for name in (DONE_NAME, CHECKPOINT_NAME):
+                    (output / name).unlink(missing_ok=True)
+            to_fit.append(subject)
+            continue
+        used = _flat_options(earlier.get("config", {}))
+        changed = sorted(key for key in current.keys() | used.keys() if current.get(key) != used.get(key))
+        result = {key: value for key, value in earlier.items() if key != "config"}
+        result.update(status="failed" if changed else "skipped", attempts=0, wall_seconds=0.0,
+                      error=f"{output}: finished by an earlier run with other options ({', '.join(changed)}); "
+                            "--force fits it again with these" if changed else None)
+        results[subject.name] = result
+    return results, to_fit
+
+
+def run_batch(subjects: list[BatchSubject], out_root: str | os.PathLike, *, config, device: str, preset_name: str,
+              gpus_per_fit: float, cpus_per_fit: float, max_retries: int = 3, evaluate: bool = False,
+              force: bool = False, progress: bool = True, test_kill: dict[str, int] | None = None,
+              write: Callable[[str], None] | None = None) -> list[dict]:
+    """Fit every subject in its own Ray task on the connected cluster (see :func:`connect_ray`).
+
+    Subjects finished by an earlier run (their done marker) are skipped unless ``force``, which fits them again
+    from the start; one finished with other options fails (with the options that differ) rather than be
+    skipped. Each task asks for ``gpus_per_fit`` GPUs (a fraction shares one) and ``cpus_per_fit`` CPUs;
+    a task whose worker dies, or that raises one of :data:`INFRASTRUCTURE_ERRORS`, runs again up to
+    ``max_retries`` times, continuing from the subject's checkpoint. A subject with invalid input fails alone.
+
+    Args:
+        subjects: the subjects (:func:`~warpavatar.batch.subjects.read_subjects`).
+        out_root: each subject's outputs go to ``out_root/<name>/``.
+        config: the :class:`~warpavatar.fit.FitConfig` of every fit.
+        device: the fits' torch device (``cuda``: the GPU Ray assigns).
+        preset_name: the preset ``config`` started from (recorded).
+        gpus_per_fit: GPUs a fit asks Ray for (0 on CPU; 0.5: two fits share a GPU).
+        cpus_per_fit: CPUs a fit asks Ray for.
+        max_retries: how many times a task is run again after its worker died or an infrastructure error.
+        evaluate: measure each avatar on its subject's held-out folders.
+        force: fit finished subjects again (their checkpoint and done marker are removed first).
+        progress: show the overall progress bar.
+        test_kill: test hook: ``{subject name: step}``, the first attempt of that subject's task kills its
+            worker with SIGKILL after that step.
+        write: where the progress lines go (default: printed above the bar).
+
+    Returns:
+        One result per subject, in the order given: :func:`~warpavatar.batch.job.fit_subject`'s, with
+        ``status`` ``"skipped"`` for a subject an earlier run finished with the same options, and ``attempts``
+        (how many times its task started) and ``wall_seconds`` (from its first start to its end, as the driver
+        saw them).
+    """
+    import tqdm
+
+    ray = import_ray()
+    from ray.util.queue import Queue
+
+    out_root = Path(out_root)
+    out_root.mkdir(parents=True, exist_ok=True)
+    bar = tqdm.tqdm(total=len(subjects), disable=not progress, desc="subjects", unit="fit")
+    write = write or bar.write
+    results, to_fit = _earlier_results(subjects, out_root, config=config, force=force)
+    for result in results.values():
+        write(one_line_result(result))
+        bar.update(1)
+    if not to_fit:
+        bar.close()
+        return [results[subject.name] for subject in subjects]
+
+    events = Queue(actor_options={"num_cpus": 0})
+    # resources given to ray.remote itself (not .options): a GPU task then gets Ray's default max_calls=1, a fresh
+    # worker process per fit, whose GPU memory is freed when it ends
+    task = ray.remote(num_gpus=gpus_per_fit, num_cpus=cpus_per_fit, max_retries=max_retries,
+                      retry_exceptions=list(INFRASTRUCTURE_ERRORS))(_subject_task)
+    options = dict(config=config, device=device, preset_name=preset_name, evaluate=evaluate)
+    pending = {task.remote(events, subject, str(subject.output(out_root)), options,
+                           (test_kill or {}).get(subject.name)): subject for subject in to_fit}
+    attempts = {subject.name: 0 for subject in to_fit}
+    first_start: dict[str, float] = {}
+
+    def drain_events() -> None:
+        count = events.qsize()
+        for name, event, values in events.get_nowait_batch(count) if count else []:
+            if event == "started":
+                attempts[name] += 1
+                first_start.setdefault(name, time.time())
+                again = f", attempt {attempts[name]}" if attempts[name] > 1 else ""
+                resume = f", resuming from step {values['resume_step']}" if values["resume_step"] else ""
+                write(f"{name}: started on {values['host']}{again}{resume}")
+
+    try:
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)
+            drain_events()
+            for reference in ready:
+                subject = pending.pop(reference)
+                try:
+                    result = ray.get(reference)
+                except ray.exceptions.RayError as error:
+                    result = {"subject": subject.name, "status": "failed", "error": _task_error(error),
+                              "output": str(subject.output(out_root)), "eval": {}}
+                start = first_start.get(subject.name, time.time())
+                result.update(attempts=attempts[subject.name], wall_seconds=round(time.time() - start, 2))
+                results[subject.name] = result
+                write(one_line_result(result))
+                bar.update(1)
+    finally:
+        bar.close()
+        for reference in pending:
+            ray.cancel(reference, force=True)
+        ray.kill(events.actor)
+    return [results[subject.name] for subject in subjects]
