@@ -67,22 +67,28 @@ def display_colour_material(bpy):
     opacity = nodes.new("ShaderNodeAttribute")
     opacity.attribute_type, opacity.attribute_name = "GEOMETRY", "displayOpacity"
     links.new(colour.outputs["Color"], shader.inputs["Base Color"])
+    # half of the colour as emission, so the spheres keep the avatar's colours (a splat renderer shows them unlit)
+    links.new(colour.outputs["Color"], shader.inputs["Emission Color"])
+    shader.inputs["Emission Strength"].default_value = 0.5
     links.new(opacity.outputs["Fac"], shader.inputs["Alpha"])
     shader.inputs["Roughness"].default_value = 0.6
     return material
 
 
 def point_bounds(bpy, objects) -> tuple[list[float], list[float]]:
-    """World-space box (low, high corners) of the evaluated point clouds at the current frame."""
+    """World-space box (low, high corners) of 99 % of the evaluated points at the current frame (strays left out)."""
+    import numpy as np
+
     depsgraph = bpy.context.evaluated_depsgraph_get()
-    low, high = [math.inf] * 3, [-math.inf] * 3
+    positions = []
     for obj in objects:
         evaluated = obj.evaluated_get(depsgraph)
-        for point in evaluated.data.points:
-            world = evaluated.matrix_world @ point.co
-            low = [min(a, b) for a, b in zip(low, world)]
-            high = [max(a, b) for a, b in zip(high, world)]
-    return low, high
+        local = np.empty(3 * len(evaluated.data.points), dtype=np.float64)
+        evaluated.data.attributes["position"].data.foreach_get("vector", local)
+        matrix = np.array(evaluated.matrix_world)
+        positions.append(local.reshape(-1, 3) @ matrix[:3, :3].T + matrix[:3, 3])
+    positions = np.concatenate(positions)
+    return np.percentile(positions, 0.5, axis=0).tolist(), np.percentile(positions, 99.5, axis=0).tolist()
 
 
 def add_camera_and_lights(bpy, low, high, *, azimuth_deg: float, size: int):
@@ -94,7 +100,7 @@ def add_camera_and_lights(bpy, low, high, *, azimuth_deg: float, size: int):
     camera_data = bpy.data.cameras.new("Camera")
     camera_data.lens = 35.0
     half_fov = 0.5 * camera_data.angle
-    distance = 0.6 * extent / math.tan(half_fov) + extent / 2
+    distance = 0.55 * extent / math.tan(half_fov) + extent / 2
     angle = math.radians(azimuth_deg)
     direction = mathutils.Vector((math.sin(angle), -math.cos(angle), 0.15)).normalized()
     camera = bpy.data.objects.new("Camera", camera_data)
@@ -109,8 +115,8 @@ def add_camera_and_lights(bpy, low, high, *, azimuth_deg: float, size: int):
     scene.collection.objects.link(sun)
     world = bpy.data.worlds.new("World")
     world.use_nodes = True
-    world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.8, 0.8, 0.8, 1.0)
-    world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.6
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.05, 0.06, 0.08, 1.0)
+    world.node_tree.nodes["Background"].inputs["Strength"].default_value = 1.0
     scene.world = world
     scene.render.resolution_x = scene.render.resolution_y = size
     scene.render.resolution_percentage = 100
@@ -124,7 +130,7 @@ def main(argv=None) -> int:
     parser.add_argument("-o", "--output", required=True, help="the PNG file to write")
     parser.add_argument("--frame", type=int, default=None,
                         help="scene frame (= USD time code) to render (default: the stage's startTimeCode)")
-    parser.add_argument("--size", type=int, default=384, help="image width and height [px] (default: %(default)s)")
+    parser.add_argument("--size", type=int, default=320, help="image width and height [px] (default: %(default)s)")
     parser.add_argument("--samples", type=int, default=16, help="Cycles samples per pixel (default: %(default)s)")
     parser.add_argument("--azimuth", type=float, default=0.0,
                         help="camera azimuth [degrees] about the up axis, 0 = Blender's front view (-Y) "
