@@ -43,7 +43,7 @@ def test_animate_video_folder_motion_reads_back(avatar_dir, tmp_path, layout):
     bones = data.load_video_folder(motion_folder).bone_transforms[2:6]
     expected = _expected_positions(avatar_dir, bones)
     usd = read_gaussian_usd(output)
-    assert list(usd["time_codes"]) == [0, 1, 2, 3]
+    assert list(usd["time_codes"]) == [0, 3, 6, 9]  # the folder keeps every 3rd frame id: 3 time codes apart
     for t, reference in enumerate(expected):
         np.testing.assert_allclose(usd["positions"][t], reference, atol=1e-5)
 

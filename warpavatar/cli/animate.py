@@ -36,7 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
 @friendly_errors
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from warpavatar.io.animation import posed_frames
+    from warpavatar.io.animation import motion_time_codes, posed_frames
     from warpavatar.io.usd import GaussianUsdWriter
 
     avatar = load_avatar(args)
@@ -53,9 +53,10 @@ def main(argv=None) -> int:
                            meters_per_unit=1.0, skeleton=avatar.rig() if args.skeleton else None) as writer:
         frames = posed_frames(avatar, motion.bone_transforms, frame_ids=motion.frame_ids, fps=motion.fps,
                               part_inputs=part_inputs)
+        time_codes = motion_time_codes(motion.frame_ids)  # frames of the motion's clock, played at fps
         for t, posed in enumerate(tqdm.tqdm(frames, total=frame_count, disable=args.no_progress, desc="animate")):
-            writer.write_frame(t, positions=posed["means"].cpu().numpy(), orientations=posed["quats"].cpu().numpy(),
-                               scales=posed["scales"].detach().cpu().numpy(),
+            writer.write_frame(int(time_codes[t]), positions=posed["means"].cpu().numpy(),
+                               orientations=posed["quats"].cpu().numpy(), scales=posed["scales"].detach().cpu().numpy(),
                                # the skeleton's transforms, then any grown joints' (ToMiE), as posed
                                joint_transforms=posed["bone_transforms"].cpu().numpy() if args.skeleton else None)
     size = args.output.stat().st_size / 2**20

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 __all__ = ["OrbitCamera", "orbit_cameras", "read_cameras_json", "posed_frames", "parse_frame_range",
-           "read_grown_rotations"]
+           "read_grown_rotations", "motion_time_codes"]
 
 
 @dataclass
@@ -42,6 +42,25 @@ def parse_frame_range(text: str | None) -> slice | None:
     except ValueError:
         raise ValueError(f"--frames must hold integers, got {text!r}") from None
     return slice(start, stop)
+
+
+def motion_time_codes(frame_ids: np.ndarray) -> np.ndarray:
+    """The time code of each motion row: its frame id less the first, in frames of the motion's clock.
+
+    A motion's ``fps`` counts its frame ids, so rows of a folder that keeps every k-th frame lie k time codes
+    apart and the animation plays at the speed it was captured (USD interpolates between the rows). Rows whose
+    ids do not increase (a ``.npz`` may hold any) are numbered 0, 1, 2, ... instead.
+
+    Args:
+        frame_ids: [T] int frame ids of the rows.
+
+    Returns:
+        [T] int64 time codes, increasing, starting at 0.
+    """
+    frame_ids = np.asarray(frame_ids, dtype=np.int64).reshape(-1)
+    if frame_ids.size > 1 and not (np.diff(frame_ids) > 0).all():
+        return np.arange(frame_ids.size, dtype=np.int64)
+    return frame_ids - frame_ids[:1].sum()
 
 
 def _look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:

@@ -32,7 +32,7 @@ MEDIAPIPE_VERSION = "0.10.21"
 _INSTALL_HINT = (
     "warpavatar-prepare needs MediaPipe 0.10.21 (its body landmark and segmentation models run offline). "
     "Install it without its numpy<2 and OpenCV pins: `pip install --no-deps mediapipe==0.10.21 && "
-    "pip install absl-py flatbuffers 'protobuf>=4.25.3,<5' matplotlib` (docs/prepare.md)."
+    "pip install absl-py attrs flatbuffers 'protobuf>=4.25.3,<5' matplotlib` (docs/prepare.md)."
 )
 
 
