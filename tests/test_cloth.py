@@ -180,6 +180,29 @@ def test_extreme_parameters_stay_finite_and_bounded(device, logit):
     assert (ratio >= low - 1e-6).all() and (ratio <= high + 1e-6).all()
 
 
+def test_the_stiffest_most_damped_lightest_cloth_comes_to_rest(device):
+    # The corner of the bounds where the explicit step is closest to instability: stiffness, damping, drag
+    # and settling drag at their bounds, the mass at its lower bound. A step outside its stability region
+    # would grow exponentially; this one must come to rest.
+    model, rest = hanging_sheet(device)
+    model = model.to(device)
+    with torch.no_grad():
+        for parameter in (model.stiffness_logit, model.damping_logit, model.drag_logit):
+            parameter.fill_(50.0)
+        model.mass_logit.fill_(-50.0)
+    state = ClothState(rest + 0.01 * torch.randn(rest.shape, generator=torch.Generator().manual_seed(0)).to(device),
+                       torch.zeros_like(rest))
+    speeds = []
+    with torch.no_grad():
+        for _ in range(40):
+            state = model.step(state, rest[:6], 1 / 30, extra_drag=1.0)
+            speeds.append(state.velocities.norm(dim=1).max().item())
+    assert all(math.isfinite(speed) for speed in speeds)
+    assert speeds[-1] < 1e-2 * max(speeds)
+    with pytest.raises(ValueError, match=r"extra_drag must be in \[0, 1\]"):
+        model.step(state, rest[:6], 1 / 30, extra_drag=1.5)
+
+
 def rollout(model, state, targets, frame_interval, capsules=None):
     states = []
     for target in targets:

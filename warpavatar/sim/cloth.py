@@ -30,8 +30,8 @@ at construction for the longest substep ``h <= max_substep``. With the masses' l
   <= c m / h^2`` with ``c = 0.5``. Every 3x3 block of the springs' Jacobian has norm at most ``k_e``, so the
   largest eigenvalue of ``M^-1 K`` is at most ``2 sum_{e at i} k_e / m_i <= 1 / h^2``;
 * edge damping ``c_e = sigmoid(z) * 0.25 * mu'_e / max_substep`` (``mu'`` with the total degree) and drag
-  ``a_i = sigmoid(z) * 0.5 m-_i / max_substep``, so the damping rate is at most ``h (2 sum c_e + a_i) / m_i <= 1``
-  (damping ``<= m / h``).
+  ``a_i = sigmoid(z) * 0.25 m-_i / max_substep`` (plus at most as much again while settling), so the damping
+  rate is at most ``h (2 sum c_e + a_i) / m_i <= 1`` (damping ``<= m / h``).
 
 For the damped oscillator ``m x'' = -k x - c x'`` semi-implicit Euler is stable while ``h c / m <= 1`` and
 ``h^2 k / m <= 4 - 2 h c / m`` (the Jury conditions of its 2x2 step matrix); the bounds keep
@@ -73,7 +73,7 @@ STIFFNESS_FRACTION = 0.5
 STRETCH_SHARE = 0.8
 """Part of a node's stiffness budget that its stretch edges may use (the bend edges use the rest)."""
 DAMPING_FRACTION = 0.25
-DRAG_FRACTION = 0.5
+DRAG_FRACTION = 0.25
 
 
 @dataclass
@@ -320,13 +320,16 @@ class ClothModel(torch.nn.Module):
             previous_capsules: the capsules at the start of the frame (None: ``capsules`` all frame long).
             external_acceleration: a (learned) acceleration of each node [world units / s^2], ``[M, 3]``,
                 bounded by ``max_external_acceleration``.
-            extra_drag: added drag as a fraction of its bound, ``[0, 1]`` (settling uses it).
+            extra_drag: added drag as a fraction of the drag's bound, ``[0, 1]`` (settling uses it; the
+                total stays within the stability bound).
 
         Returns:
             The state at the end of the frame.
         """
         if not frame_interval > 0.0:
             raise ValueError(f"frame_interval must be > 0, got {frame_interval}")
+        if not 0.0 <= extra_drag <= 1.0:
+            raise ValueError(f"extra_drag must be in [0, 1], got {extra_drag}")
         if attachment_targets.shape != (self.attached.shape[0], 3):
             raise ValueError(f"attachment_targets must have shape [{self.attached.shape[0]}, 3], "
                              f"got {list(attachment_targets.shape)}")
