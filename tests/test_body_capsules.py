@@ -7,7 +7,8 @@ import torch
 
 from warpavatar import ops
 from warpavatar.geometry import quat_to_matrix
-from warpavatar.sim import distance_to_segments, fit_body_capsules, pose_capsules
+from warpavatar.sim import capsules_near, distance_to_segments, fit_body_capsules, pose_capsules
+from warpavatar.sim.capsules import select
 
 HEADS = torch.tensor([[0.0, 0.0, 1.0], [0.2, 0.0, 1.4], [0.1, 0.0, 1.0], [0.5, 0.0, 1.4]])
 TAILS = torch.tensor([[0.0, 0.0, 1.5], [0.5, 0.0, 1.4], [0.1, 0.0, 0.5], [0.5, 0.0, 1.4]])  # the last: a point
@@ -89,6 +90,26 @@ def test_posed_capsules_move_with_their_bones():
     inside = posed.segment_start[2:3] + 0.5 * (posed.segment_end[2:3] - posed.segment_start[2:3])
     pushed = ops.push_out_of_capsules(inside, posed.segment_start[2:3], posed.segment_end[2:3], posed.radius[2:3])
     assert math.isclose((pushed - inside).norm().item(), posed.radius[2].item(), rel_tol=1e-5)
+
+
+def test_capsules_near_a_garment():
+    means, weights, garment = body(seed=3)
+    capsules = fit_body_capsules(HEADS, TAILS, means, weights, exclude=garment)
+    shirt = means[garment]  # 30 % outside the torso's capsule: 0.045 from its surface
+    # the upper arm starts right at the shirt (0.2 from the torso's axis); the torso is 0.045 inside it, the
+    # leg's capsule 0.025 below its hem; the zero-length bone at the hand 0.26 away
+    assert capsules_near(capsules, shirt, margin=0.0).tolist() == [1]
+    assert capsules_near(capsules, shirt, margin=0.035).tolist() == [1, 2]
+    wide = capsules_near(capsules, shirt, margin=0.06, chunk=100)
+    assert wide.tolist() == [0, 1, 2]
+    assert capsules_near(capsules, shirt, margin=0.3).tolist() == [0, 1, 2, 3]
+    chosen = select(capsules, wide)
+    torch.testing.assert_close(chosen.radius, capsules.radius[wide])
+    # posing only the chosen ones with their bones' transforms is posing all, then choosing
+    transforms = torch.eye(4).repeat(HEADS.shape[0], 1, 1)
+    transforms[:, :3, 3] = torch.arange(HEADS.shape[0] * 3).reshape(-1, 3).float()
+    torch.testing.assert_close(pose_capsules(chosen, transforms[wide]).segment_end,
+                               pose_capsules(capsules, transforms).segment_end[wide])
 
 
 def test_bad_input():

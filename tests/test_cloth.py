@@ -203,10 +203,10 @@ def test_the_stiffest_most_damped_lightest_cloth_comes_to_rest(device):
         model.step(state, rest[:6], 1 / 30, extra_drag=1.5)
 
 
-def rollout(model, state, targets, frame_interval, capsules=None):
+def rollout(model, state, targets, frame_interval, capsules=None, acceleration=None):
     states = []
     for target in targets:
-        state = model.step(state, target, frame_interval, capsules=capsules)
+        state = model.step(state, target, frame_interval, capsules=capsules, external_acceleration=acceleration)
         states.append(state)
     return states
 
@@ -227,31 +227,33 @@ def test_cpu_rollout_is_bit_identical():
     assert all(torch.equal(a, b) for a, b in zip(results[0][2], results[1][2]))
 
 
-def gradient_problem(device, dtype):
+def gradient_problem(device, dtype, seed=12):
     """A small sheet falling onto a capsule (its middle row in contact at every substep, away from the kinks),
     pinned by one corner that moves, three frames of four substeps; the loss weighs every state by fixed random
-    weights. Returns (loss function of (model, x0, v0), model, x0, v0)."""
+    weights; an external acceleration near its bound acts on every node. Returns the loss function of
+    (model, x0, v0, acceleration), the model, and (x0, v0, acceleration)."""
     rest = sheet(3, 4, 0.05, horizontal=True) + torch.tensor([-0.075, -0.05, 0.0605])
     graph = cloth_graph(rest, neighbours=4, bend_per_node=3)
     model = ClothModel(rest, graph, torch.tensor([0]), node_mass=0.02, max_substep=1 / 240)
-    generator = torch.Generator().manual_seed(5)
+    generator = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for parameter in model.parameters():
             parameter.add_(0.5 * torch.randn(parameter.shape, generator=generator))
     weights = torch.randn(3, 2, *rest.shape, generator=generator, dtype=torch.float64)
     x0 = rest + 0.01 * torch.randn(rest.shape, generator=generator)
     v0 = 0.1 * torch.randn(rest.shape, generator=generator) - torch.tensor([0.0, 0.0, 0.3])  # onto the capsule
+    acceleration = 20.0 * torch.randn(rest.shape, generator=generator)
     capsule = (torch.tensor([[-0.2, 0.0, 0.0]]), torch.tensor([[0.2, 0.0, 0.0]]), torch.tensor([0.06]))
     model = model.to(device=device, dtype=dtype)
 
-    def loss(model, x0, v0):
+    def loss(model, x0, v0, acceleration):
         capsules = Capsules(*(c.to(device=device, dtype=x0.dtype) for c in capsule))
         targets = [x0[:1] + torch.tensor([[0.01, 0.0, 0.005]], device=device, dtype=x0.dtype) * t for t in (1, 2, 3)]
-        states = rollout(model, ClothState(x0, v0), targets, 1 / 60, capsules)
+        states = rollout(model, ClothState(x0, v0), targets, 1 / 60, capsules, acceleration)
         w = weights.to(device=device, dtype=x0.dtype)
         return sum((w[t, 0] * s.positions).sum() + 0.01 * (w[t, 1] * s.velocities).sum() for t, s in enumerate(states))
 
-    return loss, model, x0.to(device=device, dtype=dtype), v0.to(device=device, dtype=dtype)
+    return loss, model, tuple(value.to(device=device, dtype=dtype) for value in (x0, v0, acceleration))
 
 
 def gradient_error(analytic, numeric):
@@ -262,18 +264,27 @@ def gradient_error(analytic, numeric):
 def test_rollout_gradients_match_finite_differences(device, monkeypatch):
     # Analytic: the Warp ops in float32 through torch autograd. Numeric: central differences of the same
     # rollout with the ops' float64 torch references.
-    loss, model, x0, v0 = gradient_problem(device, torch.float32)
-    x0, v0 = x0.clone().requires_grad_(), v0.clone().requires_grad_()
+    loss, model, state = gradient_problem(device, torch.float32)
+    state = [value.clone().requires_grad_() for value in state]
     names = [name for name, _ in model.named_parameters()]
-    analytic = torch.autograd.grad(loss(model, x0, v0), [*model.parameters(), x0, v0])
+    analytic = torch.autograd.grad(loss(model, *state), [*model.parameters(), *state])
     analytic = [g.double().cpu() for g in analytic]
 
+    contacts = []  # per substep: (nodes pushed, smallest distance of any node to the capsule's surface)
+
+    def recording_collision(x, start, end, radius):
+        pushed = reference_collision.push_out_of_capsules(x, start, end, radius)
+        if not torch.is_grad_enabled():
+            distance = (x[:, 1:] ** 2).sum(dim=1).sqrt()  # the capsule lies along x, past the sheet's ends
+            contacts.append((int((pushed != x).any(dim=1).sum()), (distance - radius).abs().min().item()))
+        return pushed
+
     monkeypatch.setattr(ops, "spring_step", reference_springs.spring_step)
-    monkeypatch.setattr(ops, "push_out_of_capsules", reference_collision.push_out_of_capsules)
+    monkeypatch.setattr(ops, "push_out_of_capsules", recording_collision)
     model64 = copy.deepcopy(model).to("cpu", torch.float64)
-    x64, v64 = x0.detach().cpu().double(), v0.detach().cpu().double()
-    loss, _, _, _ = gradient_problem("cpu", torch.float64)  # the same problem, in float64 on the CPU
-    inputs = [*model64.parameters(), x64, v64]
+    state64 = [value.detach().cpu().double() for value in state]
+    loss, _, _ = gradient_problem("cpu", torch.float64)  # the same problem, in float64 on the CPU
+    inputs = [*model64.parameters(), *state64]
     epsilon = 1e-6
     numeric = []
     with torch.no_grad():
@@ -282,16 +293,21 @@ def test_rollout_gradients_match_finite_differences(device, monkeypatch):
             for element in range(value.numel()):
                 original = value.view(-1)[element].item()
                 value.view(-1)[element] = original + epsilon
-                plus = loss(model64, x64, v64).item()
+                plus = loss(model64, *state64).item()
                 value.view(-1)[element] = original - epsilon
-                minus = loss(model64, x64, v64).item()
+                minus = loss(model64, *state64).item()
                 value.view(-1)[element] = original
                 fd.view(-1)[element] = (plus - minus) / (2 * epsilon)
             numeric.append(fd)
-    for name, fd in zip(names + ["x0", "v0"], numeric):
+    # the rollout touches the capsule at most substeps, and no node comes near the kink of the collision map
+    # (the surface) in any rollout of the finite differences, so they differentiate one smooth branch
+    substeps = 12
+    assert sum(count > 0 for count, _ in contacts[:substeps]) >= 6
+    assert min(margin for _, margin in contacts) > 1e-5
+    for name, fd in zip(names + ["x0", "v0", "acceleration"], numeric):
         assert fd.abs().max() > 1e-4, name  # every input matters
     # the float64 reference rollout's own autograd agrees tightly (the model's torch code is differentiated right)
-    leaves = [value.clone().requires_grad_() for value in (x64, v64)]
+    leaves = [value.clone().requires_grad_() for value in state64]
     reference_grads = torch.autograd.grad(loss(model64, *leaves), [*model64.parameters(), *leaves])
     assert gradient_error(reference_grads, numeric) < 1e-5
     # the Warp float32 gradients, within float32 round-off of a 12-substep rollout (measured: 7e-7)
@@ -305,15 +321,15 @@ def test_rollout_gradients_match_finite_differences(device, monkeypatch):
 
 
 def test_warp_rollout_matches_the_reference_ops(device, monkeypatch):
-    loss, model, x0, v0 = gradient_problem(device, torch.float32)
+    loss, model, state = gradient_problem(device, torch.float32)
     results = []
     for use_reference in (False, True):
         if use_reference:
             monkeypatch.setattr(ops, "spring_step", reference_springs.spring_step)
             monkeypatch.setattr(ops, "push_out_of_capsules", reference_collision.push_out_of_capsules)
-        x, v = x0.clone().requires_grad_(), v0.clone().requires_grad_()
-        value = loss(model, x, v)
-        results.append((value, torch.autograd.grad(value, [*model.parameters(), x, v])))
+        leaves = [value.clone().requires_grad_() for value in state]
+        value = loss(model, *leaves)
+        results.append((value, torch.autograd.grad(value, [*model.parameters(), *leaves])))
     torch.testing.assert_close(results[0][0], results[1][0], rtol=1e-5, atol=1e-5)
     for grad, grad_ref in zip(results[0][1], results[1][1]):
         torch.testing.assert_close(grad, grad_ref, rtol=1e-3, atol=1e-3 * grad_ref.abs().max().item())

@@ -13,7 +13,7 @@ import torch
 
 from warpavatar.sim.cloth import Capsules
 
-__all__ = ["fit_body_capsules", "pose_capsules", "distance_to_segments"]
+__all__ = ["fit_body_capsules", "pose_capsules", "capsules_near", "select", "distance_to_segments"]
 
 
 def distance_to_segments(points: torch.Tensor, start: torch.Tensor, end: torch.Tensor) -> torch.Tensor:
@@ -86,6 +86,42 @@ def fit_body_capsules(
         if mine.numel() >= min_points:
             radius[joint] = torch.quantile(mine, quantile)
     return Capsules(heads.clone(), tails.clone(), radius)
+
+
+def capsules_near(capsules: Capsules, points: torch.Tensor, *, margin: float, chunk: int = 8192) -> torch.Tensor:
+    """Ids of the capsules whose surface comes within ``margin`` of any point: the candidates of a garment.
+
+    Collision costs one test per node and capsule; a garment only ever meets the bones near it (a shirt never
+    the shins). Choose once, in canonical space, with a margin as large as the garment can move away from its
+    rest shape, then pose only those: ``pose_capsules(select(capsules, ids), bone_transforms[ids])``.
+
+    Args:
+        capsules: canonical capsules ``[C]``.
+        points: the garment's rest nodes [world units], ``[N, 3]``.
+        margin: distance [world units] >= 0 from a capsule's surface within which a point makes it a candidate.
+        chunk: points per batch of the ``[chunk, C]`` distance table.
+
+    Returns:
+        int64 ``[K]``, ascending.
+    """
+    if margin < 0:
+        raise ValueError(f"margin must be >= 0, got {margin}")
+    capsule_count = capsules.radius.shape[0]
+    near = torch.zeros(capsule_count, dtype=torch.bool, device=capsules.radius.device)
+    start, end = capsules.segment_start.float(), capsules.segment_end.float()
+    for first in range(0, points.shape[0], chunk):
+        block = points[first:first + chunk].detach().float()
+        count = block.shape[0]
+        distance = distance_to_segments(
+            block.repeat_interleave(capsule_count, dim=0), start.repeat(count, 1), end.repeat(count, 1)
+        ).reshape(count, capsule_count)
+        near |= ((distance - capsules.radius.float()[None]) <= margin).any(dim=0)
+    return torch.nonzero(near).reshape(-1)
+
+
+def select(capsules: Capsules, ids: torch.Tensor) -> Capsules:
+    """The capsules ``ids`` of ``capsules``."""
+    return Capsules(capsules.segment_start[ids], capsules.segment_end[ids], capsules.radius[ids])
 
 
 def pose_capsules(capsules: Capsules, bone_transforms: torch.Tensor) -> Capsules:
