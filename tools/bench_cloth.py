@@ -12,6 +12,10 @@ Rows time, per call (median):
 * ``cloth frame forward``: :meth:`ClothModel.step` under ``torch.no_grad`` (the cost of playing the cloth);
 * ``cloth frame forward+backward``: the step with autograd, then the gradient of a loss of the final state
   with respect to every parameter and the initial state (the cost of one frame of training);
+* ``cloth frame forward, CUDA graph`` (CUDA only): the same frame captured once into a CUDA graph and
+  replayed. The step has static shapes and no host synchronization, so a whole frame (8 substeps, about 30
+  small kernels each) replays as one launch: what playing the cloth costs once launch overhead is gone. If
+  capture fails the row says so instead of a time;
 * ``push_out_of_capsules`` forward and backward alone, for the 20 capsules.
 
 On a CPU shared with other work, ``OMP_NUM_THREADS=1`` keeps torch's thread pool from spinning against it (on
@@ -65,7 +69,30 @@ def make_garment(node_count: int, device: str, *, seed: int = 0):
 
 def _row(node_count, edge_count, op, ms, substeps):
     return {"nodes": node_count, "directed edges": edge_count, "op": op, "ms": ms,
-            "ms per substep": ms / substeps if substeps else None, "threads": torch.get_num_threads()}
+            "ms per substep": ms / substeps if (substeps and ms is not None) else None,
+            "threads": torch.get_num_threads()}
+
+
+def _graph_row(model, rest, targets, capsules, device, warmup, repeats, node_count, edge_count, substeps):
+    """Time one frame captured in a CUDA graph (static input and output tensors, replayed)."""
+    label = f"cloth frame forward, CUDA graph ({substeps} substeps)"
+    state = ClothState(rest.clone(), torch.zeros_like(rest))
+    try:
+        with torch.no_grad():
+            side = torch.cuda.Stream(device)
+            side.wait_stream(torch.cuda.current_stream(device))
+            with torch.cuda.stream(side):  # warm-up off the capture: kernels loaded, allocator primed
+                for _ in range(3):
+                    model.step(state, targets, FRAME_INTERVAL, capsules=capsules)
+            torch.cuda.current_stream(device).wait_stream(side)
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                model.step(state, targets, FRAME_INTERVAL, capsules=capsules)
+        ms = time_function(graph.replay, device=device, warmup=warmup, repeats=repeats)
+    except Exception as error:  # noqa: BLE001 - the row reports why capture failed
+        return _row(node_count, edge_count, f"{label}: capture failed ({type(error).__name__}: {error})"[:160], None,
+                    None)
+    return _row(node_count, edge_count, label, ms, substeps)
 
 
 def run(device: str, quick: bool) -> list[dict]:
@@ -88,6 +115,10 @@ def run(device: str, quick: bool) -> list[dict]:
         with torch.no_grad():
             forward_ms = time_function(frame, device=device, warmup=warmup, repeats=repeats)
         rows.append(_row(node_count, edge_count, f"cloth frame forward ({substeps} substeps)", forward_ms, substeps))
+
+        if on_cuda:
+            rows.append(_graph_row(model, rest, targets, capsules, device, warmup, repeats, node_count, edge_count,
+                                   substeps))
 
         leaves = ClothState(rest.clone().requires_grad_(), torch.zeros_like(rest).requires_grad_())
         inputs = [*model.parameters(), leaves.positions, leaves.velocities]
