@@ -354,7 +354,8 @@ class ClothModel(torch.nn.Module):
             force = constant_force.index_add(0, self.receiver, -edge_damping[:, None] * relative)
             x, v = ops.spring_step(x, v, self.edges, self._rest_offsets(x, rest_length), stiffness, drag, mass,
                                    force, h)
-            target = start + fraction * (attachment_targets - start)
+            # (the last substep lands on the targets themselves, bit for bit)
+            target = attachment_targets if substep == substeps else start + fraction * (attachment_targets - start)
             x = x.index_copy(0, self.attached, target)
             v = v.index_copy(0, self.attached, attached_velocity)
             if capsules is not None:
