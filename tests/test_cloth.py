@@ -342,5 +342,13 @@ def test_bad_options():
         ClothModel(rest, graph, torch.tensor([0]), max_substep=0.0)
     with pytest.raises(ValueError, match="stretch_stiffness is a fraction"):
         ClothModel(rest, graph, torch.tensor([0]), stretch_stiffness=1.0)
+    with pytest.raises(ValueError, match=r"attached must hold distinct node ids in \[0, 9\)"):
+        ClothModel(rest, graph, torch.tensor([0, 9]))
+    with pytest.raises(ValueError, match="attached must hold distinct"):
+        ClothModel(rest, graph, torch.tensor([2, 2]))
+    with pytest.raises(ValueError, match="node_mass must be positive"):
+        ClothModel(rest, graph, torch.tensor([0]), node_mass=0.0)
+    with pytest.raises(ValueError, match=r"rest_positions must have shape \[M, 3\]"):
+        ClothModel(rest[:, :2], graph, torch.tensor([0]))
     with pytest.raises(ValueError, match="bend_per_node must be >= 0"):
         cloth_graph(rest, bend_per_node=-1)

@@ -178,6 +178,10 @@ class ClothModel(torch.nn.Module):
         mass_range: the mass scale stays within ``[1 / mass_range, mass_range]`` (> 1).
         max_external_acceleration: bound of the external acceleration hook [world units / s^2].
         stretch_stiffness, bend_stiffness, damping, drag: initial values as fractions ``(0, 1)`` of their bounds.
+
+    Raises:
+        ValueError: bad shapes, attached ids outside ``[0, M)`` or repeated, a non-positive mass, options out
+            of range.
     """
 
     def __init__(
@@ -206,15 +210,23 @@ class ClothModel(torch.nn.Module):
                                ("damping", damping), ("drag", drag)):
             if not 0.0 < fraction < 1.0:
                 raise ValueError(f"{name} is a fraction of its bound and must be in (0, 1), got {fraction}")
+        if rest_positions.dim() != 2 or rest_positions.shape[1] != 3:
+            raise ValueError(f"rest_positions must have shape [M, 3], got {list(rest_positions.shape)}")
         device = rest_positions.device
         rest = rest_positions.detach().float()
         node_count = rest.shape[0]
+        attached = torch.as_tensor(attached, device=device).reshape(-1)
+        if attached.numel() and (int(attached.min()) < 0 or int(attached.max()) >= node_count
+                                 or attached.unique().numel() != attached.numel()):
+            raise ValueError(f"attached must hold distinct node ids in [0, {node_count})")
         pairs = torch.cat([graph.stretch, graph.bend]).to(device=device, dtype=torch.int64)
         self.stretch_count = graph.stretch.shape[0]
         self.max_substep = float(max_substep)
         self.mass_range = float(mass_range)
         self.max_external_acceleration = float(max_external_acceleration)
         mass = torch.as_tensor(node_mass, dtype=torch.float32, device=device).expand(node_count).clone()
+        if node_count and not bool((mass > 0).all()):
+            raise ValueError("node_mass must be positive")
 
         # directed edges (both directions of every pair), sorted by receiver for spring_step
         directed = torch.cat([pairs, pairs.flip(1)])
@@ -225,7 +237,7 @@ class ClothModel(torch.nn.Module):
         self.register_buffer("receiver", directed[order, 0].contiguous())
         self.register_buffer("sender", directed[order, 1].contiguous())
         self.register_buffer("pair_of_edge", pair_of_directed[order].contiguous())
-        self.register_buffer("attached", torch.as_tensor(attached, dtype=torch.int64, device=device).reshape(-1))
+        self.register_buffer("attached", attached.to(torch.int64))
         self.register_buffer("base_mass", mass)
         self.register_buffer("rest_length", (rest[pairs[:, 0]] - rest[pairs[:, 1]]).norm(dim=1))
         if gravity is None:
