@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from warpavatar import ops
+from warpavatar._torch_impl import cloth as reference_cloth
 from warpavatar._torch_impl import collision as reference_collision
 from warpavatar._torch_impl import springs as reference_springs
 from warpavatar.sim import Capsules, ClothGraph, ClothModel, ClothState, cloth_graph
@@ -263,7 +264,7 @@ def gradient_error(analytic, numeric):
 
 def test_rollout_gradients_match_finite_differences(device, monkeypatch):
     # Analytic: the Warp ops in float32 through torch autograd. Numeric: central differences of the same
-    # rollout with the ops' float64 torch references.
+    # rollout with the ops' float64 torch references (spring_step, cloth_edge_terms, push_out_of_capsules).
     loss, model, state = gradient_problem(device, torch.float32)
     state = [value.clone().requires_grad_() for value in state]
     names = [name for name, _ in model.named_parameters()]
@@ -280,6 +281,7 @@ def test_rollout_gradients_match_finite_differences(device, monkeypatch):
         return pushed
 
     monkeypatch.setattr(ops, "spring_step", reference_springs.spring_step)
+    monkeypatch.setattr(ops, "cloth_edge_terms", reference_cloth.cloth_edge_terms)
     monkeypatch.setattr(ops, "push_out_of_capsules", recording_collision)
     model64 = copy.deepcopy(model).to("cpu", torch.float64)
     state64 = [value.detach().cpu().double() for value in state]
@@ -326,6 +328,7 @@ def test_warp_rollout_matches_the_reference_ops(device, monkeypatch):
     for use_reference in (False, True):
         if use_reference:
             monkeypatch.setattr(ops, "spring_step", reference_springs.spring_step)
+            monkeypatch.setattr(ops, "cloth_edge_terms", reference_cloth.cloth_edge_terms)
             monkeypatch.setattr(ops, "push_out_of_capsules", reference_collision.push_out_of_capsules)
         leaves = [value.clone().requires_grad_() for value in state]
         value = loss(model, *leaves)

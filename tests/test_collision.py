@@ -8,6 +8,7 @@ and the Warp gradients with central differences of the float64 reference away fr
 import pytest
 import torch
 
+from conftest import assert_matches_central_differences
 from warpavatar import ops
 from warpavatar._torch_impl import collision as reference
 
@@ -110,19 +111,8 @@ def test_finite_differences(device):
     def objective(values):
         return (call(reference.push_out_of_capsules, values) * cotangent).sum()
 
-    epsilon = 1e-7
-    for name, grad in zip(NAMES, grads):
-        finite_difference = torch.zeros_like(scene64[name])
-        for element in range(finite_difference.numel()):
-            plus = {**scene64, name: scene64[name].clone()}
-            minus = {**scene64, name: scene64[name].clone()}
-            plus[name].view(-1)[element] += epsilon
-            minus[name].view(-1)[element] -= epsilon
-            finite_difference.view(-1)[element] = (objective(plus) - objective(minus)) / (2 * epsilon)
-        scale = finite_difference.abs().max().item()
-        assert scale > 1e-2, name
-        torch.testing.assert_close(grad.double().cpu(), finite_difference, rtol=1e-3, atol=1e-4 * scale,
-                                   msg=lambda m, n=name: f"d/d{n}: {m}")
+    assert_matches_central_differences(objective, scene64, dict(zip(NAMES, grads)), epsilon=1e-7, rtol=1e-3,
+                                       relative_atol=1e-4, min_scale=1e-2)
 
 
 def test_degenerate_cases_are_finite(device):

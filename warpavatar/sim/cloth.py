@@ -12,7 +12,7 @@ Forces on a free node ``i`` (mass ``m_i``), per substep of ``h`` seconds:
 * gravity ``m_i g``, with ``g = -9.81 up`` by default (``up`` of skeleton.json, ``+z`` in the supplied data);
 * length springs on every edge ``e = (i, j)`` (stretch and bend alike), ``-k_e (|d| - L_e) d/|d|`` with
   ``d = x_i - x_j``: the exact length spring, given to :func:`warpavatar.ops.spring_step` as the rest offset
-  ``L'_e d/|d|`` recomputed at every substep, where ``L'_e = min(L_e, 2 |d|)`` (a spring squeezed below half its
+  ``L'_e d/|d|`` recomputed at every substep (:func:`warpavatar.ops.cloth_edge_terms`, with the damping), where ``L'_e = min(L_e, 2 |d|)`` (a spring squeezed below half its
   rest length pushes no harder than ``k_e |d|``: the transverse stiffness ``k_e (1 - L'_e/|d|)`` of the spring
   stays within ``[-k_e, k_e]`` however short the edge gets);
 * damping of the relative velocity on every edge, ``-c_e (v_i - v_j)``;
@@ -234,8 +234,6 @@ class ClothModel(torch.nn.Module):
         order = torch.argsort(directed[:, 0] * max(node_count, 1) + directed[:, 1])
         self.register_buffer("pairs", pairs)
         self.register_buffer("edges", directed[order].to(torch.int32).contiguous())
-        self.register_buffer("receiver", directed[order, 0].contiguous())
-        self.register_buffer("sender", directed[order, 1].contiguous())
         self.register_buffer("pair_of_edge", pair_of_directed[order].contiguous())
         self.register_buffer("attached", attached.to(torch.int64))
         self.register_buffer("base_mass", mass)
@@ -362,10 +360,9 @@ class ClothModel(torch.nn.Module):
         attached_velocity = (attachment_targets - start) / float(frame_interval)
         for substep in range(1, substeps + 1):
             fraction = substep / substeps
-            relative = v.index_select(0, self.receiver) - v.index_select(0, self.sender)
-            force = constant_force.index_add(0, self.receiver, -edge_damping[:, None] * relative)
-            x, v = ops.spring_step(x, v, self.edges, self._rest_offsets(x, rest_length), stiffness, drag, mass,
-                                   force, h)
+            rest_offset, damping_force = ops.cloth_edge_terms(x, v, self.edges, rest_length, edge_damping)
+            x, v = ops.spring_step(x, v, self.edges, rest_offset, stiffness, drag, mass, constant_force + damping_force,
+                                   h)
             # (the last substep lands on the targets themselves, bit for bit)
             target = attachment_targets if substep == substeps else start + fraction * (attachment_targets - start)
             x = x.index_copy(0, self.attached, target)
@@ -377,13 +374,6 @@ class ClothModel(torch.nn.Module):
                 v = v + (pushed - x) / h
                 x = pushed
         return ClothState(x, v)
-
-    def _rest_offsets(self, x: torch.Tensor, rest_length: torch.Tensor) -> torch.Tensor:
-        """``L'_e d / |d|`` per directed edge with ``L'_e = min(L_e, 2 |d|)`` (0 for coincident nodes)."""
-        delta = x.index_select(0, self.receiver) - x.index_select(0, self.sender)
-        length = delta.norm(dim=1)
-        effective = torch.minimum(rest_length, 2.0 * length)
-        return delta * (effective / length.clamp_min(1e-12))[:, None]
 
     @torch.no_grad()
     def settle(
