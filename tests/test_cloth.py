@@ -159,8 +159,8 @@ def test_extreme_parameters_stay_finite_and_bounded(device, logit):
                 parameter.copy_((torch.randint(0, 2, parameter.shape, generator=generator) * 100.0 - 50.0))
             else:
                 parameter.fill_(logit)
-    capsules = Capsules(torch.tensor([[0.1, 0.05, -0.1]], device=device), torch.tensor([[0.1, 0.05, -0.3]], device=device),
-                        torch.tensor([0.06], device=device))
+    capsules = Capsules(torch.tensor([[0.1, 0.05, -0.1]], device=device),
+                        torch.tensor([[0.1, 0.05, -0.3]], device=device), torch.tensor([0.06], device=device))
     state = model.rest_state(rest)
     huge = 1e6 * torch.randn(rest.shape, generator=generator).to(device)
     with torch.no_grad():

@@ -12,9 +12,10 @@ Forces on a free node ``i`` (mass ``m_i``), per substep of ``h`` seconds:
 * gravity ``m_i g``, with ``g = -9.81 up`` by default (``up`` of skeleton.json, ``+z`` in the supplied data);
 * length springs on every edge ``e = (i, j)`` (stretch and bend alike), ``-k_e (|d| - L_e) d/|d|`` with
   ``d = x_i - x_j``: the exact length spring, given to :func:`warpavatar.ops.spring_step` as the rest offset
-  ``L'_e d/|d|`` recomputed at every substep (:func:`warpavatar.ops.cloth_edge_terms`, with the damping), where ``L'_e = min(L_e, 2 |d|)`` (a spring squeezed below half its
-  rest length pushes no harder than ``k_e |d|``: the transverse stiffness ``k_e (1 - L'_e/|d|)`` of the spring
-  stays within ``[-k_e, k_e]`` however short the edge gets);
+  ``L'_e d/|d|`` recomputed at every substep by :func:`warpavatar.ops.cloth_edge_terms` (with the damping),
+  where ``L'_e = min(L_e, 2 |d|)`` (a spring squeezed below half its rest length pushes no harder than
+  ``k_e |d|``: the transverse stiffness ``k_e (1 - L'_e/|d|)`` of the spring stays within ``[-k_e, k_e]``
+  however short the edge gets);
 * damping of the relative velocity on every edge, ``-c_e (v_i - v_j)``;
 * linear air drag ``-a_i v_i`` (the air at rest);
 * an optional external acceleration (the hook of a learned force), bounded smoothly:
@@ -39,9 +40,10 @@ For the damped oscillator ``m x'' = -k x - c x'`` semi-implicit Euler is stable 
 compression may still buckle, as cloth does, at a rate bounded by the same numbers). Rest lengths stay
 within ``[0.5, 1.5]`` times their rest-shape values, the mass scale within ``[1 / mass_range, mass_range]``.
 
-The price of an explicit step: a node's springs can be at most about ``0.4 m / (n^s h^2)`` stiff, so a
-hanging chain of ``N`` nodes stretches by roughly ``N^2 g n^s h^2 / 0.8`` at best: stiff cloth needs a small
-``max_substep`` (1/240 s suits soft, stretchy garments; 1/1000 s and below stiffer ones).
+The price of an explicit step: a stretch spring can be at most ``0.4 m- / (n^s h^2)`` stiff, so a hanging
+chain of ``N`` nodes of mass ``m`` stretches by at least about ``N^2 g n^s h^2 m / (0.8 m-)`` in all (its
+springs carry ``N^2 m g / 2`` of weight between them): stiff cloth needs a small ``max_substep`` (1/240 s suits
+soft, stretchy garments; 1/1000 s and below stiffer ones).
 
 Attachment and collision. Attached nodes move on the straight line from where they are to their new
 targets over the frame's substeps, with that line's velocity. After every substep the free nodes are pushed
@@ -49,9 +51,9 @@ out of the body's capsules (:func:`warpavatar.ops.push_out_of_capsules`) and the
 the same move over ``h``, so position and velocity stay consistent (a node that hits the body keeps no
 velocity into it). Capsules may move during the frame (linear between the previous frame's and this one's).
 
-Everything is torch autograd through ``spring_step`` and the collision op (truncating the window is the
-caller's business), with no host synchronization per substep: the number of substeps is computed from the
-Python number ``frame_interval``.
+Everything is torch autograd through ``cloth_edge_terms``, ``spring_step`` and the collision op (truncating
+the window is the caller's business), with no host synchronization per substep: the number of substeps is
+computed from the Python number ``frame_interval``.
 """
 
 from __future__ import annotations

@@ -9,9 +9,10 @@ of ``A``, the update ``omega = sum_k r_k x a_k / (|sum_k r_k . a_k| + eps)`` is 
 left. That step only scales the gradient by a number, which converges slowly for the flat, elongated
 neighbourhoods of cloth; where the second-order model of ``trace(R^T A)`` is concave (near the optimum of
 any neighbourhood that is not a line) the full Newton step with its 3x3 Hessian is taken instead, which
-converges quadratically (see ``_rotation_step``). Every step is smooth (the small rotation is the quaternion ``(1, omega / 2)`` normalized), so a few
-unrolled iterations are differentiable everywhere, where an SVD's gradient blows up at repeated singular
-values (flat or collapsed neighbourhoods, which cloth has).
+converges quadratically (see ``_rotation_step``). Each step is a smooth function of its inputs (the small
+rotation is the quaternion ``(1, omega / 2)`` normalized; the choice between the two steps changes only far
+from the answer), so a few unrolled iterations differentiate cleanly, where an SVD's gradient blows up at
+repeated singular values (flat or collapsed neighbourhoods, which cloth has).
 
 A Gaussian riding on a node keeps its rest offset and rotation in the node's frame: its centre is
 ``x_node + R offset`` and its rotation ``q_node * q_rest`` (quaternions (w, x, y, z)).
