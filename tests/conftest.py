@@ -63,3 +63,24 @@ def load_tool(name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def assert_matches_central_differences(objective, inputs: dict, grads: dict, *, epsilon: float, rtol: float,
+                                       relative_atol: float, min_scale: float):
+    """Check analytic gradients against central differences of ``objective(inputs)`` (a float64 function).
+
+    For every name in ``grads``, each element of ``inputs[name]`` is moved by +-``epsilon``; the difference
+    quotient is compared with ``grads[name]`` (moved to float64 on the CPU) with tolerances ``rtol`` and
+    ``relative_atol`` times the largest quotient, which must exceed ``min_scale`` (the input matters).
+    """
+    for name, grad in grads.items():
+        numeric = torch.zeros_like(inputs[name])
+        for element in range(numeric.numel()):
+            plus, minus = {**inputs, name: inputs[name].clone()}, {**inputs, name: inputs[name].clone()}
+            plus[name].view(-1)[element] += epsilon
+            minus[name].view(-1)[element] -= epsilon
+            numeric.view(-1)[element] = (objective(plus) - objective(minus)) / (2 * epsilon)
+        scale = numeric.abs().max().item()
+        assert scale > min_scale, name
+        torch.testing.assert_close(grad.double().cpu(), numeric, rtol=rtol, atol=relative_atol * scale,
+                                   msg=lambda message, n=name: f"d/d{n}: {message}")

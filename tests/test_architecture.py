@@ -90,6 +90,17 @@ def test_data_flows_one_way(lower, higher):
     assert not offenders, offenders
 
 
+def test_sim_builds_on_the_kernel_level_only():
+    # warpavatar/sim/ is physics the avatar's parts use: it may import the ops, their kernels and bridges, the
+    # shared geometry and itself (and the bare package, whose face imports nothing), never the model, the extensions, the fit or anything above them.
+    allowed = ("warpavatar.ops", "warpavatar.geometry", "warpavatar.kernels", "warpavatar._src", "warpavatar.sim")
+    assert "warpavatar.sim.cloth" in GRAPH
+    offenders = sorted(f"{module} -> {target}" for module, targets in GRAPH.items()
+                       if module.startswith("warpavatar.sim")
+                       for target in targets if target != "warpavatar" and not target.startswith(allowed))
+    assert not offenders, offenders
+
+
 def test_the_trainer_reaches_extensions_only_through_the_registry():
     offenders = sorted(f"{module} -> {target}" for module, targets in GRAPH.items()
                        if module.startswith("warpavatar.fit")

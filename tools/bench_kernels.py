@@ -2,7 +2,8 @@
 
 Modes: ``splat`` (rasterizer, against gsplat when importable), ``knn``, ``springs``, ``skinning``
 (sample_grid and lbs), ``usd`` (USD animation writing, CPU), ``dynamics`` (SMAD's learned dynamics: rollout
-and training window), ``all``. Each mode lives in ``tools/bench_<mode>.py`` and returns table rows;
+and training window), ``cloth`` (one frame of the simulated garment, substeps included, and the capsule
+collision), ``all``. Each mode lives in ``tools/bench_<mode>.py`` and returns table rows;
 this script prints them as a markdown table with the device and date, and appends them to ``--record``
 (default ``BENCHMARKS.md``) when asked, so runs can be compared over time.
 """
@@ -22,7 +23,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from bench_common import markdown_table  # noqa: E402
 
-MODES = ("splat", "knn", "springs", "skinning", "usd", "dynamics")
+MODES = ("splat", "knn", "springs", "skinning", "usd", "dynamics", "cloth")
 
 
 def main(argv=None) -> int:

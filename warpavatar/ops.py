@@ -8,6 +8,8 @@ Conventions: quaternions are (w, x, y, z); cameras follow OpenCV (x right, y dow
 ``docs/conventions.md`` states); lengths are in world units (metres in the supplied data).
 """
 
+from warpavatar._src.cloth import cloth_edge_terms
+from warpavatar._src.collision import push_out_of_capsules
 from warpavatar._src.knn import knn_graph
 from warpavatar._src.skinning import inverse_lbs, lbs, sample_grid
 from warpavatar._src.splat import rasterize_gaussians
@@ -22,4 +24,6 @@ __all__ = [
     "sample_grid",
     "lbs",
     "inverse_lbs",
+    "push_out_of_capsules",
+    "cloth_edge_terms",
 ]

@@ -3,6 +3,8 @@
 They are slow and simple on purpose: the tests compare the Warp kernels' values and gradients against them.
 """
 
+from warpavatar._torch_impl.cloth import cloth_edge_terms
+from warpavatar._torch_impl.collision import push_out_of_capsules
 from warpavatar._torch_impl.knn import knn_graph
 from warpavatar._torch_impl.skinning import inverse_lbs, lbs, sample_grid
 from warpavatar._torch_impl.splat import rasterize_gaussians
@@ -10,4 +12,5 @@ from warpavatar._torch_impl.springs import damping_loss, isometry_loss, spring_s
 
 # the same names as warpavatar.ops (tests/test_splat.py checks that the two lists agree)
 __all__ = ["rasterize_gaussians", "knn_graph", "spring_step", "isometry_loss", "damping_loss", "sample_grid", "lbs",
-           "inverse_lbs"]
+           "inverse_lbs", "push_out_of_capsules",
+           "cloth_edge_terms"]

@@ -1,0 +1,14 @@
+"""Physics the avatar's parts use: a mass-spring cloth on a garment's node graph, collision capsules fitted to
+the body's own Gaussians, and the rotations of the nodes' neighbourhoods that garment Gaussians ride on.
+
+Built on :mod:`warpavatar.ops` (Warp kernels) and :mod:`warpavatar.geometry` only; nothing here knows the avatar
+model, the extensions or the fit.
+"""
+
+from warpavatar.sim.capsules import capsules_near, distance_to_segments, fit_body_capsules, pose_capsules
+from warpavatar.sim.cloth import Capsules, ClothGraph, ClothModel, ClothState, cloth_graph
+from warpavatar.sim.frames import nearest_nodes, node_rotations, ride_on_nodes
+
+__all__ = ["Capsules", "ClothGraph", "ClothModel", "ClothState", "cloth_graph", "fit_body_capsules", "pose_capsules",
+           "capsules_near",
+           "distance_to_segments", "node_rotations", "nearest_nodes", "ride_on_nodes"]
