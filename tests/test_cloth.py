@@ -117,14 +117,19 @@ def test_nothing_stays_inside_a_capsule_after_a_drop(device):
     touched = False
     with torch.no_grad():
         for _ in range(40):
+            before = state.positions
             state = model.step(state, no_targets, 1 / 30, capsules=capsules)
             x = state.positions
             distance = (x[:, 1:] ** 2).sum(dim=1).sqrt()  # to the capsule's axis (x within the segment)
             assert (distance >= 0.08 * (1 - 1e-5)).all()
             touched = touched or bool((distance < 0.0801).any())
+            # no node tunnels through: one that stays over the capsule's width keeps its side of the axis (a
+            # sheet centred on a frictionless capsule may slide off sideways: a tiny asymmetry, such as the
+            # order of a GPU's atomic sums, decides which way)
+            over = (before[:, 1].abs() < 0.07) & (x[:, 1].abs() < 0.07)
+            assert torch.equal(torch.sign(before[over, 2]), torch.sign(x[over, 2]))
     assert touched
-    # the cloth drapes over the capsule rather than falling through it
-    assert state.positions[:, 2].max() > 0.07 and torch.isfinite(state.velocities).all()
+    assert torch.isfinite(state.positions).all() and torch.isfinite(state.velocities).all()
 
 
 def test_a_capsule_moving_during_the_frame_lifts_the_cloth(device):
@@ -256,13 +261,15 @@ def test_cpu_rollout_is_bit_identical():
     assert all(torch.equal(a, b) for a, b in zip(results[0][2], results[1][2]))
 
 
-def gradient_problem(device, dtype, seed=12):
+def gradient_problem(device, dtype, seed=12, graph_device=None):
     """A small sheet falling onto a capsule (its middle row in contact at every substep, away from the kinks),
     pinned by one corner that moves, three frames of four substeps; the loss weighs every state by fixed random
     weights; an external acceleration near its bound acts on every node. Returns the loss function of
     (model, x0, v0, acceleration), the model, and (x0, v0, acceleration)."""
     rest = sheet(3, 4, 0.05, horizontal=True) + torch.tensor([-0.075, -0.05, 0.0605])
-    graph = cloth_graph(rest, neighbours=4, bend_per_node=3)
+    # the graph is built where the test runs (a GPU machine's Warp may have no CPU compiler), then moved
+    graph = cloth_graph(rest.to(graph_device or device), neighbours=4, bend_per_node=3)
+    graph = type(graph)(graph.stretch.cpu(), graph.bend.cpu())
     model = ClothModel(rest, graph, torch.tensor([0]), node_mass=0.02, max_substep=1 / 240)
     generator = torch.Generator().manual_seed(seed)
     with torch.no_grad():
@@ -313,7 +320,7 @@ def test_rollout_gradients_match_finite_differences(device, monkeypatch):
     monkeypatch.setattr(ops, "push_out_of_capsules", recording_collision)
     model64 = copy.deepcopy(model).to("cpu", torch.float64)
     state64 = [value.detach().cpu().double() for value in state]
-    loss, _, _ = gradient_problem("cpu", torch.float64)  # the same problem, in float64 on the CPU
+    loss, _, _ = gradient_problem("cpu", torch.float64, graph_device=device)  # the same problem, float64, CPU
     inputs = [*model64.parameters(), *state64]
     epsilon = 1e-6
     numeric = []
