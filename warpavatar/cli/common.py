@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["default_device", "resolve_device", "friendly_errors", "avatar_parser", "load_avatar", "load_motion_for"]
+__all__ = ["default_device", "resolve_device", "ArgumentParser", "friendly_errors", "avatar_parser", "load_avatar", "load_motion_for"]
 
 
 def default_device() -> str:
@@ -24,15 +24,24 @@ def resolve_device(name: str) -> torch.device:
     return device
 
 
+class ArgumentParser(argparse.ArgumentParser):
+    """An argparse parser whose usage errors are one line (the option and the problem), exit status 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (--help explains every option)\n")
+
+
 def friendly_errors(main):
-    """Report input errors (bad files, bad values) as one line on stderr with exit status 2, no traceback."""
+    """Report input errors (bad files, bad values, files that cannot be written) as one line on stderr with exit
+    status 2, no traceback."""
 
     @functools.wraps(main)
     def wrapper(argv=None):
         try:
             return main(argv)
-        except (ValueError, FileNotFoundError, NotADirectoryError, PermissionError) as error:
-            print(f"error: {error}", file=sys.stderr)
+        except (ValueError, OSError) as error:
+            text = " ".join(str(error).split())  # one line, whatever the message held
+            print(f"error: {text}", file=sys.stderr)
             return 2
         except KeyboardInterrupt:
             print("interrupted", file=sys.stderr)
@@ -44,8 +53,7 @@ def friendly_errors(main):
 def avatar_parser(prog: str, description: str, *, motion: bool) -> argparse.ArgumentParser:
     """The parser of a command that loads a fitted avatar (positional, ``--device``, ``--no-progress``) and, with
     ``motion``, drives it with a motion (:func:`add_motion_arguments`)."""
-    parser = argparse.ArgumentParser(prog=prog, description=description,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_avatar_arguments(parser)
     if motion:
         add_motion_arguments(parser)
@@ -96,7 +104,16 @@ def load_motion_for(avatar, args):
     from warpavatar.io.animation import parse_frame_range, read_grown_rotations
     from warpavatar.io.motion import load_motion
 
-    name_map = json.loads(args.name_map.read_text()) if args.name_map else None
+    name_map = None
+    if args.name_map is not None:
+        try:
+            name_map = json.loads(args.name_map.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+            raise ValueError(f"--name-map {args.name_map}: cannot be read as JSON ({error})") from None
+        if not isinstance(name_map, dict) or not all(isinstance(key, str) and isinstance(value, str)
+                                                     for key, value in name_map.items()):
+            raise ValueError(f"--name-map {args.name_map}: must be a JSON object of avatar joint name -> BVH "
+                             "joint name (strings)")
     frames = parse_frame_range(args.frames)
     motion = load_motion(args.motion, avatar.skeleton, name_map=name_map, frames=frames,
                          bvh_scale=args.bvh_scale, bvh_up=args.bvh_up)

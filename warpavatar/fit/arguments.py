@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 from dataclasses import fields
 
 from warpavatar.extensions import registered
@@ -18,15 +19,26 @@ def _flag(name: str) -> str:
     return name.replace("_", "-")
 
 
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(text)
+    return value
+
+
+_finite_float.__name__ = "finite float"  # argparse's message: "invalid finite float value: 'nan'"
+
+
 def _argument(group, f: dataclasses.Field, default_text: str, note: str = "") -> None:
     flag = "--" + _flag(f.name)
     help_text = f"{f.metadata['help']}{note} (default: {default_text})".replace("%", "%%")
     if f.type in ("bool", bool):
         group.add_argument(flag, dest=f.name, default=None, action=argparse.BooleanOptionalAction, help=help_text)
     else:
-        kind = {"int": int, "float": float}.get(f.type if isinstance(f.type, str) else f.type.__name__, str)
+        type_name = f.type if isinstance(f.type, str) else f.type.__name__
+        kind = {"int": int, "float": _finite_float}.get(type_name, str)
         choices = f.metadata.get("choices")
-        metavar = "{" + ",".join(choices) + "}" if choices else kind.__name__.upper()
+        metavar = "{" + ",".join(choices) + "}" if choices else {"int": "INT", "float": "FLOAT"}.get(type_name, "STR")
         group.add_argument(flag, dest=f.name, type=kind, default=None, choices=choices, metavar=metavar,
                            help=help_text)
 
