@@ -117,6 +117,10 @@ def load_motion_for(avatar, args):
     frames = parse_frame_range(args.frames)
     motion = load_motion(args.motion, avatar.skeleton, name_map=name_map, frames=frames,
                          bvh_scale=args.bvh_scale, bvh_up=args.bvh_up)
+    if motion.undriven_joints:
+        print(f"note: {len(motion.undriven_joints)} avatar joints have no joint in {args.motion} and keep their rest "
+              f"pose relative to their parent: {', '.join(motion.undriven_joints[:8])}"
+              f"{' ...' if len(motion.undriven_joints) > 8 else ''} (--name-map maps them)")
     part_inputs = {}
     if args.grown_rotations is not None:
         part_inputs[ExtraJoints.name] = read_grown_rotations(
