@@ -28,6 +28,7 @@ FRAME_EXTENSIONS = (".png", ".jpg", ".jpeg")
 
 _VIDEO_EXTENSIONS = (".mp4", ".mov", ".avi")
 _FRAME_NAME = re.compile(r"^(\d{6,})\.(png|jpg|jpeg)$", re.IGNORECASE)
+_MAX_IMAGE_SIDE = 65536  # pixels; larger sizes in cameras.json are mistakes (16K video is 15360 wide)
 _MASK_THRESHOLD = 128  # a resized mask pixel is subject (255) when its area average reaches this value
 
 
@@ -140,8 +141,8 @@ def _read_cameras(path: Path, frame_count: int) -> list[Camera]:
     for key in ("width", "height"):
         if key not in data:
             raise VideoFolderError(path, f"has no {key!r}")
-    width = positive_int(data["width"], path, "'width'")
-    height = positive_int(data["height"], path, "'height'")
+    width = positive_int(data["width"], path, "'width'", at_most=_MAX_IMAGE_SIDE)
+    height = positive_int(data["height"], path, "'height'", at_most=_MAX_IMAGE_SIDE)
     frames = data.get("frames")
     if frames is None:
         camera = _camera_from_json(data, width, height, {}, path, "the camera")

@@ -131,8 +131,9 @@ class Skeleton:
             if not isinstance(joint["name"], str) or not joint["name"]:
                 raise VideoFolderError(path, f"joint {index}: 'name' must be a non-empty string")
             parent = joint["parent"]
-            if isinstance(parent, bool) or not isinstance(parent, int):
-                raise VideoFolderError(path, f"joint {index} ({joint['name']}): 'parent' must be an integer")
+            if isinstance(parent, bool) or not isinstance(parent, int) or not -2**31 <= parent < 2**31:
+                raise VideoFolderError(path, f"joint {index} ({joint['name']}): 'parent' must be an integer joint "
+                                             f"index, got {parent!r:.40}")
             names.append(joint["name"])
             parents.append(parent)
             heads.append(float_array(joint["head"], (3,), path, f"joint {index} ({joint['name']}) 'head'"))

@@ -11,6 +11,7 @@ import dataclasses
 import json
 import os
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -107,7 +108,7 @@ def _read_npz(path: str) -> tuple[np.ndarray, np.ndarray | None, float | None]:
             fps = float(archive["fps"]) if "fps" in archive.files else None
     except MotionError:
         raise
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError, TypeError) as error:
+    except (OSError, ValueError, zipfile.BadZipFile, zlib.error, EOFError, TypeError) as error:
         raise MotionError(f"{path}: cannot read as .npz: {error}") from None
     return bone_transforms, frame_ids, fps
 
