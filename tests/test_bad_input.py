@@ -311,6 +311,30 @@ def test_animate_output_below_a_file(avatar_dir, tmp_path, capsys):
     assert_bad_input(code, err, "notes.txt")
 
 
+@pytest.mark.parametrize("command, options, named", [
+    ("animate", ["-o", "{out}/a.usdc", "--fps", "0"], ["--fps", "'0'"]),
+    ("animate", ["-o", "{out}/a.usdc", "--bvh-scale", "-1"], ["--bvh-scale", "-1"]),
+    ("animate", ["-o", "{out}"], ["-o", "is a folder"]),
+    ("animate", ["-o", "{out}/a.usdc", "--frames", "5:2"], ["poses.npz", "no frames"]),
+    ("render", ["-o", "{out}/r.mp4", "--size", "0"], ["--size", "0"]),
+    ("render", ["-o", "{out}/r.mp4", "--background", "2", "0", "0"], ["--background", "0..1"]),
+    ("render", ["-o", "{out}/notes.txt/frames"], ["-o", "notes.txt", "below"]),
+    ("eval", ["--json", "{out}/notes.txt/result.json"], ["--json", "notes.txt", "below"]),
+    ("eval", ["--save-renders", "{out}/notes.txt"], ["--save-renders", "notes.txt", "is a file"]),
+], ids=lambda value: "-".join(value) if isinstance(value, list) else value)
+def test_avatar_command_bad_option(avatar_dir, tmp_path, capsys, command, options, named):
+    from warpavatar.cli import animate, eval as evaluate, render
+
+    (tmp_path / "notes.txt").write_text("mine")
+    motion = DEMO / "novel_pose" / "dance_cam000"
+    options = [option.format(out=tmp_path) for option in options]
+    main = {"animate": animate.main, "render": render.main, "eval": evaluate.main}[command]
+    argv = [avatar_dir, motion] if command == "eval" else [avatar_dir, "--motion", motion]
+    code, _, err = run_command(main, [*argv, *options, "--no-progress", "--device", "cpu"], capsys)
+    assert_bad_input(code, err, *named)
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["notes.txt"]
+
+
 # ----------------------------------------------------------------------------------------------------------
 # Frames that are accepted: JPG, RGBA (alpha composited over the background and used as the mask), grey, 16-bit
 
@@ -471,3 +495,8 @@ def test_kill_9_during_a_usd_export_leaves_no_file_at_the_final_name(avatar_dir,
 
     _kill_when(process, exporting)
     assert not output.exists()
+    # the next export of that name goes through, replacing what the killed one left
+    from warpavatar.cli import animate
+    assert animate.main([str(avatar_dir), "--motion", str(DEMO / "train"), "-o", str(output), "--frames", "0:3",
+                         "--no-progress", "--device", "cpu"]) == 0
+    assert output.is_file() and not temporary.exists()

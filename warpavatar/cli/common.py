@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import argparse
 import functools
+import math
 import sys
 from pathlib import Path
 
 import torch
 
-__all__ = ["default_device", "resolve_device", "ArgumentParser", "friendly_errors", "avatar_parser", "load_avatar", "load_motion_for"]
+__all__ = ["default_device", "resolve_device", "ArgumentParser", "positive_number",
+           "check_output_path", "friendly_errors", "avatar_parser", "load_avatar", "load_motion_for"]
 
 
 def default_device() -> str:
@@ -29,6 +31,28 @@ class ArgumentParser(argparse.ArgumentParser):
 
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (--help explains every option)\n")
+
+
+def positive_number(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    value = float(text)
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(text)
+    return value
+
+
+positive_number.__name__ = "positive number"  # argparse's message: "invalid positive number value: '0'"
+
+
+def check_output_path(path: Path, flag: str, *, folder: bool) -> None:
+    """Refuse, before any work, an output that cannot be written: one below a file, or a folder where a file
+    is to be written (``folder`` False) or a file where a folder is (``folder`` True)."""
+    for parent in path.parents:
+        if parent.exists() and not parent.is_dir():
+            raise ValueError(f"{flag} {path}: lies below {parent}, which is a file; the output cannot be written")
+    if path.exists() and path.is_dir() != folder:
+        wanted, found = ("folder", "file") if folder else ("file", "folder")
+        raise ValueError(f"{flag} {path}: is a {found}; the output must be a {wanted}")
 
 
 def friendly_errors(main):
@@ -73,12 +97,12 @@ def add_motion_arguments(parser: argparse.ArgumentParser) -> None:
                         help="motion source: a video folder (its poses.npz), a poses .npz with bone_transforms of "
                              "the same skeleton, or a .bvh file")
     parser.add_argument("--frames", default=None, metavar="A:B", help="only motion frames A..B-1 (default: all)")
-    parser.add_argument("--fps", type=float, default=None,
+    parser.add_argument("--fps", type=positive_number, default=None,
                         help="frames per second of the output (default: the motion's)")
     parser.add_argument("--name-map", type=Path, default=None,
                         help="BVH only: JSON file mapping avatar joint names to BVH joint names "
                              "(default: same names, case-insensitive); unmapped joints keep their rest pose")
-    parser.add_argument("--bvh-scale", type=float, default=None,
+    parser.add_argument("--bvh-scale", type=positive_number, default=None,
                         help="BVH only: metres per BVH unit (default: from the ratio of skeleton heights)")
     parser.add_argument("--bvh-up", choices=("X", "Y", "Z"), default=None, help="BVH only: its up axis (default Y)")
     parser.add_argument("--grown-rotations", type=Path, default=None, metavar="FILE",

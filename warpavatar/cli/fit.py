@@ -11,7 +11,8 @@ import threading
 import time
 from pathlib import Path
 
-from warpavatar.cli.common import ArgumentParser, default_device, friendly_errors, resolve_device
+from warpavatar.cli.common import (ArgumentParser, check_output_path, default_device, friendly_errors,
+                                   resolve_device)
 from warpavatar.fit.arguments import add_config_arguments, config_from_arguments
 from warpavatar.fit.presets import preset_names
 
@@ -126,10 +127,7 @@ def check_output_folder(output: Path, *, resume: bool, overwrite: bool) -> None:
     non-empty folder that neither ``--resume`` nor ``--overwrite`` allows."""
     if resume and overwrite:
         raise ValueError("--resume and --overwrite contradict each other: give one")
-    for parent in (output, *output.parents):
-        if parent.exists() and not parent.is_dir():
-            where = "is a file" if parent == output else f"lies below {parent}, which is a file"
-            raise ValueError(f"-o {output}: {where}; the output must be a folder")
+    check_output_path(output, "-o", folder=True)
     if output.is_dir() and not resume and not overwrite:
         entries = sorted(entry.name for entry in output.iterdir())
         if entries:
