@@ -9,7 +9,7 @@ import math
 from dataclasses import fields
 
 from warpavatar.extensions import registered
-from warpavatar.fit.config import CORE_GROUPS, FitConfig, option_owners
+from warpavatar.fit.config import CORE_GROUPS, RANGES, FitConfig, option_owners, range_text
 from warpavatar.fit.presets import preset_names, preset_values
 
 __all__ = ["add_config_arguments", "config_from_arguments"]
@@ -31,7 +31,8 @@ _finite_float.__name__ = "finite float"  # argparse's message: "invalid finite f
 
 def _argument(group, f: dataclasses.Field, default_text: str, note: str = "") -> None:
     flag = "--" + _flag(f.name)
-    help_text = f"{f.metadata['help']}{note} (default: {default_text})".replace("%", "%%")
+    accepted = f"; {range_text(f.name)}" if f.name in RANGES else ""
+    help_text = f"{f.metadata['help']}{note} (default: {default_text}{accepted})".replace("%", "%%")
     if f.type in ("bool", bool):
         group.add_argument(flag, dest=f.name, default=None, action=argparse.BooleanOptionalAction, help=help_text)
     else:

@@ -17,7 +17,7 @@ from typing import Mapping
 
 from warpavatar.extensions import get_extension, registered
 
-__all__ = ["FitConfig", "CORE_GROUPS", "RANGES", "option_owners"]
+__all__ = ["FitConfig", "CORE_GROUPS", "RANGES", "range_text", "option_owners"]
 
 CORE_GROUPS = ("data and schedule", "Gaussians", "skinning field", "colours", "losses", "optimizer",
                "density control", "book-keeping")
@@ -254,6 +254,13 @@ def _number(value: float) -> str:
     return str(int(value)) if float(value).is_integer() else f"{value:g}"
 
 
+def range_text(name: str) -> str:
+    """The accepted range of the core option ``name`` in words ("at least 1 and at most 10000000")."""
+    low, high, low_excluded = RANGES[name]
+    low_text = f"{'above' if low_excluded else 'at least'} {_number(low)}"
+    return low_text + ("" if high == _UNBOUNDED else f" and at most {_number(high)}")
+
+
 def _check_ranges(config: FitConfig) -> None:
     for name, (low, high, low_excluded) in RANGES.items():
         value = getattr(config, name)
@@ -263,9 +270,7 @@ def _check_ranges(config: FitConfig) -> None:
             raise ValueError(f"{_flag(name)} must be {kind}, got {value!r}")
         below = value <= low if low_excluded else value < low
         if not math.isfinite(value) or below or value > high:
-            low_text = f"{'above' if low_excluded else 'at least'} {_number(low)}"
-            high_text = "" if high == _UNBOUNDED else f" and at most {_number(high)}"
-            raise ValueError(f"{_flag(name)} must be {low_text}{high_text}, got {value!r}")
+            raise ValueError(f"{_flag(name)} must be {range_text(name)}, got {value!r}")
     if config.grid_min_cells > config.grid_cells:
         raise ValueError(f"--grid-min-cells ({config.grid_min_cells}) must not exceed --grid-cells "
                          f"({config.grid_cells})")
