@@ -441,6 +441,15 @@ def test_resume_with_other_options_lists_the_differences(folder, tmp_path, capsy
     assert "--seed" not in err
 
 
+def test_resume_from_a_corrupt_checkpoint(folder, tmp_path, capsys):
+    output = tmp_path / "out"
+    output.mkdir()
+    (output / "checkpoint.pt").write_bytes(b"PK\x03\x04 not really a checkpoint")
+    code, _, err = run_command(fit.main, [folder, "-o", output, *TINY_FIT, "--iterations", "3", "--resume"], capsys)
+    assert_bad_input(code, err, "checkpoint.pt", "cannot read the checkpoint")
+    assert not (output / "avatar.pt").exists()
+
+
 def _start(arguments, cwd):
     environment = dict(os.environ, PYTHONPATH=os.pathsep.join(
         [str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")]))

@@ -239,15 +239,13 @@ def _read_frames(paths: list[Path], width: int, height: int, out_width: int, out
     mask; either every frame has alpha or none (the error names the first that differs from the first frame).
     """
     images = np.empty((len(paths), out_height, out_width, 3), np.uint8)
-    alphas = np.empty((len(paths), out_height, out_width), np.uint8)
-    has_alpha = np.zeros(len(paths), dtype=bool)
+    alphas: list[np.ndarray | None] = [None] * len(paths)  # only RGBA folders pay for these
     background_bgr = np.asarray(background, dtype=np.float32)[::-1] * 255.0
 
     def read(index: int, path: Path) -> None:
         image = _decode_image(path)
         _check_size(image, path, width, height, "cameras.json")
         if image.shape[2] == 4:
-            has_alpha[index] = True
             alpha = image[..., 3:].astype(np.float32) / 255.0
             image = np.round(image[..., :3] * alpha + background_bgr * (1.0 - alpha)).astype(np.uint8)
             alphas[index] = _resize_mask(np.where(alpha[..., 0] >= 0.5, 255, 0).astype(np.uint8), out_width,
@@ -255,6 +253,7 @@ def _read_frames(paths: list[Path], width: int, height: int, out_width: int, out
         images[index] = _resize_image(cv2.cvtColor(image, cv2.COLOR_BGR2RGB), out_width, out_height)
 
     _read_into(read, paths)
+    has_alpha = np.array([alpha is not None for alpha in alphas])
     if not has_alpha.any():
         return images, None
     odd = int(np.argmax(has_alpha != has_alpha[0]))
@@ -262,7 +261,7 @@ def _read_frames(paths: list[Path], width: int, height: int, out_width: int, out
         have = "has no alpha channel" if has_alpha[0] else "has an alpha channel"
         raise VideoFolderError(paths[odd], f"{have} but {paths[0].name} {'has' if has_alpha[0] else 'has not'}: "
                                            "frames are either all RGBA (their alpha is the mask) or none")
-    return images, alphas
+    return images, np.stack(alphas)
 
 
 def _read_mask_file(path: Path, width: int, height: int, out_width: int, out_height: int) -> np.ndarray:

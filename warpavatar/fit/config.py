@@ -219,7 +219,6 @@ RANGES: dict[str, tuple[float, float, bool]] = {
     "field_hidden": (1, 4096, False),
     "field_layers": (1, 64, False),
     "field_frequencies": (0, 32, False),
-    "skinning_prior_temperature": (0.0, _UNBOUNDED, True),
     "field_warmup_steps": (0, 10_000_000, False),
     "gaussian_only_steps": (0, _UNBOUNDED, False),
     "field_lr": (0.0, 1.0, True),
