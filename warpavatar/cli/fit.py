@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import shlex
 import shutil
 import signal
@@ -146,27 +147,23 @@ def remove_fit_outputs(output: Path) -> None:
                 path.unlink()
 
 
-class stop_on_interrupt:
+@contextlib.contextmanager
+def stop_on_interrupt(trainer):
     """While active, the first SIGINT (Ctrl-C) asks ``trainer`` to stop after its current step (it then writes
-    a checkpoint); a second one interrupts at once."""
+    a checkpoint); a second one interrupts at once. Signals are only handled on the main thread."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
 
-    def __init__(self, trainer):
-        self.trainer = trainer
-        self.previous = None
-
-    def _handle(self, signum, frame):
-        self.trainer.request_stop()
+    def handle(signum, frame):
+        trainer.request_stop()
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
-    def __enter__(self):
-        if threading.current_thread() is threading.main_thread():  # elsewhere signals cannot be handled
-            self.previous = signal.signal(signal.SIGINT, self._handle)
-        return self
-
-    def __exit__(self, *exc_info):
-        if self.previous is not None:
-            signal.signal(signal.SIGINT, self.previous)
-        return False
+    previous = signal.signal(signal.SIGINT, handle)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def resume_command(argv) -> str:
