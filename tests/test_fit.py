@@ -232,7 +232,7 @@ def test_resume_refuses_other_config(demo_video, tmp_path):
     config = _tiny_config(iterations=20, checkpoint_every=1000)
     Trainer(demo_video, config, tmp_path / "run").fit(progress=False, stop_at=10)
     other = Trainer(demo_video, _tiny_config(iterations=20, lambda_ssim=0.5), tmp_path / "run")
-    with pytest.raises(ValueError, match="lambda_ssim"):
+    with pytest.raises(ValueError, match="--lambda-ssim: 0.2 in the checkpoint vs 0.5 given"):
         other.fit(resume=True, progress=False)
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import tqdm
 
-from warpavatar.cli.common import avatar_parser, friendly_errors, load_avatar, load_motion_for
+from warpavatar.cli.common import avatar_parser, check_output_path, friendly_errors, load_avatar, load_motion_for
 
 DESCRIPTION = """Pose a fitted avatar frame by frame with a motion and write the animated Gaussians to USD.
 
@@ -36,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
 @friendly_errors
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    check_output_path(args.output, "-o", folder=False)
     from warpavatar.io.animation import motion_time_codes, posed_frames
     from warpavatar.io.usd import GaussianUsdWriter
 

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import argparse
 import functools
+import math
 import sys
 from pathlib import Path
 
 import torch
 
-__all__ = ["default_device", "resolve_device", "friendly_errors", "avatar_parser", "load_avatar", "load_motion_for"]
+__all__ = ["default_device", "resolve_device", "ArgumentParser", "positive_number",
+           "check_output_path", "friendly_errors", "avatar_parser", "load_avatar", "load_motion_for"]
 
 
 def default_device() -> str:
@@ -24,15 +26,46 @@ def resolve_device(name: str) -> torch.device:
     return device
 
 
+class ArgumentParser(argparse.ArgumentParser):
+    """An argparse parser whose usage errors are one line (the option and the problem), exit status 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (--help explains every option)\n")
+
+
+def positive_number(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    value = float(text)
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(text)
+    return value
+
+
+positive_number.__name__ = "positive number"  # argparse's message: "invalid positive number value: '0'"
+
+
+def check_output_path(path: Path, flag: str, *, folder: bool) -> None:
+    """Refuse, before any work, an output that cannot be written: one below a file, or a folder where a file
+    is to be written (``folder`` False) or a file where a folder is (``folder`` True)."""
+    for parent in path.parents:
+        if parent.exists() and not parent.is_dir():
+            raise ValueError(f"{flag} {path}: lies below {parent}, which is a file; the output cannot be written")
+    if path.exists() and path.is_dir() != folder:
+        wanted, found = ("folder", "file") if folder else ("file", "folder")
+        raise ValueError(f"{flag} {path}: is a {found}; the output must be a {wanted}")
+
+
 def friendly_errors(main):
-    """Report input errors (bad files, bad values) as one line on stderr with exit status 2, no traceback."""
+    """Report input errors (bad files, bad values, files that cannot be written) as one line on stderr with exit
+    status 2, no traceback."""
 
     @functools.wraps(main)
     def wrapper(argv=None):
         try:
             return main(argv)
-        except (ValueError, FileNotFoundError, NotADirectoryError, PermissionError) as error:
-            print(f"error: {error}", file=sys.stderr)
+        except (ValueError, OSError) as error:
+            text = " ".join(str(error).split())  # one line, whatever the message held
+            print(f"error: {text}", file=sys.stderr)
             return 2
         except KeyboardInterrupt:
             print("interrupted", file=sys.stderr)
@@ -44,8 +77,7 @@ def friendly_errors(main):
 def avatar_parser(prog: str, description: str, *, motion: bool) -> argparse.ArgumentParser:
     """The parser of a command that loads a fitted avatar (positional, ``--device``, ``--no-progress``) and, with
     ``motion``, drives it with a motion (:func:`add_motion_arguments`)."""
-    parser = argparse.ArgumentParser(prog=prog, description=description,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_avatar_arguments(parser)
     if motion:
         add_motion_arguments(parser)
@@ -65,12 +97,12 @@ def add_motion_arguments(parser: argparse.ArgumentParser) -> None:
                         help="motion source: a video folder (its poses.npz), a poses .npz with bone_transforms of "
                              "the same skeleton, or a .bvh file")
     parser.add_argument("--frames", default=None, metavar="A:B", help="only motion frames A..B-1 (default: all)")
-    parser.add_argument("--fps", type=float, default=None,
+    parser.add_argument("--fps", type=positive_number, default=None,
                         help="frames per second of the output (default: the motion's)")
     parser.add_argument("--name-map", type=Path, default=None,
                         help="BVH only: JSON file mapping avatar joint names to BVH joint names "
                              "(default: same names, case-insensitive); unmapped joints keep their rest pose")
-    parser.add_argument("--bvh-scale", type=float, default=None,
+    parser.add_argument("--bvh-scale", type=positive_number, default=None,
                         help="BVH only: metres per BVH unit (default: from the ratio of skeleton heights)")
     parser.add_argument("--bvh-up", choices=("X", "Y", "Z"), default=None, help="BVH only: its up axis (default Y)")
     parser.add_argument("--grown-rotations", type=Path, default=None, metavar="FILE",
@@ -96,10 +128,23 @@ def load_motion_for(avatar, args):
     from warpavatar.io.animation import parse_frame_range, read_grown_rotations
     from warpavatar.io.motion import load_motion
 
-    name_map = json.loads(args.name_map.read_text()) if args.name_map else None
+    name_map = None
+    if args.name_map is not None:
+        try:
+            name_map = json.loads(args.name_map.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+            raise ValueError(f"--name-map {args.name_map}: cannot be read as JSON ({error})") from None
+        if not isinstance(name_map, dict) or not all(isinstance(key, str) and isinstance(value, str)
+                                                     for key, value in name_map.items()):
+            raise ValueError(f"--name-map {args.name_map}: must be a JSON object of avatar joint name -> BVH "
+                             "joint name (strings)")
     frames = parse_frame_range(args.frames)
     motion = load_motion(args.motion, avatar.skeleton, name_map=name_map, frames=frames,
                          bvh_scale=args.bvh_scale, bvh_up=args.bvh_up)
+    if motion.undriven_joints:
+        print(f"note: {len(motion.undriven_joints)} avatar joints have no joint in {args.motion} and keep their rest "
+              f"pose relative to their parent: {', '.join(motion.undriven_joints[:8])}"
+              f"{' ...' if len(motion.undriven_joints) > 8 else ''} (--name-map maps them)")
     part_inputs = {}
     if args.grown_rotations is not None:
         part_inputs[ExtraJoints.name] = read_grown_rotations(

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from warpavatar.cli.common import avatar_parser, friendly_errors, load_avatar
+from warpavatar.cli.common import avatar_parser, check_output_path, friendly_errors, load_avatar
 
 DESCRIPTION = """Render a fitted avatar with the cameras and poses of a video folder and compare with its frames.
 
@@ -37,6 +37,10 @@ def main(argv=None) -> int:
         raise ValueError(f"--refine-poses takes a number of steps >= 0, got {args.refine_poses}")
     if not args.scale > 0:
         raise ValueError(f"--scale must be positive, got {args.scale}")
+    if args.json is not None:
+        check_output_path(args.json, "--json", folder=False)
+    if args.save_renders is not None:
+        check_output_path(args.save_renders, "--save-renders", folder=True)
     from warpavatar import data
     from warpavatar.evaluate import evaluate_avatar, write_json_atomic
 

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 import tqdm
 
-from warpavatar.cli.common import avatar_parser, friendly_errors, load_avatar, load_motion_for
+from warpavatar.cli.common import avatar_parser, check_output_path, friendly_errors, load_avatar, load_motion_for
 
 DESCRIPTION = """Render a fitted avatar animated by a motion, as an MP4 (OpenCV) or a folder of PNG frames.
 
@@ -38,6 +38,12 @@ def build_parser() -> argparse.ArgumentParser:
 @torch.no_grad()
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    to_video = args.output.suffix.lower() in (".mp4", ".avi", ".mov")
+    check_output_path(args.output, "-o", folder=not to_video)
+    if not 1 <= args.size <= 16384:
+        raise ValueError(f"--size must be 1 to 16384 pixels, got {args.size}")
+    if not all(0.0 <= value <= 1.0 for value in args.background):
+        raise ValueError(f"--background must be R G B in 0..1, got {' '.join(map(str, args.background))}")
     import cv2
 
     from warpavatar.io.animation import orbit_cameras, read_cameras_json
@@ -62,7 +68,7 @@ def main(argv=None) -> int:
                             progress=not args.no_progress)
 
     output = args.output
-    to_video = output.suffix.lower() in (".mp4", ".avi", ".mov")
+    output.parent.mkdir(parents=True, exist_ok=True)
     tmp = output.with_name(output.stem + ".tmp" + output.suffix) if to_video else output.with_name(output.name + ".tmp")
     writer = None
     if not to_video:

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import zipfile
+import zlib
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -17,6 +19,7 @@ RIGID_TOLERANCE = 1e-3
 """Largest entry of ``|R^T R - I|`` accepted for the rotation part of a rigid 4x4 transform."""
 
 _LAST_ROW_TOLERANCE = 1e-5  # how far the last row of a rigid transform may be from [0, 0, 0, 1]
+_LARGEST = float(np.finfo(np.float32).max)  # values are used as float32
 _MAX_LISTED = 5  # at most this many offending ids or files are named in an error message
 
 
@@ -47,6 +50,8 @@ def float_array(value, shape: tuple[int, ...], path: Path, what: str) -> np.ndar
         raise VideoFolderError(path, f"{what} must have shape {list(shape)}, got {list(array.shape)}")
     if not np.all(np.isfinite(array)):
         raise VideoFolderError(path, f"{what} holds non-finite values (nan or inf)")
+    if array.size and np.abs(array).max() > _LARGEST:
+        raise VideoFolderError(path, f"{what} holds a value beyond float32's range ({np.abs(array).max():.3g})")
     return array
 
 
@@ -103,6 +108,8 @@ def read_json(path: Path):
             return json.load(stream)
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
         raise VideoFolderError(path, f"cannot be read as JSON ({error})") from None
+    except RecursionError:
+        raise VideoFolderError(path, "cannot be read as JSON (nested too deeply)") from None
 
 
 def require_mapping(value, path: Path, what: str) -> Mapping:
@@ -111,9 +118,12 @@ def require_mapping(value, path: Path, what: str) -> Mapping:
     return value
 
 
-def positive_int(value, path: Path, what: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value) or value <= 0:
+def positive_int(value, path: Path, what: str, *, at_most: int | None = None) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+            or value != int(value) or value <= 0:
         raise VideoFolderError(path, f"{what} must be a positive integer, got {value!r}")
+    if at_most is not None and value > at_most:
+        raise VideoFolderError(path, f"{what} must be at most {at_most}, got {value!r}")
     return int(value)
 
 
@@ -131,5 +141,5 @@ def read_npz(path: Path) -> dict[str, np.ndarray]:
     try:
         with np.load(path, allow_pickle=False) as archive:
             return {key: archive[key] for key in archive.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
+    except (OSError, ValueError, zipfile.BadZipFile, zlib.error, EOFError) as error:
         raise VideoFolderError(path, f"cannot be read as an .npz archive ({error})") from None

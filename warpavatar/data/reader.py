@@ -28,6 +28,7 @@ FRAME_EXTENSIONS = (".png", ".jpg", ".jpeg")
 
 _VIDEO_EXTENSIONS = (".mp4", ".mov", ".avi")
 _FRAME_NAME = re.compile(r"^(\d{6,})\.(png|jpg|jpeg)$", re.IGNORECASE)
+_MAX_IMAGE_SIDE = 65536  # pixels; larger sizes in cameras.json are mistakes (16K video is 15360 wide)
 _MASK_THRESHOLD = 128  # a resized mask pixel is subject (255) when its area average reaches this value
 
 
@@ -140,8 +141,8 @@ def _read_cameras(path: Path, frame_count: int) -> list[Camera]:
     for key in ("width", "height"):
         if key not in data:
             raise VideoFolderError(path, f"has no {key!r}")
-    width = positive_int(data["width"], path, "'width'")
-    height = positive_int(data["height"], path, "'height'")
+    width = positive_int(data["width"], path, "'width'", at_most=_MAX_IMAGE_SIDE)
+    height = positive_int(data["height"], path, "'height'", at_most=_MAX_IMAGE_SIDE)
     frames = data.get("frames")
     if frames is None:
         camera = _camera_from_json(data, width, height, {}, path, "the camera")
@@ -195,20 +196,72 @@ def _resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
     return np.where(averaged >= _MASK_THRESHOLD, 255, 0).astype(np.uint8)
 
 
-def read_image(path: Path, *, width: int, height: int, sized_by: str = "cameras.json") -> np.ndarray:
-    """A colour image file as BGR uint8 [H,W,3], checked to be ``width`` x ``height`` (as ``sized_by`` says)."""
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
-    if image is None:
+def _decode_image(path: Path) -> np.ndarray:
+    """An image file as 8-bit BGR [H,W,3] or BGRA [H,W,4]: grey is replicated, 16-bit is rounded to 8-bit."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+    if image is None or image.size == 0:
         raise VideoFolderError(path, "cannot be read as an image (unreadable or corrupt)")
-    if image.shape[:2] != (height, width):
-        raise VideoFolderError(path, f"image size mismatch: the image is {image.shape[1]}x{image.shape[0]} "
-                                     f"but {sized_by} says {width}x{height}")
+    if image.dtype == np.uint16:
+        image = np.round(image / 257.0).astype(np.uint8)
+    elif image.dtype != np.uint8:
+        raise VideoFolderError(path, f"frames must be 8- or 16-bit images, got {image.dtype}")
+    if image.ndim == 2 or image.shape[2] == 1:
+        image = cv2.cvtColor(image.reshape(image.shape[:2]), cv2.COLOR_GRAY2BGR)
+    elif image.shape[2] == 2:  # grey and alpha
+        image = np.concatenate([np.repeat(image[..., :1], 3, axis=2), image[..., 1:]], axis=2)
+    elif image.shape[2] not in (3, 4):
+        raise VideoFolderError(path, f"frames must have 1 to 4 channels, got {image.shape[2]}")
     return image
 
 
-def _read_frame_file(path: Path, width: int, height: int, out_width: int, out_height: int) -> np.ndarray:
-    image = read_image(path, width=width, height=height)
-    return _resize_image(cv2.cvtColor(image, cv2.COLOR_BGR2RGB), out_width, out_height)
+def _check_size(image: np.ndarray, path: Path, width: int, height: int, sized_by: str) -> None:
+    if image.shape[:2] != (height, width):
+        raise VideoFolderError(path, f"image size mismatch: the image is {image.shape[1]}x{image.shape[0]} "
+                                     f"but {sized_by} says {width}x{height}")
+
+
+def read_image(path: Path, *, width: int, height: int, sized_by: str = "cameras.json") -> np.ndarray:
+    """A colour image file as BGR uint8 [H,W,3], checked to be ``width`` x ``height`` (as ``sized_by`` says).
+
+    Grey images are replicated to three channels, 16-bit ones rounded to 8 bits and an alpha channel is
+    dropped (:func:`load_video_folder` composites RGBA frames instead).
+    """
+    image = _decode_image(path)
+    _check_size(image, path, width, height, sized_by)
+    return np.ascontiguousarray(image[..., :3])
+
+
+def _read_frames(paths: list[Path], width: int, height: int, out_width: int, out_height: int,
+                 background: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """The frames as RGB uint8 [T,h,w,3] and, where they have an alpha channel, their alpha masks [T,h,w].
+
+    An RGBA frame is composited over ``background`` (RGB in 0..1) and its alpha, thresholded at 128, is its
+    mask; either every frame has alpha or none (the error names the first that differs from the first frame).
+    """
+    images = np.empty((len(paths), out_height, out_width, 3), np.uint8)
+    alphas: list[np.ndarray | None] = [None] * len(paths)  # only RGBA folders pay for these
+    background_bgr = np.asarray(background, dtype=np.float32)[::-1] * 255.0
+
+    def read(index: int, path: Path) -> None:
+        image = _decode_image(path)
+        _check_size(image, path, width, height, "cameras.json")
+        if image.shape[2] == 4:
+            alpha = image[..., 3:].astype(np.float32) / 255.0
+            image = np.round(image[..., :3] * alpha + background_bgr * (1.0 - alpha)).astype(np.uint8)
+            alphas[index] = _resize_mask(np.where(alpha[..., 0] >= 0.5, 255, 0).astype(np.uint8), out_width,
+                                         out_height)
+        images[index] = _resize_image(cv2.cvtColor(image, cv2.COLOR_BGR2RGB), out_width, out_height)
+
+    _read_into(read, paths)
+    has_alpha = np.array([alpha is not None for alpha in alphas])
+    if not has_alpha.any():
+        return images, None
+    odd = int(np.argmax(has_alpha != has_alpha[0]))
+    if has_alpha[odd] != has_alpha[0]:
+        have = "has no alpha channel" if has_alpha[0] else "has an alpha channel"
+        raise VideoFolderError(paths[odd], f"{have} but {paths[0].name} {'has' if has_alpha[0] else 'has not'}: "
+                                           "frames are either all RGBA (their alpha is the mask) or none")
+    return images, np.stack(alphas)
 
 
 def _read_mask_file(path: Path, width: int, height: int, out_width: int, out_height: int) -> np.ndarray:
@@ -229,20 +282,17 @@ def _read_mask_file(path: Path, width: int, height: int, out_width: int, out_hei
     return _resize_mask(mask, out_width, out_height)
 
 
-def _read_into(output: np.ndarray, function, paths: list[Path], *args) -> np.ndarray:
-    """``output[i] = function(paths[i], *args)``, decoded on a few threads (OpenCV releases the GIL)."""
-    def read(index: int) -> None:
-        output[index] = function(paths[index], *args)
-
+def _read_into(read, paths: list[Path]) -> None:
+    """``read(i, paths[i])`` for every path, on a few threads (OpenCV releases the GIL); the first error (in
+    the order of ``paths``) is raised."""
     if len(paths) < 4:
-        for index in range(len(paths)):
-            read(index)
-        return output
+        for index, path in enumerate(paths):
+            read(index, path)
+        return
     workers = min(8, os.cpu_count() or 1, len(paths))
     with concurrent.futures.ThreadPoolExecutor(max_workers=workers) as pool:
-        for _ in pool.map(read, range(len(paths))):  # re-raises the first error
+        for _ in pool.map(read, range(len(paths)), paths):  # re-raises the first error
             pass
-    return output
 
 
 def _read_video_frames(path: Path, frame_ids: np.ndarray, width: int, height: int, out_width: int,
@@ -287,6 +337,25 @@ def _check_selection(max_frames, frame_stride, scale) -> None:
         raise ValueError(f"scale must be positive and finite, got {scale}")
 
 
+def _check_is_video_folder(root: Path) -> None:
+    """A clear error for what is not a video folder at all: nothing there, a file, an empty folder."""
+    if root.is_file():
+        if root.suffix.lower() in _VIDEO_EXTENSIONS:
+            raise VideoFolderError(root, "a video file, not a video folder: put it in a folder as video.mp4 with "
+                                         "cameras.json, skeleton.json and poses.npz (docs/FORMAT.md), or let "
+                                         "warpavatar-prepare make the folder from footage")
+        raise VideoFolderError(root, "a file, not a video folder (docs/FORMAT.md)")
+    if not root.is_dir():
+        raise VideoFolderError(root, "no such video folder")
+    try:
+        empty = next(os.scandir(root), None) is None
+    except OSError as error:
+        raise VideoFolderError(root, f"cannot be listed ({error.strerror})") from None
+    if empty:
+        raise VideoFolderError(root, "the folder is empty: a video folder holds frames/ (or video.mp4), "
+                                     "cameras.json, skeleton.json and poses.npz (docs/FORMAT.md)")
+
+
 def load_video_folder(path: str | os.PathLike, *, max_frames: int | None = None, frame_stride: int = 1,
                       scale: float = 1.0) -> VideoFolder:
     """Read and validate one video folder (``docs/data.md``).
@@ -314,8 +383,7 @@ def load_video_folder(path: str | os.PathLike, *, max_frames: int | None = None,
     """
     _check_selection(max_frames, frame_stride, scale)
     root = Path(path)
-    if not root.is_dir():
-        raise VideoFolderError(root, "no such video folder")
+    _check_is_video_folder(root)
     skeleton = read_skeleton(root / "skeleton.json")
     poses_path = root / "poses.npz"
     bone_transforms, frame_ids, joint_positions = _read_poses(poses_path, skeleton.joint_count)
@@ -326,6 +394,11 @@ def load_video_folder(path: str | os.PathLike, *, max_frames: int | None = None,
     video_path = None
     if frames_dir.is_dir():
         frame_files = _list_frame_files(frames_dir)
+        if not frame_files:
+            videos = sorted(p.name for p in frames_dir.iterdir() if p.suffix.lower() in _VIDEO_EXTENSIONS)
+            found = (f"it holds the video {listed(videos)}: a video file goes beside frames/ as video.mp4, "
+                     "without a frames/ folder" if videos else "no <6-digit id>.png|jpg files")
+            raise VideoFolderError(frames_dir, f"no frame images: {found}")
         _check_frame_files(frame_files, frame_ids, frames_dir, poses_path, "frames")
     else:
         video_path = _find_video_file(root)
@@ -359,15 +432,19 @@ def load_video_folder(path: str | os.PathLike, *, max_frames: int | None = None,
 
     if video_path is None:
         paths = [frame_files[int(frame_id)] for frame_id in frame_ids]
-        images = _read_into(np.empty((len(paths), out_height, out_width, 3), np.uint8), _read_frame_file, paths,
-                            width, height, out_width, out_height)
+        images, alpha_masks = _read_frames(paths, width, height, out_width, out_height, background)
     else:
         images = _read_video_frames(video_path, frame_ids, width, height, out_width, out_height)
-    masks = None
+        alpha_masks = None
+    masks = alpha_masks
     if mask_files is not None:
         paths = [mask_files[int(frame_id)] for frame_id in frame_ids]
-        masks = _read_into(np.empty((len(paths), out_height, out_width), np.uint8), _read_mask_file, paths,
-                           width, height, out_width, out_height)
+        masks = np.empty((len(paths), out_height, out_width), np.uint8)
+
+        def read_mask(index: int, path: Path) -> None:
+            masks[index] = _read_mask_file(path, width, height, out_width, out_height)
+
+        _read_into(read_mask, paths)
 
     return VideoFolder(root=root, frame_ids=frame_ids, images=images, masks=masks, cameras=kept_cameras,
                        skeleton=skeleton, bone_transforms=bone_transforms, joint_positions=joint_positions,

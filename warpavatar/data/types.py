@@ -16,12 +16,16 @@ import numpy as np
 
 from warpavatar.data.checks import VideoFolderError, float_array, listed, require_mapping
 
-__all__ = ["SKELETON_FORMAT", "DEFAULT_FPS", "ESTIMATED_POSES", "POSE_SOURCES", "Skeleton", "Camera", "VideoFolder",
+__all__ = ["SKELETON_FORMAT", "MAX_JOINT_DEPTH", "DEFAULT_FPS", "ESTIMATED_POSES", "POSE_SOURCES", "Skeleton", "Camera", "VideoFolder",
            "Subject"]
 
 
 SKELETON_FORMAT = "warpavatar-skeleton/1"
 """The ``format`` string that skeleton.json must carry."""
+
+MAX_JOINT_DEPTH = 128
+"""The most joints on a path from a root to a leaf that skeleton.json and BVH files may have: a body with its
+fingers is about a dozen deep, so a deeper chain is a broken hierarchy (every joint the child of the last)."""
 
 DEFAULT_FPS = 30.0
 """Frames per second of a folder whose meta.json does not say."""
@@ -127,8 +131,9 @@ class Skeleton:
             if not isinstance(joint["name"], str) or not joint["name"]:
                 raise VideoFolderError(path, f"joint {index}: 'name' must be a non-empty string")
             parent = joint["parent"]
-            if isinstance(parent, bool) or not isinstance(parent, int):
-                raise VideoFolderError(path, f"joint {index} ({joint['name']}): 'parent' must be an integer")
+            if isinstance(parent, bool) or not isinstance(parent, int) or not -2**31 <= parent < 2**31:
+                raise VideoFolderError(path, f"joint {index} ({joint['name']}): 'parent' must be an integer joint "
+                                             f"index, got {parent!r:.40}")
             names.append(joint["name"])
             parents.append(parent)
             heads.append(float_array(joint["head"], (3,), path, f"joint {index} ({joint['name']}) 'head'"))
@@ -153,6 +158,7 @@ def _check_parents(parents: np.ndarray, names: list[str], path: Path) -> None:
     # Follow each joint's chain of parents up to a joint already known to reach a root; meeting a joint of
     # the current chain again means the chain loops.
     settled = parents == -1
+    depth = np.where(settled, 1, 0)  # joints from the root down to each joint, the root included
     for start in range(joint_count):
         chain, on_chain, joint = [], set(), start
         while not settled[joint]:
@@ -163,7 +169,15 @@ def _check_parents(parents: np.ndarray, names: list[str], path: Path) -> None:
             chain.append(joint)
             on_chain.add(joint)
             joint = int(parents[joint])
+        base = depth[joint]
+        for offset, member in enumerate(reversed(chain)):
+            depth[member] = base + 1 + offset
         settled[chain] = True
+    deepest = int(np.argmax(depth > MAX_JOINT_DEPTH))  # the first joint too deep, if any
+    if depth[deepest] > MAX_JOINT_DEPTH:
+        raise VideoFolderError(path, f"joint {deepest} ({names[deepest]}) is {depth[deepest]} joints deep "
+                                     f"(its root counted), more than the {MAX_JOINT_DEPTH} expected of a skeleton: "
+                                     "check the 'parent' indices")
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 from dataclasses import fields
 
 from warpavatar.extensions import registered
-from warpavatar.fit.config import CORE_GROUPS, FitConfig, option_owners
+from warpavatar.fit.config import CORE_GROUPS, RANGES, FitConfig, option_owners, range_text
 from warpavatar.fit.presets import preset_names, preset_values
 
 __all__ = ["add_config_arguments", "config_from_arguments"]
@@ -18,15 +19,27 @@ def _flag(name: str) -> str:
     return name.replace("_", "-")
 
 
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(text)
+    return value
+
+
+_finite_float.__name__ = "finite float"  # argparse's message: "invalid finite float value: 'nan'"
+
+
 def _argument(group, f: dataclasses.Field, default_text: str, note: str = "") -> None:
     flag = "--" + _flag(f.name)
-    help_text = f"{f.metadata['help']}{note} (default: {default_text})".replace("%", "%%")
+    accepted = f"; {range_text(f.name)}" if f.name in RANGES else ""
+    help_text = f"{f.metadata['help']}{note} (default: {default_text}{accepted})".replace("%", "%%")
     if f.type in ("bool", bool):
         group.add_argument(flag, dest=f.name, default=None, action=argparse.BooleanOptionalAction, help=help_text)
     else:
-        kind = {"int": int, "float": float}.get(f.type if isinstance(f.type, str) else f.type.__name__, str)
+        type_name = f.type if isinstance(f.type, str) else f.type.__name__
+        kind = {"int": int, "float": _finite_float}.get(type_name, str)
         choices = f.metadata.get("choices")
-        metavar = "{" + ",".join(choices) + "}" if choices else kind.__name__.upper()
+        metavar = "{" + ",".join(choices) + "}" if choices else {"int": "INT", "float": "FLOAT"}.get(type_name, "STR")
         group.add_argument(flag, dest=f.name, type=kind, default=None, choices=choices, metavar=metavar,
                            help=help_text)
 

@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass, field, fields
 from typing import Mapping
 
 from warpavatar.extensions import get_extension, registered
 
-__all__ = ["FitConfig", "CORE_GROUPS", "option_owners"]
+__all__ = ["FitConfig", "CORE_GROUPS", "RANGES", "range_text", "option_owners"]
 
 CORE_GROUPS = ("data and schedule", "Gaussians", "skinning field", "colours", "losses", "optimizer",
                "density control", "book-keeping")
@@ -119,6 +120,7 @@ class FitConfig:
     extensions: dict = field(default_factory=dict)
 
     def __post_init__(self):
+        _check_ranges(self)
         if self.shading not in ("world", "view"):
             raise ValueError(f"shading must be 'world' or 'view', got {self.shading!r}")
         if self.target not in ("auto", "frame", "masked"):
@@ -199,6 +201,78 @@ class FitConfig:
 
 def _flag(name: str) -> str:
     return "--" + name.replace("_", "-")
+
+
+_UNBOUNDED = float("inf")
+RANGES: dict[str, tuple[float, float, bool]] = {
+    # name: (low, high, low excluded); sizes above ``high`` would exhaust memory or time long before a result
+    "iterations": (1, 10_000_000, False),
+    "image_scale": (0.0, 4.0, True),
+    "max_train_frames": (0, _UNBOUNDED, False),
+    "init_points_per_bone": (1, 100_000, False),
+    "init_carve_candidates": (0, 100_000_000, False),
+    "init_carve_points": (0, 10_000_000, False),
+    "sh_degree": (0, 3, False),
+    "sh_increase_every": (1, _UNBOUNDED, False),
+    "grid_cells": (2, 512, False),
+    "grid_min_cells": (2, 512, False),
+    "field_hidden": (1, 4096, False),
+    "field_layers": (1, 64, False),
+    "field_frequencies": (0, 32, False),
+    "field_warmup_steps": (0, 10_000_000, False),
+    "gaussian_only_steps": (0, _UNBOUNDED, False),
+    "field_lr": (0.0, 1.0, True),
+    "lambda_bone": (0.0, _UNBOUNDED, False),
+    "lambda_ssim": (0.0, 1.0, False),
+    "lambda_mask": (0.0, _UNBOUNDED, False),
+    "lambda_scale": (0.0, _UNBOUNDED, False),
+    "lr_position": (0.0, 1.0, True),
+    "lr_position_final": (0.0, 1.0, True),
+    "lr_scale": (0.0, 1.0, True),
+    "lr_rotation": (0.0, 1.0, True),
+    "lr_opacity": (0.0, 1.0, True),
+    "lr_color": (0.0, 1.0, True),
+    "densify_from": (0, _UNBOUNDED, False),
+    "densify_until": (0, _UNBOUNDED, False),
+    "densify_every": (1, _UNBOUNDED, False),
+    "densify_grad_threshold": (0.0, _UNBOUNDED, True),
+    "densify_percent_dense": (0.0, 1.0, True),
+    "max_gaussians": (1, 100_000_000, False),
+    "prune_opacity": (0.0, 1.0, False),
+    "prune_max_scale": (0.0, _UNBOUNDED, True),
+    "opacity_reset_every": (0, _UNBOUNDED, False),
+    "log_every": (1, _UNBOUNDED, False),
+    "checkpoint_every": (1, _UNBOUNDED, False),
+    "preview_frames": (0, 1000, False),
+}
+"""The accepted range of each numeric core option: ``(low, high, low excluded)``, both ends in the option's
+unit; :class:`FitConfig` rejects values outside it (and non-finite ones) naming the option's flag."""
+
+
+def _number(value: float) -> str:
+    return str(int(value)) if float(value).is_integer() else f"{value:g}"
+
+
+def range_text(name: str) -> str:
+    """The accepted range of the core option ``name`` in words ("at least 1 and at most 10000000")."""
+    low, high, low_excluded = RANGES[name]
+    low_text = f"{'above' if low_excluded else 'at least'} {_number(low)}"
+    return low_text + ("" if high == _UNBOUNDED else f" and at most {_number(high)}")
+
+
+def _check_ranges(config: FitConfig) -> None:
+    for name, (low, high, low_excluded) in RANGES.items():
+        value = getattr(config, name)
+        integer = config.__dataclass_fields__[name].type in ("int", int)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or (integer and value != int(value)):
+            kind = "an integer" if integer else "a number"
+            raise ValueError(f"{_flag(name)} must be {kind}, got {value!r}")
+        below = value <= low if low_excluded else value < low
+        if not math.isfinite(value) or below or value > high:
+            raise ValueError(f"{_flag(name)} must be {range_text(name)}, got {value!r}")
+    if config.grid_min_cells > config.grid_cells:
+        raise ValueError(f"--grid-min-cells ({config.grid_min_cells}) must not exceed --grid-cells "
+                         f"({config.grid_cells})")
 
 
 def option_owners() -> dict[str, list]:

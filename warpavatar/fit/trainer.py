@@ -33,6 +33,16 @@ from warpavatar.model import Avatar, GaussianModel, VoxelSkinningField
 __all__ = ["Trainer"]
 
 
+def _flat_options(config: FitConfig) -> dict:
+    """The options of ``config`` by flag name: core fields, each enabled extension's switch and options."""
+    values = config.to_dict()
+    flat = {name: value for name, value in values.items() if name != "extensions"}
+    for name, options in values["extensions"].items():
+        flat[get_extension(name).switch_name()] = options.pop(get_extension(name).switch_name(), "on")
+        flat.update(options)
+    return flat
+
+
 class Trainer:
     """Fits an :class:`~warpavatar.model.avatar.Avatar` to one video folder.
 
@@ -77,6 +87,7 @@ class Trainer:
         self._make_gaussian_optimizer()
         self.step = 0
         self.frame_order: list[int] = []
+        self._stop_requested = False
 
     @property
     def gaussians(self) -> GaussianModel:
@@ -186,11 +197,15 @@ class Trainer:
 
     def load_checkpoint(self, path: str | os.PathLike) -> None:
         state = read_checkpoint(path)
-        saved, current = FitConfig.from_dict(state["config"]).to_dict(), self.config.to_dict()
+        saved, current = _flat_options(FitConfig.from_dict(state["config"])), _flat_options(self.config)
         if saved != current:
-            changed = sorted(k for k in current.keys() | saved.keys() if saved.get(k) != current.get(k))
-            raise ValueError(f"{path}: the checkpoint was made with a different config ({', '.join(changed)}); "
-                             "resume with the same options or start a new output folder")
+            missing = "(off)"
+            changed = [f"--{name.replace('_', '-')}: {saved.get(name, missing)} in the checkpoint vs "
+                       f"{current.get(name, missing)} given"
+                       for name in sorted(current.keys() | saved.keys()) if saved.get(name) != current.get(name)]
+            raise ValueError(f"{path}: the checkpoint was made with other options ({'; '.join(changed)}); resume "
+                             "with the checkpoint's options, or start over with --overwrite or in a new output "
+                             "folder")
         self.avatar.gaussians = GaussianModel.from_checkpoint(state["gaussians"], device=self.device)
         self._make_gaussian_optimizer()
         self.gaussians.optimizer.load_state_dict(state["gaussian_optimizer"])
@@ -204,6 +219,16 @@ class Trainer:
         self.step = int(state["step"])
 
     # ------------------------------------------------------------------------------------------------ run
+    def request_stop(self) -> None:
+        """Make :meth:`fit` stop after the step under way and write a checkpoint there (safe from a signal
+        handler: it only sets a flag)."""
+        self._stop_requested = True
+
+    @property
+    def stopped_early(self) -> bool:
+        """Whether the last :meth:`fit` ended before the last step (a stop request or ``stop_at``)."""
+        return self.step < self.config.iterations
+
     def fit(self, *, resume: bool = False, progress: bool = True, stop_at: int | None = None) -> Avatar:
         """Run (or continue) the fit and write the outputs.
 
@@ -224,7 +249,7 @@ class Trainer:
         start_time = time.time()
         end = config.iterations if stop_at is None else min(stop_at, config.iterations)
         bar = tqdm.tqdm(total=config.iterations, initial=self.step, disable=not progress, desc="fit", unit="step")
-        while self.step < end:
+        while self.step < end and not self._stop_requested:
             step, terms = self.train_step()
             bar.update(1)
             if self.step % config.log_every == 0 or self.step == config.iterations:

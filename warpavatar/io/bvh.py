@@ -21,6 +21,8 @@ import re
 
 import numpy as np
 
+from warpavatar.data.types import MAX_JOINT_DEPTH
+
 __all__ = ["BvhError", "BvhMotion", "parse_bvh", "bvh_rest_positions", "bvh_forward_kinematics",
            "match_joint_names", "retarget_bvh", "up_axis_rotation"]
 
@@ -131,9 +133,12 @@ def parse_bvh(path: str | os.PathLike) -> BvhMotion:
         position += count
         return values
 
-    def read_joint(parent: int) -> None:
+    def read_joint(parent: int, depth: int = 1) -> None:
         """Parse ``NAME { OFFSET ... CHANNELS ... children }``; ``position`` is just after ROOT/JOINT."""
         nonlocal position
+        if depth > MAX_JOINT_DEPTH:
+            raise fail(f"joints nested more than {MAX_JOINT_DEPTH} deep, more than expected of a skeleton (a "
+                       "missing '}'?)")
         line = tokens[position][1] if position < len(tokens) else -1
         name_words = []
         while position < len(tokens) and tokens[position][1] == line and tokens[position][0] != "{":
@@ -165,7 +170,7 @@ def parse_bvh(path: str | os.PathLike) -> BvhMotion:
             keyword = tokens[position][0]
             if keyword == "JOINT":
                 position += 1
-                read_joint(index)
+                read_joint(index, depth + 1)
             elif keyword == "End" and position + 1 < len(tokens) and tokens[position + 1][0] == "Site":
                 position += 2
                 expect("{")

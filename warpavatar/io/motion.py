@@ -11,10 +11,12 @@ import dataclasses
 import json
 import os
 import zipfile
+import zlib
+from pathlib import Path
 
 import numpy as np
 
-from warpavatar.io.bvh import BvhError, parse_bvh, retarget_bvh
+from warpavatar.io.bvh import BvhError, match_joint_names, parse_bvh, retarget_bvh
 
 __all__ = ["Motion", "MotionError", "load_motion", "check_bone_transforms"]
 
@@ -36,11 +38,15 @@ class Motion:
         bone_transforms: [T,J,4,4] float32 rigid transforms (rest pose -> posed world) per frame and joint.
         fps: frames per second.
         frame_ids: [T] int32 frame ids (file names of a video folder's frames; 0..T-1 for a BVH).
+        undriven_joints: names of the skeleton's joints the source has no joint for (BVH only).
     """
 
     bone_transforms: np.ndarray
     fps: float
     frame_ids: np.ndarray
+    #: the skeleton's joints that the source does not drive (a BVH without them); they keep their rest pose
+    #: relative to their parent
+    undriven_joints: list = dataclasses.field(default_factory=list)
 
     @property
     def frame_count(self) -> int:
@@ -102,7 +108,7 @@ def _read_npz(path: str) -> tuple[np.ndarray, np.ndarray | None, float | None]:
             fps = float(archive["fps"]) if "fps" in archive.files else None
     except MotionError:
         raise
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError, TypeError) as error:
+    except (OSError, ValueError, zipfile.BadZipFile, zlib.error, EOFError, TypeError) as error:
         raise MotionError(f"{path}: cannot read as .npz: {error}") from None
     return bone_transforms, frame_ids, fps
 
@@ -146,6 +152,7 @@ def load_motion(source: str | os.PathLike, skeleton, *, name_map: dict | None = 
     if frames is not None and not isinstance(frames, slice):
         raise TypeError(f"frames must be a slice or None, got {type(frames).__name__}")
     source = os.fspath(source)
+    undriven = []
     try:
         joint_count = len(skeleton.names)
     except (AttributeError, TypeError):
@@ -155,6 +162,7 @@ def load_motion(source: str | os.PathLike, skeleton, *, name_map: dict | None = 
         poses_path = os.path.join(source, "poses.npz")
         if not os.path.isfile(poses_path):
             raise MotionError(f"{source}: video folder has no poses.npz")
+        _check_folder_skeleton(os.path.join(source, "skeleton.json"), skeleton)
         bone_transforms, frame_ids, fps = _read_npz(poses_path)
         meta_path = os.path.join(source, "meta.json")
         meta_fps = _read_fps(meta_path)
@@ -170,6 +178,8 @@ def load_motion(source: str | os.PathLike, skeleton, *, name_map: dict | None = 
         try:
             bvh = parse_bvh(source)
             bone_transforms = retarget_bvh(bvh, skeleton, name_map=name_map, scale=bvh_scale, up=bvh_up)
+            driven = match_joint_names(list(skeleton.names), bvh.names, name_map)
+            undriven = [name for index, name in enumerate(skeleton.names) if index not in driven]
         except BvhError as error:
             message = str(error)
             raise MotionError(message if source in message else f"{source}: {message}") from None
@@ -203,4 +213,33 @@ def load_motion(source: str | os.PathLike, skeleton, *, name_map: dict | None = 
     if bone_transforms.shape[0] == 0:
         raise MotionError(f"{described}: no frames" + (f" selected by {frames}" if frames is not None else ""))
     return Motion(bone_transforms=np.ascontiguousarray(bone_transforms), fps=fps,
-                  frame_ids=np.ascontiguousarray(frame_ids, dtype=np.int32))
+                  frame_ids=np.ascontiguousarray(frame_ids, dtype=np.int32), undriven_joints=undriven)
+
+
+def _check_folder_skeleton(path: str, skeleton) -> None:
+    """A video folder's motion drives its own skeleton: it must be ``skeleton`` (same joint names, same
+    order), or the message says which joints differ."""
+    if not os.path.isfile(path):
+        return
+    from warpavatar.data import VideoFolderError
+    from warpavatar.data.reader import read_skeleton
+    from warpavatar.data.checks import listed
+
+    try:
+        names = read_skeleton(Path(path)).names
+    except VideoFolderError as error:
+        raise MotionError(str(error)) from None
+    ours = [str(name) for name in skeleton.names]
+    if names == ours:
+        return
+    extra = [name for name in names if name not in ours]
+    missing = [name for name in ours if name not in names]
+    if extra or missing:
+        differences = "; ".join(part for part in (
+            f"joints the avatar lacks: {listed(extra)}" if extra else "",
+            f"avatar joints it lacks: {listed(missing)}" if missing else "") if part)
+        raise MotionError(f"{path}: the motion is of another skeleton ({differences})")
+    first = next(index for index, (a, b) in enumerate(zip(names, ours)) if a != b)
+    raise MotionError(f"{path}: the motion's skeleton orders its joints differently (joint {first} is "
+                      f"{names[first]!r}, the avatar's {ours[first]!r})")
+
