@@ -106,6 +106,29 @@ def test_view_bad_input_is_a_clear_error(avatar_dir, tmp_path, capsys):
     assert "--image-size" in capsys.readouterr().err
 
 
+def test_view_plays_the_given_motion_or_the_rest_pose(avatar_dir, tmp_path, capsys):
+    pytest.importorskip("viser")
+    motion_folder = data.demo_subject_path() / "novel_pose" / "dance_cam000"
+    args = view.build_parser().parse_args([str(avatar_dir / "avatar.pt"), "--motion", str(motion_folder), "--frames",
+                                           "2:5", "--port", "0", "--device", "cpu", "--no-progress"])
+    viewer = view.build_viewer(args)
+    try:
+        assert viewer.frame_count == 3 and viewer.motion.frame_ids.tolist() == \
+            data.load_video_folder(motion_folder).frame_ids[2:5].tolist()
+        assert viewer.url.startswith("http://127.0.0.1:") and viewer.url.split(":")[-1] != "0/"
+    finally:
+        viewer.stop()
+    # an avatar without a training motion beside it (a fit older than the viewer) shows its rest pose
+    shutil.copy(avatar_dir / "avatar.pt", tmp_path / "avatar.pt")
+    viewer = view.build_viewer(view.build_parser().parse_args([str(tmp_path), "--port", "0", "--device", "cpu"]))
+    try:
+        assert viewer.frame_count == 1
+        np.testing.assert_array_equal(viewer.motion.bone_transforms[0], np.tile(np.eye(4), (viewer.avatar.joint_count, 1, 1)))
+        assert "rest pose" in capsys.readouterr().out
+    finally:
+        viewer.stop()
+
+
 # ------------------------------------------------------------------------------------------------ the browser
 def _browser(user_data_dir):
     from selenium import webdriver

@@ -16,7 +16,8 @@ DESCRIPTION = """Fit an animatable 3D Gaussian avatar to a video folder (see doc
 Outputs in the output folder: avatar.pt (the avatar: Gaussians, skinning field, skeleton, its optional parts,
 config; loads back with warpavatar.model.Avatar.load), canonical.ply (the canonical Gaussians with the 3DGS
 attribute names), config.json, train_log.jsonl (one JSON line per logged step: every loss term by name),
-checkpoint.pt (to resume) and previews/ (render | ground truth for a few training frames).
+training_poses.npz (the poses fitted on, as a poses.npz: warpavatar-view plays it), checkpoint.pt (to resume)
+and previews/ (render | ground truth for a few training frames).
 
 Options: the main ones first, then the core's groups, then one group per optional part (extension) with its
 research knobs. Each overrides the preset's value; --help shows the default and where a preset differs.

@@ -155,14 +155,24 @@ class AvatarViewer:
         return f"http://{shown}:{self.server.get_port()}/"
 
     def _set_initial_camera(self) -> None:
-        """Start where ``warpavatar-render --orbit`` starts: the whole rest pose in a 40-degree field of view."""
-        camera = orbit_cameras(self.avatar.skeleton, 1, field_of_view_degrees=40.0)[0]
+        """Start looking at the rest pose's centre from where the training camera stood (the avatar's shading
+        origin), else from ``warpavatar-render --orbit``'s first camera, close enough that the body fills most
+        of a 40-degree field of view."""
+        skeleton = self.avatar.skeleton
+        camera = orbit_cameras(skeleton, 1, field_of_view_degrees=40.0)[0]
         rotation, translation = camera.world_to_camera[:3, :3], camera.world_to_camera[:3, 3]
-        points = np.concatenate([self.avatar.skeleton.heads, self.avatar.skeleton.tails])
+        points = np.concatenate([skeleton.heads, skeleton.tails]).astype(np.float64)
+        centre = 0.5 * (points.min(0) + points.max(0))
+        offset = -rotation.T @ translation - centre
+        origin = self.avatar.shading_origin
+        if origin is not None:
+            towards = origin.detach().cpu().numpy().astype(np.float64) - centre
+            if np.linalg.norm(towards) > 1e-6:
+                offset = towards / np.linalg.norm(towards) * np.linalg.norm(offset)
         initial = self.server.initial_camera
-        initial.position = tuple(float(v) for v in -rotation.T @ translation)
-        initial.look_at = tuple(float(v) for v in 0.5 * (points.min(0) + points.max(0)))
-        initial.up = tuple(float(v) for v in np.asarray(self.avatar.skeleton.up))
+        initial.position = tuple(float(v) for v in centre + 0.65 * offset)
+        initial.look_at = tuple(float(v) for v in centre)
+        initial.up = tuple(float(v) for v in np.asarray(skeleton.up))
         initial.fov = math.radians(40.0)
 
     def _build_gui(self, fps: float, image_height: int, show_skeleton: bool) -> None:
