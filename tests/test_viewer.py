@@ -223,16 +223,22 @@ def test_the_page_shows_the_avatar_and_follows_camera_and_timeline(avatar_dir, t
         assert np.abs(orbited - server).mean() < 6.0
         assert np.abs(orbited - first).mean() > 2.0, np.abs(orbited - first).mean()
 
-        # the timeline: press Play in the page, let it run (2 frames per second), press Pause; the motion moved on
+        # the timeline: press Play in the page and the motion runs (2 frames per second); press Pause and it stays
         driver.find_element("xpath", "//button[normalize-space()='Play']").click()
         _wait(lambda: viewer.frame >= 2, "playback to reach frame 2")
         driver.find_element("xpath", "//button[normalize-space()='Pause']").click()
-        played, server = _settled_screen(driver, viewer)
-        assert viewer.frame != 0 and int(viewer.frame_slider.value) == viewer.frame
-        assert np.abs(played - server).mean() < 6.0
-        assert np.abs(played - orbited).mean() > 2.0, np.abs(played - orbited).mean()
+        paused, server = _settled_screen(driver, viewer)
+        frame = viewer.frame
+        time.sleep(1.0)
+        assert viewer.frame == frame == int(viewer.frame_slider.value)
+        assert np.abs(paused - server).mean() < 6.0
 
-        # a frame chosen from the server (as the timeline slider does) shows that frame
+        # a frame chosen on the timeline shows that frame; back at frame 0 the page shows what it showed there
+        viewer.set_frame(3)
+        _wait(lambda: viewer.frame == 3, "frame 3")
+        third, server = _settled_screen(driver, viewer)
+        assert np.abs(third - server).mean() < 6.0
+        assert np.abs(third - orbited).mean() > 2.0, np.abs(third - orbited).mean()
         viewer.set_frame(0)
         _wait(lambda: viewer.frame == 0, "frame 0")
         back, server = _settled_screen(driver, viewer)

@@ -12,7 +12,8 @@ from warpavatar.cli.common import avatar_parser, friendly_errors, load_avatar, l
 DESCRIPTION = """Serve a web page that shows a fitted avatar, rendered on this machine (CPU or CUDA) with the avatar's
 own rasterizer as you move the camera: drag to orbit, scroll to zoom, right-drag to pan. The panel has a
 timeline of the motion (frame index), play/pause, the playback rate, the skeleton (grown joints in orange) and
-the render resolution. Open the printed address in a browser; Ctrl+C stops the server.
+the render resolution (--fps sets the playback rate at start). Open the printed address in a browser;
+Ctrl+C stops the server.
 
 Needs viser: pip install "warpavatar[view]" (or pip install viser). Its page is served from the installed
 package; nothing is fetched from the internet. To look from another machine, forward the port
