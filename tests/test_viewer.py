@@ -138,7 +138,7 @@ def _browser(user_data_dir):
     options.binary_location = CHROMIUM
     for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                 "--enable-unsafe-swiftshader", "--window-size=1000,700", "--force-device-scale-factor=1",
+                 "--disable-dev-shm-usage", "--enable-unsafe-swiftshader", "--window-size=1000,700", "--force-device-scale-factor=1",
                  f"--user-data-dir={user_data_dir}"):
         options.add_argument(flag)
     return webdriver.Chrome(options=options, service=Service(CHROMEDRIVER))
@@ -212,6 +212,10 @@ def test_the_page_shows_the_avatar_and_follows_camera_and_timeline(avatar_dir, t
         assert (np.abs(first - 25.5).max(axis=-1) > 40).mean() > 0.01
         assert np.abs(first - server).mean() < 6.0, np.abs(first - server).mean()
         assert viewer.last_image.shape[0] == 256
+        # everything the page loaded came from the viewer itself (viser's client is in its wheel)
+        host = viewer.url.rstrip("/")
+        loaded = driver.execute_script("return performance.getEntriesByType('resource').map(e => e.name)")
+        assert all(url.startswith((host, "data:", "blob:")) for url in loaded), loaded
 
         # orbit: drag across the canvas; the server renders the new view and the page shows it
         canvas = max(driver.find_elements("tag name", "canvas"), key=lambda c: c.rect["width"])
