@@ -53,7 +53,8 @@ def test_fit_learns_and_writes_outputs(demo_video, tmp_path):
     assert after > before + 3.0, (before, after)
 
     out = tmp_path / "fit"
-    for name in ("avatar.pt", "canonical.ply", "config.json", "train_log.jsonl", "checkpoint.pt"):
+    for name in ("avatar.pt", "canonical.ply", "config.json", "train_log.jsonl", "checkpoint.pt",
+                 "training_poses.npz"):
         assert (out / name).is_file(), name
     log = [json.loads(line) for line in (out / "train_log.jsonl").read_text().splitlines()]
     assert log[-1]["step"] == config.iterations

@@ -74,13 +74,14 @@ def friendly_errors(main):
     return wrapper
 
 
-def avatar_parser(prog: str, description: str, *, motion: bool) -> argparse.ArgumentParser:
+def avatar_parser(prog: str, description: str, *, motion: bool, motion_default: str | None = None
+                  ) -> argparse.ArgumentParser:
     """The parser of a command that loads a fitted avatar (positional, ``--device``, ``--no-progress``) and, with
-    ``motion``, drives it with a motion (:func:`add_motion_arguments`)."""
+    ``motion``, drives it with a motion (:func:`add_motion_arguments`; ``motion_default``: see there)."""
     parser = ArgumentParser(prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_avatar_arguments(parser)
     if motion:
-        add_motion_arguments(parser)
+        add_motion_arguments(parser, default=motion_default)
     return parser
 
 
@@ -91,11 +92,12 @@ def add_avatar_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
-def add_motion_arguments(parser: argparse.ArgumentParser) -> None:
-    """The motion that drives an avatar: ``--motion`` and how to read and cut it."""
-    parser.add_argument("--motion", required=True, type=Path,
+def add_motion_arguments(parser: argparse.ArgumentParser, *, default: str | None = None) -> None:
+    """The motion that drives an avatar: ``--motion`` and how to read and cut it. ``default``: what the command
+    does without ``--motion``, for its help (None: ``--motion`` is required)."""
+    parser.add_argument("--motion", required=default is None, type=Path, default=None,
                         help="motion source: a video folder (its poses.npz), a poses .npz with bone_transforms of "
-                             "the same skeleton, or a .bvh file")
+                             "the same skeleton, or a .bvh file" + (f" (default: {default})" if default else ""))
     parser.add_argument("--frames", default=None, metavar="A:B", help="only motion frames A..B-1 (default: all)")
     parser.add_argument("--fps", type=positive_number, default=None,
                         help="frames per second of the output (default: the motion's)")

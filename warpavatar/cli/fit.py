@@ -22,7 +22,8 @@ DESCRIPTION = """Fit an animatable 3D Gaussian avatar to a video folder (see doc
 Outputs in the output folder: avatar.pt (the avatar: Gaussians, skinning field, skeleton, its optional parts,
 config; loads back with warpavatar.model.Avatar.load), canonical.ply (the canonical Gaussians with the 3DGS
 attribute names), config.json, train_log.jsonl (one JSON line per logged step: every loss term by name),
-checkpoint.pt (to resume) and previews/ (render | ground truth for a few training frames).
+training_poses.npz (the poses fitted on, as a poses.npz: warpavatar-view plays it), checkpoint.pt (to resume)
+and previews/ (render | ground truth for a few training frames).
 A non-empty output folder is refused unless --resume continues its fit or --overwrite starts over in it.
 Ctrl-C stops after the step under way, writes checkpoint.pt and prints the command that resumes (exit
 status 130); bad input is one line on stderr with exit status 2.
@@ -33,7 +34,7 @@ research knobs. Each overrides the preset's value; --help shows the default and 
 
 
 FIT_OUTPUTS = ("avatar.pt", "canonical.ply", "config.json", "train_log.jsonl", "checkpoint.pt", "previews",
-               "demo_eval.json", "poses_refined.npz")
+               "demo_eval.json", "poses_refined.npz", "training_poses.npz")
 """What a fit writes in its output folder (``--overwrite`` deletes these)."""
 
 

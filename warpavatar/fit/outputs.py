@@ -1,7 +1,9 @@
-"""What a finished fit writes besides the avatar: the canonical Gaussians as a 3DGS .ply and preview images."""
+"""What a finished fit writes besides the avatar: the canonical Gaussians as a 3DGS .ply, the training motion and
+preview images."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +11,10 @@ import torch
 
 from warpavatar.io.ply import write_gaussian_ply
 
-__all__ = ["write_canonical_ply", "write_previews"]
+__all__ = ["TRAINING_MOTION_NAME", "write_canonical_ply", "write_training_motion", "write_previews"]
+
+TRAINING_MOTION_NAME = "training_poses.npz"
+"""The file in a fit's output folder that holds the poses it was fitted on (``warpavatar-view`` plays it)."""
 
 
 def write_canonical_ply(gaussians, path: str | Path) -> None:
@@ -19,6 +24,19 @@ def write_canonical_ply(gaussians, path: str | Path) -> None:
                        scales=gaussians.scales.detach().cpu().numpy(),
                        opacities=gaussians.opacities.detach().cpu().numpy(),
                        sh_coeffs=gaussians.sh_coefficients().detach().cpu().numpy())
+
+
+def write_training_motion(frames, path: str | Path) -> None:
+    """The training frames' poses as a ``poses.npz`` (docs/FORMAT.md: ``bone_transforms`` [T,J,4,4], ``frame_ids``
+    [T], plus ``fps``), written atomically; any ``--motion`` option reads it, and replaying it gives each training
+    instant what the fit learned for it."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as stream:
+        np.savez_compressed(stream, bone_transforms=frames.bone_transforms.detach().cpu().numpy(),
+                            frame_ids=np.asarray(frames.frame_ids, dtype=np.int32),
+                            fps=np.float64(frames.video.fps))
+    os.replace(tmp, path)
 
 
 @torch.no_grad()

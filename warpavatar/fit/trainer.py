@@ -25,7 +25,7 @@ from warpavatar.fit.config import FitConfig
 from warpavatar.fit.density import DensityControl
 from warpavatar.fit.frames import TrainingFrames
 from warpavatar.fit.init import initial_gaussians
-from warpavatar.fit.outputs import write_canonical_ply, write_previews
+from warpavatar.fit.outputs import TRAINING_MOTION_NAME, write_canonical_ply, write_previews, write_training_motion
 from warpavatar.fit.skinning import SkinningStage
 from warpavatar.metrics import image_loss_terms, psnr
 from warpavatar.model import Avatar, GaussianModel, VoxelSkinningField
@@ -274,11 +274,13 @@ class Trainer:
         return [line for extension in self.extensions for line in extension.summary_lines()]
 
     def write_outputs(self) -> None:
-        """Avatar file, canonical .ply, previews of a few training frames; the last checkpoint stays."""
+        """Avatar file, canonical .ply, the training motion, previews of a few training frames; the last checkpoint
+        stays."""
         for extension in self.extensions:
             extension.finish()
         self.avatar.save(self.output_dir / "avatar.pt", config=self.config.to_dict())
         write_canonical_ply(self.gaussians, self.output_dir / "canonical.ply")
+        write_training_motion(self.frames, self.output_dir / TRAINING_MOTION_NAME)
         for extension in self.extensions:
             extension.write_outputs(self.output_dir)
         self.save_checkpoint()
