@@ -107,6 +107,7 @@ def evaluate_held_out(avatar, subject, *, progress: bool = True) -> dict[str, di
     return results
 
 
+@torch.no_grad()
 def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = None, progress: bool = True,
                     refine_steps: int = 0) -> dict:
     """Render ``avatar`` for every frame of ``video`` and measure it.
