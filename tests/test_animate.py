@@ -88,6 +88,10 @@ def test_render_mp4_and_frames(avatar_dir, tmp_path):
     assert render.main([str(avatar_dir), "--motion", str(motion_folder), "-o", str(video), "--orbit", "--size", "64",
                         "--frames", "0:5", "--no-progress", "--device", "cpu"]) == 0
     capture = cv2.VideoCapture(str(video))
+    # the folder keeps every k-th frame of its clock: the video plays its rows at fps / k (its captured speed)
+    motion = data.load_video_folder(motion_folder)
+    step = int(motion.frame_ids[1] - motion.frame_ids[0])
+    assert step > 1 and capture.get(cv2.CAP_PROP_FPS) == pytest.approx(motion.fps / step, rel=1e-3)
     count = 0
     while capture.read()[0]:
         count += 1

@@ -46,7 +46,7 @@ def main(argv=None) -> int:
         raise ValueError(f"--background must be R G B in 0..1, got {' '.join(map(str, args.background))}")
     import cv2
 
-    from warpavatar.io.animation import orbit_cameras, read_cameras_json
+    from warpavatar.io.animation import motion_time_codes, orbit_cameras, read_cameras_json
 
     avatar = load_avatar(args)
     device = avatar.gaussians.means.device
@@ -61,7 +61,11 @@ def main(argv=None) -> int:
         cameras = cameras[frames] if frames is not None else cameras
     else:
         cameras = orbit_cameras(avatar.skeleton, count, width=args.size, height=args.size)
-    fps = args.fps or motion.fps
+    # rows of a motion that keeps every k-th frame of its clock lie k frames apart: the video plays them at
+    # fps / k, so the motion keeps its captured speed (as the USD export's time codes do)
+    codes = motion_time_codes(motion.frame_ids[:count])
+    row_step = float(codes[-1] - codes[0]) / (count - 1) if count > 1 else 1.0
+    fps = args.fps or motion.fps / max(row_step, 1.0)
     background = torch.tensor(args.background, dtype=torch.float32, device=device)
     grid = avatar.field.grid_weights()
     avatar.prepare_sequence(motion.bone_transforms, frame_ids=motion.frame_ids, fps=motion.fps,
