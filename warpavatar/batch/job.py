@@ -71,7 +71,8 @@ def _fit(subject: BatchSubject, output: Path, *, config, device: str, evaluate: 
     from warpavatar.fit.checkpoint import CHECKPOINT_NAME, read_checkpoint
 
     checkpoint = output / CHECKPOINT_NAME
-    result["resume_step"] = int(read_checkpoint(checkpoint)["step"]) if checkpoint.is_file() else 0
+    # the step only: the tensors stay in the file (the fit reads them once when it resumes)
+    result["resume_step"] = int(read_checkpoint(checkpoint, mmap=True)["step"]) if checkpoint.is_file() else 0
     if report is not None:
         report("started", {"resume_step": result["resume_step"]})
     if not subject.path.is_dir():

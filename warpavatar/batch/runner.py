@@ -6,7 +6,6 @@ Ray is imported here only, when a batch runs; without it :func:`import_ray` says
 
 from __future__ import annotations
 
-import json
 import os
 import socket
 import time
@@ -91,23 +90,12 @@ def _task_error(error: BaseException) -> str:
     return f"{type(error).__name__}: {text}" if text else type(error).__name__
 
 
-def _flat_options(values: dict, prefix: str = "") -> dict:
-    """A config's values with nested dicts (the extensions' options) flattened to dotted names."""
-    flat = {}
-    for key, value in values.items():
-        if isinstance(value, dict):
-            flat.update(_flat_options(value, f"{prefix}{key}."))
-        else:
-            flat[prefix + key] = value
-    return flat
-
-
 def _earlier_results(subjects: list[BatchSubject], out_root: Path, *, config, force: bool):
     """The results of subjects an earlier run finished (``"skipped"``; ``"failed"`` where it used other options)
     and the subjects to fit; with ``force`` every subject is fitted, its checkpoint and done marker removed."""
     from warpavatar.fit.checkpoint import CHECKPOINT_NAME
+    from warpavatar.fit.config import FitConfig, changed_options
 
-    current = _flat_options(json.loads(config.to_json()))
     results, to_fit = {}, []
     for subject in subjects:
         output = subject.output(out_root)
@@ -118,8 +106,7 @@ def _earlier_results(subjects: list[BatchSubject], out_root: Path, *, config, fo
                     (output / name).unlink(missing_ok=True)
             to_fit.append(subject)
             continue
-        used = _flat_options(earlier.get("config", {}))
-        changed = sorted(key for key in current.keys() | used.keys() if current.get(key) != used.get(key))
+        changed = [name for name, _, _ in changed_options(FitConfig.from_dict(earlier["config"]), config)]
         result = {key: value for key, value in earlier.items() if key != "config"}
         result.update(status="failed" if changed else "skipped", attempts=0, wall_seconds=0.0,
                       error=f"{output}: finished by an earlier run with other options ({', '.join(changed)}); "

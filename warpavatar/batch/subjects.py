@@ -89,6 +89,7 @@ def finished_result(output: str | os.PathLike) -> dict | None:
     if not (marker.is_file() and (output / "avatar.pt").is_file()):
         return None
     try:
-        return json.loads(marker.read_text(encoding="utf-8"))
+        result = json.loads(marker.read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None  # a marker that cannot be read does not prove the fit finished
+    return result if isinstance(result, dict) and isinstance(result.get("config"), dict) else None

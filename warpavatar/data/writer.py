@@ -20,7 +20,7 @@ import numpy as np
 
 from warpavatar.data.types import Camera, VideoFolder
 
-__all__ = ["staged_folder", "write_json", "write_png", "save_npz", "cameras_json", "write_video_folder"]
+__all__ = ["staged_folder", "write_json", "write_png", "save_npz", "write_poses", "cameras_json", "write_video_folder"]
 
 
 @contextlib.contextmanager
@@ -73,6 +73,21 @@ def save_npz(path: Path, **arrays) -> None:
         np.savez_compressed(stream, **arrays)
 
 
+def write_poses(path: str | os.PathLike, bone_transforms, frame_ids, *, joint_positions=None, **extra) -> Path:
+    """A ``poses.npz`` of docs/FORMAT.md (``bone_transforms`` [T,J,4,4] float32, ``frame_ids`` [T] int32, optional
+    ``joint_positions`` [T,J,3] float32, and any ``extra`` arrays such as ``fps``), written to a temporary name
+    and renamed."""
+    path = Path(path)
+    arrays = {"bone_transforms": np.asarray(bone_transforms, dtype=np.float32),
+              "frame_ids": np.asarray(frame_ids, dtype=np.int32), **extra}
+    if joint_positions is not None:
+        arrays["joint_positions"] = np.asarray(joint_positions, dtype=np.float32)
+    tmp = path.with_name(path.name + ".tmp")
+    save_npz(tmp, **arrays)
+    os.replace(tmp, path)
+    return path
+
+
 def cameras_json(cameras: list[Camera]) -> dict:
     """The cameras.json object of a folder's cameras: one fixed camera when they are all equal."""
     first = cameras[0]
@@ -122,11 +137,7 @@ def write_video_folder(video: VideoFolder, path: str | os.PathLike, *, overwrite
                 write_png(tmp / "masks" / f"{int(frame_id):06d}.png", mask)
         write_json(tmp / "cameras.json", cameras_json(video.cameras))
         write_json(tmp / "skeleton.json", video.skeleton.to_json_dict())
-        arrays = {"bone_transforms": video.bone_transforms.astype(np.float32),
-                  "frame_ids": video.frame_ids.astype(np.int32)}
-        if video.joint_positions is not None:
-            arrays["joint_positions"] = video.joint_positions.astype(np.float32)
-        save_npz(tmp / "poses.npz", **arrays)
+        write_poses(tmp / "poses.npz", video.bone_transforms, video.frame_ids, joint_positions=video.joint_positions)
         meta = dict(video.meta)
         meta["fps"] = float(video.fps)
         if video.declares_background or np.any(np.asarray(video.background) != 0):

@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from warpavatar.data import write_poses
 from warpavatar.extensions.base import Extension, LossTerm, option
 from warpavatar.geometry import match_pose
 from warpavatar.model.kinematics import ancestor_jumps, corrected_transforms, posed_pivots
@@ -136,11 +137,8 @@ class PoseRefinement(AvatarPart):
         """The refined training poses as a poses.npz of docs/FORMAT.md (bone_transforms, frame_ids,
         joint_positions: the posed pivots)."""
         poses = self.refined_poses().cpu()
-        pivots = posed_pivots(poses, self.heads.cpu())
-        with open(path, "wb") as stream:
-            np.savez_compressed(stream, bone_transforms=poses.numpy().astype(np.float32),
-                                frame_ids=self.frame_ids.cpu().numpy().astype(np.int32),
-                                joint_positions=pivots.numpy().astype(np.float32))
+        write_poses(path, poses.numpy(), self.frame_ids.cpu().numpy(),
+                    joint_positions=posed_pivots(poses, self.heads.cpu()).numpy())
 
     @classmethod
     def from_file_state(cls, state: dict, *, device="cpu") -> "PoseRefinement":

@@ -22,15 +22,20 @@ def save_checkpoint(path: str | os.PathLike, state: dict) -> Path:
     return path
 
 
-def read_checkpoint(path: str | os.PathLike) -> dict:
+def read_checkpoint(path: str | os.PathLike, *, mmap: bool = False) -> dict:
     """Read a checkpoint written by :func:`save_checkpoint`.
+
+    Args:
+        path: the file.
+        mmap: map the tensors' storage from the file instead of reading it (for a look at the small entries,
+            such as ``step``, of a checkpoint that may hold hundreds of MB).
 
     Raises:
         ValueError: an unreadable file, or one of another format (named in the message).
     """
     path = Path(path)
     try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        state = torch.load(path, map_location="cpu", weights_only=False, mmap=mmap)
     except Exception as error:  # noqa: BLE001 - any unreadable file gets the same clear message
         raise ValueError(f"{path}: cannot read the checkpoint ({error})") from error
     found = state.get("format", "warpavatar-checkpoint/1") if isinstance(state, dict) else None

@@ -17,7 +17,7 @@ from typing import Mapping
 
 from warpavatar.extensions import get_extension, registered
 
-__all__ = ["FitConfig", "CORE_GROUPS", "RANGES", "range_text", "option_owners"]
+__all__ = ["FitConfig", "CORE_GROUPS", "RANGES", "range_text", "option_owners", "flat_options", "changed_options"]
 
 CORE_GROUPS = ("data and schedule", "Gaussians", "skinning field", "colours", "losses", "optimizer",
                "density control", "book-keeping")
@@ -273,6 +273,25 @@ def _check_ranges(config: FitConfig) -> None:
     if config.grid_min_cells > config.grid_cells:
         raise ValueError(f"--grid-min-cells ({config.grid_min_cells}) must not exceed --grid-cells "
                          f"({config.grid_cells})")
+
+
+def flat_options(config: FitConfig) -> dict:
+    """The options of ``config`` by name, in the flags' flat vocabulary: the core fields, and each enabled
+    extension's switch (its word, or "on") and options."""
+    values = config.to_dict()
+    flat = {name: value for name, value in values.items() if name != "extensions"}
+    for name, options in values["extensions"].items():
+        switch = get_extension(name).switch_name()
+        flat[switch] = options.pop(switch, "on")
+        flat.update(options)
+    return flat
+
+
+def changed_options(first: FitConfig, second: FitConfig) -> list[tuple[str, object, object]]:
+    """``(name, value in first, value in second)`` of every option (:func:`flat_options`) whose values differ,
+    in name order; an option of an extension that is off in one of them has the value None there."""
+    a, b = flat_options(first), flat_options(second)
+    return [(name, a.get(name), b.get(name)) for name in sorted(a.keys() | b.keys()) if a.get(name) != b.get(name)]
 
 
 def option_owners() -> dict[str, list]:

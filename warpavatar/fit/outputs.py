@@ -3,12 +3,12 @@ preview images."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from warpavatar.data import write_poses
 from warpavatar.io.ply import write_gaussian_ply
 
 __all__ = ["TRAINING_MOTION_NAME", "write_canonical_ply", "write_training_motion", "write_previews"]
@@ -27,16 +27,10 @@ def write_canonical_ply(gaussians, path: str | Path) -> None:
 
 
 def write_training_motion(frames, path: str | Path) -> None:
-    """The training frames' poses as a ``poses.npz`` (docs/FORMAT.md: ``bone_transforms`` [T,J,4,4], ``frame_ids``
-    [T], plus ``fps``), written atomically; any ``--motion`` option reads it, and replaying it gives each training
-    instant what the fit learned for it."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as stream:
-        np.savez_compressed(stream, bone_transforms=frames.bone_transforms.detach().cpu().numpy(),
-                            frame_ids=np.asarray(frames.frame_ids, dtype=np.int32),
-                            fps=np.float64(frames.video.fps))
-    os.replace(tmp, path)
+    """The training frames' poses as a ``poses.npz`` (docs/FORMAT.md, plus ``fps``); any ``--motion`` option reads
+    it, and replaying it gives each training instant what the fit learned for it."""
+    write_poses(path, frames.bone_transforms.detach().cpu().numpy(), frames.frame_ids,
+                fps=np.float64(frames.video.fps))
 
 
 @torch.no_grad()

@@ -21,7 +21,7 @@ import tqdm
 
 from warpavatar.extensions import FitContext, LossTerm, StepContext, get_extension
 from warpavatar.fit.checkpoint import CHECKPOINT_NAME, read_checkpoint, save_checkpoint
-from warpavatar.fit.config import FitConfig
+from warpavatar.fit.config import FitConfig, changed_options
 from warpavatar.fit.density import DensityControl
 from warpavatar.fit.frames import TrainingFrames
 from warpavatar.fit.init import initial_gaussians
@@ -31,16 +31,6 @@ from warpavatar.metrics import image_loss_terms, psnr
 from warpavatar.model import Avatar, GaussianModel, VoxelSkinningField
 
 __all__ = ["Trainer"]
-
-
-def _flat_options(config: FitConfig) -> dict:
-    """The options of ``config`` by flag name: core fields, each enabled extension's switch and options."""
-    values = config.to_dict()
-    flat = {name: value for name, value in values.items() if name != "extensions"}
-    for name, options in values["extensions"].items():
-        flat[get_extension(name).switch_name()] = options.pop(get_extension(name).switch_name(), "on")
-        flat.update(options)
-    return flat
 
 
 class Trainer:
@@ -197,12 +187,10 @@ class Trainer:
 
     def load_checkpoint(self, path: str | os.PathLike) -> None:
         state = read_checkpoint(path)
-        saved, current = _flat_options(FitConfig.from_dict(state["config"])), _flat_options(self.config)
-        if saved != current:
-            missing = "(off)"
-            changed = [f"--{name.replace('_', '-')}: {saved.get(name, missing)} in the checkpoint vs "
-                       f"{current.get(name, missing)} given"
-                       for name in sorted(current.keys() | saved.keys()) if saved.get(name) != current.get(name)]
+        changed = [f"--{name.replace('_', '-')}: {'(off)' if saved is None else saved} in the checkpoint vs "
+                   f"{'(off)' if given is None else given} given"
+                   for name, saved, given in changed_options(FitConfig.from_dict(state["config"]), self.config)]
+        if changed:
             raise ValueError(f"{path}: the checkpoint was made with other options ({'; '.join(changed)}); resume "
                              "with the checkpoint's options, or start over with --overwrite or in a new output "
                              "folder")
