@@ -78,7 +78,9 @@ def test_matches_reference(device, seed):
     grads_ref = torch.autograd.grad(out_ref, [theirs[n] for n in NAMES], cotangent)
     for name, grad, grad_ref in zip(NAMES, grads, grads_ref):
         assert grad.abs().max() > 0, name
-        torch.testing.assert_close(grad, grad_ref, rtol=1e-4, atol=2e-5, msg=lambda m, n=name: f"d/d{n}: {m}")
+        # the normal's derivative grows like 1 / (distance to the axis), up to 20 / radius here: float32 rounding
+        # of the GPU's fused multiply-adds reaches 2e-5 on O(1) gradients (H100), far below a wrong term's O(1)
+        torch.testing.assert_close(grad, grad_ref, rtol=1e-4, atol=1e-4, msg=lambda m, n=name: f"d/d{n}: {m}")
 
 
 def test_single_capsule_puts_inside_particles_on_its_surface(device):
