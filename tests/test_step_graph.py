@@ -136,3 +136,84 @@ def test_player_graph_replays_match_eager_frames(demo_video):
         for a, b in zip(ours, theirs):  # atomics in the compositing may round differently
             torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
     assert graphed._graph is not None
+
+
+# ------------------------------------------------------------------------------------------------ training step
+def _tiny_trainer(video_folder, tmp_path, **overrides):
+    from warpavatar.fit import Trainer, preset
+
+    values = dict(iterations=60, image_scale=0.25, max_train_frames=6, init_points_per_bone=20,
+                  init_carve_candidates=4000, init_carve_points=300, sh_degree=1, sh_increase_every=8,
+                  grid_cells=12, grid_min_cells=4, field_hidden=16, field_layers=1, field_warmup_steps=0,
+                  gaussian_only_steps=4, densify_from=6, densify_until=14, densify_every=6,
+                  densify_grad_threshold=1e-6, opacity_reset_every=12, pose_correction=True,
+                  pose_correction_hidden=16, log_every=1000, checkpoint_every=100000, preview_frames=0)
+    values.update(overrides)
+    return Trainer(video_folder, preset("quick", **values), tmp_path, cuda_graph="off")
+
+
+@pytest.fixture(scope="module")
+def small_video():
+    from warpavatar import data
+
+    return data.load_video_folder(data.demo_subject_path() / "train", scale=0.25)
+
+
+def test_steady_training_step_reads_nothing_from_the_device(small_video, tmp_path):
+    from tests.conftest import load_tool
+
+    trainer = _tiny_trainer(small_video, tmp_path)
+    for _ in range(3):  # the first step counts the rasterizer's pairs (exact buffers, one read)
+        trainer.train_step()
+    trainer.step = 20  # past densification, the field training
+    assert trainer.intersection_capacity is not None and trainer.extension("pose_correction") is not None
+    counter = load_tool("bench_avatar")._OpCounter()
+    with counter:
+        for _ in range(2):
+            trainer.train_step()
+    assert counter.host_reads == 0, counter.ops
+    assert sum(counter.ops.values()) > 300
+
+
+def test_sync_free_steps_fit_what_exact_steps_fit(small_video, tmp_path, monkeypatch):
+    """With the fixed-capacity rasterizer and static buffers, a fit through densification, an opacity reset and
+    the start of the field's training ends bit for bit where the exact, synchronizing rasterizer ends."""
+    from warpavatar.model import Avatar
+
+    steps = 16
+    fast = _tiny_trainer(small_video, tmp_path / "fast")
+    initial_count = fast.gaussians.count
+    for _ in range(steps):
+        fast.train_step()
+    exact_rasterize = Avatar.rasterize
+    monkeypatch.setattr(Avatar, "rasterize", lambda self, *args, intersection_capacity=None, **kwargs:
+                        exact_rasterize(self, *args, **kwargs))
+    exact = _tiny_trainer(small_video, tmp_path / "exact")
+    for _ in range(steps):
+        exact.train_step()
+    assert fast.gaussians.count == exact.gaussians.count != 0
+    assert fast.gaussians.count != initial_count  # it densified
+    for (name, ours), (_, theirs) in zip(fast.avatar.named_parameters(), exact.avatar.named_parameters()):
+        assert torch.equal(ours, theirs), name
+    assert torch.equal(fast.density.grad_accum, exact.density.grad_accum)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+def test_captured_steps_match_eager_steps(small_video, tmp_path):
+    from warpavatar.fit import Trainer
+
+    results = []
+    for mode in ("on", "off"):
+        trainer = _tiny_trainer(small_video, tmp_path / mode)
+        trainer = Trainer(small_video, trainer.config, tmp_path / mode, device="cuda:0", cuda_graph=mode)
+        losses = []
+        for _ in range(40):  # densification at 6 and 12, the field from 4: several captures and replays
+            _, terms = trainer.train_step()
+            losses.append(float(terms["loss"].value))
+        assert (trainer._graph is not None) == (mode == "on")
+        results.append((losses, {name: p.detach().clone() for name, p in trainer.avatar.named_parameters()}))
+    (graph_losses, graph_parameters), (eager_losses, eager_parameters) = results
+    assert graph_parameters.keys() == eager_parameters.keys()
+    torch.testing.assert_close(torch.tensor(graph_losses), torch.tensor(eager_losses), rtol=2e-3, atol=1e-4)
+    for name in graph_parameters:
+        torch.testing.assert_close(graph_parameters[name], eager_parameters[name], rtol=2e-3, atol=2e-4)

@@ -17,12 +17,20 @@ import warp as wp
 
 from warpavatar._src.warp_utils import init_warp, warp_device
 
-__all__ = ["cuda_graphs_available", "capture_cuda_graph", "resolve_cuda_graph"]
+__all__ = ["cuda_graphs_available", "capture_cuda_graph", "resolve_cuda_graph", "adam_options"]
 
 
 def cuda_graphs_available(device) -> bool:
     """Whether ``device`` is a CUDA device (the only kind whose work can be captured)."""
     return torch.device(device).type == "cuda" and torch.cuda.is_available()
+
+
+def adam_options(device) -> dict:
+    """Keyword options of ``torch.optim.Adam`` for parameters on ``device``: on CUDA the fused kernels, safe to
+    capture in a CUDA graph (their step counts stay on the device); elsewhere the multi-tensor (foreach) loop."""
+    if torch.device(device).type == "cuda":
+        return {"fused": True, "capturable": True}
+    return {"foreach": True}
 
 
 def resolve_cuda_graph(mode: str, device) -> bool:
@@ -39,14 +47,17 @@ def resolve_cuda_graph(mode: str, device) -> bool:
     return available and mode != "off"
 
 
-def capture_cuda_graph(function: Callable[[], Any], *, device, warmup: int = 2) -> tuple[torch.cuda.CUDAGraph, Any]:
+def capture_cuda_graph(function: Callable[[], Any], *, device, warmup: int = 2, stream=None
+                       ) -> tuple[torch.cuda.CUDAGraph, Any]:
     """Run ``function`` ``warmup`` times on a side stream, then capture one call into a CUDA graph.
 
     Args:
         function: the work; takes no arguments, reads its inputs from tensors the caller refills before each
             replay, and returns its outputs (tensors that each replay overwrites in place).
         device: the CUDA device.
-        warmup: eager calls before the capture (at least 1: loads Warp modules, warms the allocator).
+        warmup: eager calls before the capture (they load Warp modules and warm the allocator; 0 when the
+            caller already ran ``function``'s work eagerly on ``stream``, e.g. a training step with side effects).
+        stream: the side stream (a ``torch.cuda.Stream`` of ``device``; default a new one).
 
     Returns:
         ``(graph, outputs)``: ``graph.replay()`` reruns the work, leaving its results in ``outputs``.
@@ -54,10 +65,10 @@ def capture_cuda_graph(function: Callable[[], Any], *, device, warmup: int = 2) 
     init_warp()
     device = torch.device(device)
     name = warp_device(device)
-    stream = torch.cuda.Stream(device=device)
+    stream = torch.cuda.Stream(device=device) if stream is None else stream
     stream.wait_stream(torch.cuda.current_stream(device))
     with torch.cuda.stream(stream):
-        for _ in range(max(1, warmup)):
+        for _ in range(warmup):
             function()
     torch.cuda.current_stream(device).wait_stream(stream)
     graph = torch.cuda.CUDAGraph()
