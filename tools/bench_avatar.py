@@ -10,7 +10,8 @@ Times, side by side in one run:
   eager and replayed from a CUDA graph, with the work of one step counted: Warp launches (``wp.launch`` plus the
   scan and sort of ``warp.utils``), torch operators (each dispatched aten op, about one kernel each on CUDA), host
   reads (aten ``_local_scalar_dense`` = ``.item()`` / ``float(t)`` / ``bool(t)``, ``nonzero``, boolean-mask
-  indexing, and ``Tensor.tolist``), and on CUDA the runtime's kernel launches and synchronizations as the
+  indexing, and ``Tensor.tolist`` of a device tensor; reads of an optimizer's host-side step counts are
+  counted apart, as they synchronize nothing), and on CUDA the runtime's kernel launches and synchronizations as the
   torch profiler records them;
 * playback at 1920x1080 (:class:`warpavatar.model.playback.Player`: pose + shade + rasterize) in frames per
   second over the training motion, eager and from a CUDA graph.
@@ -84,7 +85,8 @@ def _count_tolist(counter: dict):
     original = torch.Tensor.tolist
 
     def tolist(tensor):
-        counter["tolist"] = counter.get("tolist", 0) + 1
+        if tensor.device.type != "cpu":  # (on CPU a tensor's values are on the host already)
+            counter["tolist"] = counter.get("tolist", 0) + 1
         return original(tensor)
 
     torch.Tensor.tolist = tolist
@@ -212,24 +214,18 @@ def _raster_rows(avatar, video, device, warmup, repeats, quick) -> list[dict]:
     return rows
 
 
-def _step_rows(video, config, fitted, device, warmup, repeats) -> list[dict]:
-    rows = []
-    modes = ["off"] + (["on"] if device.startswith("cuda") else [])
-    for mode in modes:
-        with tempfile.TemporaryDirectory() as folder:
-            trainer = _steady_trainer(video, config, fitted, device, folder, cuda_graph=mode)
-            milliseconds = time_function(trainer.train_step, device=device, warmup=warmup, repeats=repeats)
-            counts = count_step_work(trainer.train_step, device=device)
-            notes = (f"{trainer.gaussians.count} Gaussians, {video.cameras[0].width}x{video.cameras[0].height}; "
-                     f"per step: {counts['warp']:g} Warp launches, {counts['torch_ops']:g} torch ops, "
-                     f"{counts['host_reads']:g} host reads (+{counts['optimizer_reads']:g} of host step counts)")
-            if "cuda_launches" in counts:
-                notes += (f", {counts['cuda_launches']:g} CUDA kernel launches, {counts['cuda_syncs']:g} syncs, "
-                          f"{counts['graph_launches']:g} graph launches")
-            rows.append({"measure": f"training step ms ({'CUDA graph' if mode == 'on' else 'eager'})",
-                         "size": f"{video.cameras[0].width}x{video.cameras[0].height}", "ours": milliseconds,
-                         "gsplat": None, "ratio": None, "notes": notes + f"; top ops: {counts['top_ops']}"})
-    return rows
+def _step_row(trainer, video, device, warmup, repeats) -> dict:
+    milliseconds = time_function(trainer.train_step, device=device, warmup=warmup, repeats=repeats)
+    counts = count_step_work(trainer.train_step, device=device)
+    size = f"{video.cameras[0].width}x{video.cameras[0].height}"
+    notes = (f"{trainer.gaussians.count} Gaussians; per step: {counts['warp']:g} Warp launches, "
+             f"{counts['torch_ops']:g} torch ops, {counts['host_reads']:g} host reads "
+             f"(+{counts['optimizer_reads']:g} of host step counts)")
+    if "cuda_launches" in counts:
+        notes += (f", {counts['cuda_launches']:g} CUDA kernel launches, {counts['cuda_syncs']:g} syncs, "
+                  f"{counts['graph_launches']:g} graph launches")
+    return {"measure": f"training step ms ({'CUDA graph' if trainer.use_cuda_graph else 'eager'})", "size": size,
+            "ours": milliseconds, "gsplat": None, "ratio": None, "notes": notes + f"; top ops: {counts['top_ops']}"}
 
 
 def _playback_rows(avatar, video, device, repeats, quick) -> list[dict]:
@@ -260,13 +256,15 @@ def run(device: str, quick: bool, *, avatar: str | None = None, video: str | Non
     warmup, repeats = (1, 3) if quick else (5, 20)
     video_folder, config, fitted = _load(avatar, video, device, quick)
     with tempfile.TemporaryDirectory() as folder:
-        start = _steady_trainer(video_folder, config, fitted, device, folder, cuda_graph="off")
-        subject = start.avatar
-    rows = _raster_rows(subject, video_folder, device, warmup, repeats, quick)
-    rows += _step_rows(video_folder, config, fitted, device, warmup, repeats)
-    rows += _playback_rows(subject, video_folder, device, repeats, quick)
+        eager = _steady_trainer(video_folder, config, fitted, device, folder, cuda_graph="off")
+        rows = _raster_rows(eager.avatar, video_folder, device, warmup, repeats, quick)
+        rows.append(_step_row(eager, video_folder, device, warmup, repeats))
+    if device.startswith("cuda"):
+        with tempfile.TemporaryDirectory() as folder:
+            graphed = _steady_trainer(video_folder, config, fitted, device, folder, cuda_graph="on")
+            rows.append(_step_row(graphed, video_folder, device, warmup, repeats))
+    rows += _playback_rows(eager.avatar, video_folder, device, repeats, quick)
     return rows
-
 
 if __name__ == "__main__":
     from bench_common import markdown_table
