@@ -139,8 +139,8 @@ def _load(avatar_path, video_path, device: str, quick: bool):
         fitted = Avatar.from_state(state, device=device)
     else:
         config, fitted = preset("quick" if quick else "default", **(QUICK_CONFIG if quick else {})), None
-    if quick and fitted is not None:  # a fitted avatar's config, on few small frames
-        config = dataclasses.replace(config, image_scale=min(config.image_scale, 0.25), max_train_frames=6)
+    if quick and fitted is not None:  # a fitted avatar's config on small frames (as many: frame codes)
+        config = dataclasses.replace(config, image_scale=min(config.image_scale, 0.25))
     video = data.load_video_folder(video_path, scale=config.image_scale)
     return video, config, fitted
 

@@ -262,6 +262,8 @@ class Trainer:
                 graph, outputs = capture_cuda_graph(
                     lambda: self._step_work(capture, buffers, degree, inputs, optimizers), device=self.device,
                     warmup=0, stream=self._capture_stream)
+                # the key after the eager step: it made the optimizers' moments of a first step
+                key = self._graph_key(step, degree, buffers, optimizers)
                 self._graph = (key, graph, (*outputs, capture.posed), (capture.target, capture.mask))
         step.image, step.alpha = image, alpha
         count = self.gaussians.count
