@@ -224,6 +224,8 @@ def _step_row(trainer, video, device, warmup, repeats) -> dict:
     if "cuda_launches" in counts:
         notes += (f", {counts['cuda_launches']:g} CUDA kernel launches, {counts['cuda_syncs']:g} syncs, "
                   f"{counts['graph_launches']:g} graph launches")
+    if trainer.use_cuda_graph:
+        notes += f", {trainer.graph_replays} of the steps replayed"
     return {"measure": f"training step ms ({'CUDA graph' if trainer.use_cuda_graph else 'eager'})", "size": size,
             "ours": milliseconds, "gsplat": None, "ratio": None, "notes": notes + f"; top ops: {counts['top_ops']}"}
 

@@ -92,6 +92,8 @@ class Trainer:
         self._input_flags = torch.zeros(1, dtype=torch.int32, device=self.device)
         self._buffers: dict[tuple[int, int], SimpleNamespace] = {}
         self._graph = None  # (key, torch.cuda.CUDAGraph, its outputs, its target and mask)
+        #: steps replayed from a captured CUDA graph so far (this session)
+        self.graph_replays = 0
         self._capture_stream = torch.cuda.Stream(device=self.device) if self.use_cuda_graph else None
 
     @property
@@ -248,6 +250,7 @@ class Trainer:
             key = self._graph_key(step, degree, buffers, optimizers)
             if self._graph is not None and self._graph[0] == key:
                 self._graph[1].replay()
+                self.graph_replays += 1
                 image, alpha, terms, posed = self._graph[2]
                 step.posed, step.target, step.mask = posed, *self._graph[3]
             else:  # this step eagerly (on the capture stream), then capture it for the steps that follow
