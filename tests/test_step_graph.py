@@ -216,3 +216,13 @@ def test_captured_steps_match_eager_steps(small_video, tmp_path):
     torch.testing.assert_close(torch.tensor(graph_losses), torch.tensor(eager_losses), rtol=1e-3, atol=1e-5)
     for name in graph_parameters:
         torch.testing.assert_close(graph_parameters[name], eager_parameters[name], rtol=1e-3, atol=1e-4)
+
+
+def test_bench_kernels_avatar_quick_runs(capsys):
+    from tests.conftest import load_tool
+
+    assert load_tool("bench_kernels").main(["avatar", "--quick", "--device", "cpu"]) == 0
+    table = capsys.readouterr().out
+    for measure in ("rasterizer fwd / fwd+bwd ms", "training step ms (eager)", "playback FPS (eager)"):
+        assert measure in table
+    assert "0 host reads" in table
