@@ -14,6 +14,7 @@ import json
 import math
 import os
 import time
+import warnings
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -44,8 +45,9 @@ class Trainer:
         config: the fit configuration.
         output_dir: where checkpoints, the avatar file, the log and previews go.
         device: torch device to train on.
-        cuda_graph: ``auto`` (on CUDA: capture the steady training step as a CUDA graph and replay it), ``on``
-            (the same, CUDA required) or ``off`` (every step eager). The results are the same either way.
+        cuda_graph: ``auto`` (on CUDA: capture the steady training step as a CUDA graph and replay it; should a
+            capture fail, the fit logs it and goes on eagerly), ``on`` (the same, CUDA required, a failed capture
+            raises) or ``off`` (every step eager). The results are the same either way.
     """
 
     def __init__(self, video, config: FitConfig, output_dir: str | os.PathLike, *, device="cpu",
@@ -86,6 +88,7 @@ class Trainer:
         self._stop_requested = False
         #: whether steady steps are captured and replayed as a CUDA graph (``cuda_graph``: auto, on, off)
         self.use_cuda_graph = resolve_cuda_graph(cuda_graph, self.device)
+        self._cuda_graph_mode = cuda_graph
         #: the rasterizer's sort capacity in (Gaussian, tile) pairs; None until the first step has counted them
         self.intersection_capacity: int | None = None
         self._pair_peak = torch.zeros(1, dtype=torch.int32, device=self.device)
@@ -262,12 +265,20 @@ class Trainer:
                 self.skinning.forget_step()  # the graph evaluates the grid itself
                 capture = StepContext(step=number, index=step.index, train_field=train_field,
                                       read_grid=step.read_grid)
-                graph, outputs = capture_cuda_graph(
-                    lambda: self._step_work(capture, buffers, degree, inputs, optimizers), device=self.device,
-                    warmup=0, stream=self._capture_stream)
-                # the key after the eager step: it made the optimizers' moments of a first step
-                key = self._graph_key(step, degree, buffers, optimizers)
-                self._graph = (key, graph, (*outputs, capture.posed), (capture.target, capture.mask))
+                try:
+                    graph, outputs = capture_cuda_graph(
+                        lambda: self._step_work(capture, buffers, degree, inputs, optimizers), device=self.device,
+                        warmup=0, stream=self._capture_stream)
+                except RuntimeError as error:  # this step already ran eagerly: under auto, go on without graphs
+                    if self._cuda_graph_mode == "on":
+                        raise
+                    self.use_cuda_graph = False
+                    self._log({"step": number, "note": f"CUDA graph capture failed, the fit goes on eagerly: {error}"})
+                    warnings.warn(f"CUDA graph capture failed, the fit goes on eagerly: {error}", RuntimeWarning)
+                else:
+                    # the key after the eager step: it made the optimizers' moments of a first step
+                    key = self._graph_key(step, degree, buffers, optimizers)
+                    self._graph = (key, graph, (*outputs, capture.posed), (capture.target, capture.mask))
         step.image, step.alpha = image, alpha
         count = self.gaussians.count
         self.density.after_step(number, self.gaussians, self.extensions)

@@ -14,6 +14,7 @@ frame.
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Any, Mapping
 
 import torch
@@ -74,6 +75,7 @@ class Player:
         self.stateful = any(type(part).prepare_sequence is not AvatarPart.prepare_sequence
                             for part in avatar.parts.values())
         self.use_graph = resolve_cuda_graph(cuda_graph, self.device) and not self.stateful
+        self._cuda_graph_mode = cuda_graph
         #: intersection capacity of the rasterizer (None until the first frame)
         self.capacity: int | None = None
         self._camera = _Camera(camera, self.device)
@@ -136,9 +138,15 @@ class Player:
             image, alpha, depth, status = self._draw()
             self._grow(ops.rasterizer_status({"status": status}))
             return image, alpha, depth
-        if self.use_graph:
-            if self._graph is None:
+        if self.use_graph and self._graph is None:
+            try:
                 self._graph, self._graph_outputs = capture_cuda_graph(self._draw, device=self.device)
+            except RuntimeError as error:  # under auto, play on eagerly
+                if self._cuda_graph_mode == "on":
+                    raise
+                self.use_graph = False
+                warnings.warn(f"CUDA graph capture failed, playback goes on eagerly: {error}", RuntimeWarning)
+        if self.use_graph:
             self._graph.replay()
             image, alpha, depth, status = self._graph_outputs
         else:
