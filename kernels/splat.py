@@ -434,13 +434,15 @@ def emit_tile_keys_kernel(
     tile_ends: wp.array(dtype=wp.int32),
     tiles_x: int,
     tiles_y: int,
+    capacity: int,
     keys: wp.array(dtype=wp.int64),
     gaussian_ids: wp.array(dtype=wp.int32),
 ):
     """Write the (tile << 32 | depth bits) key and the Gaussian index of every (Gaussian, tile) pair.
 
     ``depth_bits`` is the ``color_depth`` buffer viewed as int32 ``[gaussian_count, 4]`` (column 3 is the
-    depth); ``tile_ends`` is the inclusive prefix sum of the tile counts.
+    depth); ``tile_ends`` is the inclusive prefix sum of the tile counts. Pairs at slots from ``capacity`` on
+    are dropped (fixed-capacity buffers; the caller sees the overflow in ``tile_ends[-1]``).
     """
     i = wp.tid()
     radius = radii[i]
@@ -452,14 +454,16 @@ def emit_tile_keys_kernel(
     slot = tile_ends[i] - (box[1] - box[0]) * (box[3] - box[2])
     for ty in range(box[2], box[3]):
         for tx in range(box[0], box[1]):
-            keys[slot] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | depth_key
-            gaussian_ids[slot] = i
+            if slot < capacity:
+                keys[slot] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | depth_key
+                gaussian_ids[slot] = i
             slot += 1
 
 
 def launch_emit_tile_keys(xy_opacity, depth_bits, radii, tile_ends, *, width: int, height: int, keys,
                           gaussian_ids) -> None:
-    """Launch :data:`emit_tile_keys_kernel`; ``keys``/``gaussian_ids`` hold at least the total pair count."""
+    """Launch :data:`emit_tile_keys_kernel`; ``keys``/``gaussian_ids`` hold the total pair count, or fewer: pairs
+    past their length are dropped."""
     gaussian_count = xy_opacity.shape[0]
     for name, array in (("depth_bits", depth_bits), ("radii", radii), ("tile_ends", tile_ends)):
         if array.shape[0] != gaussian_count:
@@ -473,7 +477,7 @@ def launch_emit_tile_keys(xy_opacity, depth_bits, radii, tile_ends, *, width: in
     wp.launch(
         emit_tile_keys_kernel,
         dim=gaussian_count,
-        inputs=[xy_opacity, depth_bits, radii, tile_ends, tiles_x, tiles_y],
+        inputs=[xy_opacity, depth_bits, radii, tile_ends, tiles_x, tiles_y, keys.shape[0]],
         outputs=[keys, gaussian_ids],
         block_dim=launch_block_dim(keys.device),
     )
@@ -931,3 +935,51 @@ def launch_project_backward(
         adjoint=True,
         block_dim=launch_block_dim(means.device),
     )
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Tile binning into buffers of a fixed capacity (no host read of the pair count: capturable in a CUDA graph)
+# ----------------------------------------------------------------------------------------------------------
+
+
+def padding_key(tile_count: int) -> int:
+    """The sort key of an unused slot of a fixed-capacity key buffer: every bit the sort looks at set, so it
+    sorts after every real key, and its tile field (``2 ** tile_key_bits - 1``) is never a real tile."""
+    return (1 << (32 + tile_key_bits(tile_count))) - 1
+
+
+@wp.kernel(enable_backward=False)
+def tile_ranges_padded_kernel(sorted_keys: wp.array(dtype=wp.int64), key_count: int,
+                              tile_ranges: wp.array2d(dtype=wp.int32)):
+    """:data:`tile_ranges_kernel` over sorted keys that end with padding keys (tile field past the last tile),
+    which belong to no tile (``tile_ranges`` starts zeroed)."""
+    i = wp.tid()
+    tile_count = tile_ranges.shape[0]
+    tile = int(sorted_keys[i] >> wp.int64(32))
+    if tile >= tile_count:
+        tile = -1
+    previous = -1
+    if i > 0:
+        previous = int(sorted_keys[i - 1] >> wp.int64(32))
+        if previous >= tile_count:
+            previous = -1
+    if i == 0 or previous != tile:
+        if tile >= 0:
+            tile_ranges[tile, 0] = i
+        if previous >= 0:
+            tile_ranges[previous, 1] = i
+    if i == key_count - 1 and tile >= 0:
+        tile_ranges[tile, 1] = key_count
+
+
+def launch_tile_ranges_padded(sorted_keys, key_count: int, tile_ranges) -> None:
+    """Launch :data:`tile_ranges_padded_kernel` over the first ``key_count`` sorted keys (padding included)."""
+    if sorted_keys.shape[0] < key_count:
+        raise ValueError(f"sorted_keys has {sorted_keys.shape[0]} entries, fewer than key_count={key_count}")
+    if key_count == 0:
+        return
+    wp.launch(tile_ranges_padded_kernel, dim=key_count, inputs=[sorted_keys, key_count], outputs=[tile_ranges],
+              block_dim=launch_block_dim(sorted_keys.device))
+
+
+__all__ += ["padding_key", "tile_ranges_padded_kernel", "launch_tile_ranges_padded"]

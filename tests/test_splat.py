@@ -151,8 +151,10 @@ def test_the_references_cover_every_op_with_the_same_signature():
 
     from warpavatar import _torch_impl
 
-    assert sorted(_torch_impl.__all__) == sorted(ops.__all__)
-    for name in ops.__all__:
+    # rasterizer_status reads the info dict of either rasterizer: it is no op of its own
+    op_names = [name for name in ops.__all__ if name != "rasterizer_status"]
+    assert sorted(_torch_impl.__all__) == sorted(op_names)
+    for name in op_names:
         ours, theirs = inspect.signature(getattr(ops, name)), inspect.signature(getattr(_torch_impl, name))
         assert [(p.name, p.kind, p.default) for p in ours.parameters.values()] == \
             [(p.name, p.kind, p.default) for p in theirs.parameters.values()], name

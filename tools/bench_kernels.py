@@ -3,7 +3,9 @@
 Modes: ``splat`` (rasterizer, against gsplat when importable), ``knn``, ``springs``, ``skinning``
 (sample_grid and lbs), ``usd`` (USD animation writing, CPU), ``dynamics`` (SMAD's learned dynamics: rollout
 and training window), ``cloth`` (one frame of the simulated garment, substeps included, and the capsule
-collision), ``all``. Each mode lives in ``tools/bench_<mode>.py`` and returns table rows;
+collision), ``avatar`` (a fitted avatar: rasterizer against gsplat on its posed Gaussians at the training size and
+1080p, the training step eager and captured with its launches and host reads, playback FPS; ``--avatar``,
+``--video``), ``all``. Each mode lives in ``tools/bench_<mode>.py`` and returns table rows;
 this script prints them as a markdown table with the device and date, and appends them to ``--record``
 (default ``BENCHMARKS.md``) when asked, so runs can be compared over time.
 """
@@ -23,7 +25,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from bench_common import markdown_table  # noqa: E402
 
-MODES = ("splat", "knn", "springs", "skinning", "usd", "dynamics", "cloth")
+MODES = ("splat", "knn", "springs", "skinning", "usd", "dynamics", "cloth", "avatar")
 
 
 def main(argv=None) -> int:
@@ -35,6 +37,10 @@ def main(argv=None) -> int:
                         help="small sizes and few repetitions: checks that the benchmark runs, numbers mean little")
     parser.add_argument("--record", metavar="FILE", default=None,
                         help="append the tables, with device, date and command, to this markdown file")
+    parser.add_argument("--avatar", metavar="AVATAR_PT", default=None,
+                        help="avatar mode: a fitted avatar.pt (default: the avatar a fresh fit of --video starts from)")
+    parser.add_argument("--video", metavar="FOLDER", default=None,
+                        help="avatar mode: the avatar's training video folder (default: the built-in demo subject)")
     args = parser.parse_args(argv)
 
     modes = MODES if args.mode == "all" else (args.mode,)
@@ -49,7 +55,8 @@ def main(argv=None) -> int:
     out = [header]
     for mode in modes:
         module = importlib.import_module(f"bench_{mode}")
-        rows = module.run(device=args.device, quick=args.quick)
+        extra = {"avatar": args.avatar, "video": args.video} if mode == "avatar" else {}
+        rows = module.run(device=args.device, quick=args.quick, **extra)
         out.append(f"### {mode}\n\n{markdown_table(rows)}\n")
         print(out[-1], flush=True)
     text = "\n".join(out)

@@ -154,8 +154,8 @@ def match_pose(frame_poses: torch.Tensor, bone_transforms: torch.Tensor, *, tole
         (index of the closest row, 1.0 if every entry is within ``tolerance`` else 0.0), both device tensors.
     """
     difference = (frame_poses - bone_transforms[: frame_poses.shape[1]]).abs().amax(dim=(1, 2, 3))
-    best = torch.argmin(difference)
-    return best, (difference[best] <= tolerance).to(frame_poses.dtype)
+    closest, best = difference.min(dim=0)  # (no indexing by a device scalar: that would read it on the host)
+    return best, (closest <= tolerance).to(frame_poses.dtype)
 
 
 # ------------------------------------------------------------------------------------------------ networks

@@ -12,11 +12,12 @@ from warpavatar._src.cloth import cloth_edge_terms
 from warpavatar._src.collision import push_out_of_capsules
 from warpavatar._src.knn import knn_graph
 from warpavatar._src.skinning import inverse_lbs, lbs, sample_grid
-from warpavatar._src.splat import rasterize_gaussians
+from warpavatar._src.splat import rasterize_gaussians, rasterizer_status
 from warpavatar._src.springs import damping_loss, isometry_loss, spring_step
 
 __all__ = [
     "rasterize_gaussians",
+    "rasterizer_status",
     "knn_graph",
     "spring_step",
     "isometry_loss",

@@ -6,6 +6,11 @@ number of (Gaussian, tile) pairs to size the sort buffers (an upper bound would 
 Gaussian may cover the whole image). The same read fetches the non-finite-input flag, so checking the inputs
 costs no extra synchronization. One backward pass makes two Warp launches (compositing backward, projection
 adjoint), two torch fills and no synchronization.
+
+With ``intersection_capacity`` the sort buffers have that fixed size instead: unused slots get a padding key that
+sorts last, the key kernel drops pairs past the capacity, and nothing is read from the device, so the pass can
+be captured in a CUDA graph; the pair count and the input flags stay on the device (``info["status"]``) for
+the caller to check when it reads other values anyway (:func:`rasterizer_status`).
 """
 
 from __future__ import annotations
@@ -16,7 +21,7 @@ import warp as wp
 from warpavatar._src.warp_utils import check_tensor, to_warp, torch_stream_scope
 from warpavatar.kernels import splat as splat_kernels
 
-__all__ = ["rasterize_gaussians"]
+__all__ = ["rasterize_gaussians", "rasterizer_status"]
 
 _BAD_INPUT_NAMES = (
     (splat_kernels.BAD_MEANS, "means"),
@@ -33,12 +38,45 @@ def _tile_grid(width: int, height: int) -> tuple[int, int]:
     return (width + tile - 1) // tile, (height + tile - 1) // tile
 
 
+def _bin(status, capacity, w_xy_opacity, color_depth, w_radii, w_tile_ends, tile_ranges, *, width, height):
+    """Sort the (Gaussian, tile) pairs; returns the sorted Gaussian ids.
+
+    Without a ``capacity`` the buffers have the exact size: ``status`` ([pair count, flags]) is read from the
+    device (the one host synchronization) and non-finite input raises. With one, nothing is read: unused slots
+    hold a padding key that sorts last and belongs to no tile, and pairs past the capacity are dropped.
+    """
+    device = color_depth.device
+    tiles_x, tiles_y = _tile_grid(width, height)
+    if capacity is None:
+        count, flags = status.tolist()  # the one host sync
+        if flags:
+            bad = [name for bit, name in _BAD_INPUT_NAMES if flags & bit]
+            raise ValueError(f"rasterize_gaussians: non-finite values in {', '.join(bad)}")
+    else:
+        count = capacity
+    sort_keys = torch.empty(2 * count, device=device, dtype=torch.int64)
+    sorted_ids = torch.empty(2 * count, device=device, dtype=torch.int32)
+    if count:
+        if capacity is not None:
+            sort_keys[:count].fill_(splat_kernels.padding_key(tiles_x * tiles_y))
+        w_sort_keys, w_sorted_ids = to_warp(sort_keys), to_warp(sorted_ids)
+        splat_kernels.launch_emit_tile_keys(
+            w_xy_opacity, to_warp(color_depth.view(torch.int32)), w_radii, w_tile_ends, width=width, height=height,
+            keys=w_sort_keys[:count], gaussian_ids=w_sorted_ids[:count])
+        wp.utils.radix_sort_pairs(w_sort_keys, w_sorted_ids, count, begin_bit=0,
+                                  end_bit=32 + splat_kernels.tile_key_bits(tiles_x * tiles_y))
+        if capacity is None:
+            splat_kernels.launch_tile_ranges(w_sort_keys, count, to_warp(tile_ranges))
+        else:
+            splat_kernels.launch_tile_ranges_padded(w_sort_keys, count, to_warp(tile_ranges))
+    return sorted_ids
+
 class _RasterizeGaussians(torch.autograd.Function):
     """Autograd wrapper; inputs are already validated, float32 and contiguous (see :func:`rasterize_gaussians`)."""
 
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, coefficients, background, K, world_to_camera, width, height,
-                sh_degree, densify_grad_out):
+                sh_degree, densify_grad_out, intersection_capacity):
         device = means.device
         gaussian_count = means.shape[0]
         used_coefficients = 1 if sh_degree < 0 else (sh_degree + 1) ** 2
@@ -50,8 +88,9 @@ class _RasterizeGaussians(torch.autograd.Function):
         color_depth = torch.empty(gaussian_count, 4, **f32)
         radii = torch.empty(gaussian_count, 2, **i32)
         tiles_touched = torch.empty(gaussian_count, **i32)
-        # Inclusive prefix sum of tiles_touched, then the non-finite-input flag: one read fetches both.
-        tile_ends_and_flag = torch.zeros(gaussian_count + 1, **i32)
+        # A zero, the inclusive prefix sum of tiles_touched, then the non-finite-input flag: the last two are the
+        # pair count and the flag (one read fetches both; 0 pairs without Gaussians).
+        tile_ends_and_flag = torch.zeros(gaussian_count + 2, **i32)
         tile_ranges = torch.zeros(tiles_x * tiles_y, 2, **i32)
         image = torch.empty(height, width, 3, **f32)
         alpha = torch.empty(height, width, **f32)
@@ -69,35 +108,18 @@ class _RasterizeGaussians(torch.autograd.Function):
             w_color_depth = to_warp(color_depth, wp.vec4)
             w_radii = to_warp(radii, wp.vec2i)
             w_tiles_touched = to_warp(tiles_touched)
-            w_tile_ends = to_warp(tile_ends_and_flag[:gaussian_count])
+            w_tile_ends = to_warp(tile_ends_and_flag[1:gaussian_count + 1])
             splat_kernels.launch_project(
                 w_means, to_warp(quats, wp.vec4), to_warp(scales, wp.vec3), to_warp(opacities), w_coefficients,
                 w_K, w_view, width=width, height=height, sh_degree=sh_degree, used_coefficients=used_coefficients,
                 xy_opacity=w_xy_opacity, conics=w_conics, color_depth=w_color_depth, radii=w_radii,
-                tiles_touched=w_tiles_touched, bad_input_flags=to_warp(tile_ends_and_flag[gaussian_count:]),
+                tiles_touched=w_tiles_touched, bad_input_flags=to_warp(tile_ends_and_flag[gaussian_count + 1:]),
             )
             if gaussian_count:
                 wp.utils.array_scan(w_tiles_touched, w_tile_ends, inclusive=True)
-                pair_count, flags = tile_ends_and_flag[gaussian_count - 1:].tolist()  # the one host sync
-            else:
-                pair_count, flags = 0, 0
-            if flags:
-                bad = [name for bit, name in _BAD_INPUT_NAMES if flags & bit]
-                raise ValueError(f"rasterize_gaussians: non-finite values in {', '.join(bad)}")
-
-            sort_keys = torch.empty(2 * pair_count, device=device, dtype=torch.int64)
-            sorted_ids = torch.empty(2 * pair_count, **i32)
+            sorted_ids = _bin(tile_ends_and_flag[gaussian_count:], intersection_capacity, w_xy_opacity, color_depth,
+                              w_radii, w_tile_ends, tile_ranges, width=width, height=height)
             w_sorted_ids = to_warp(sorted_ids)
-            if pair_count:
-                w_sort_keys = to_warp(sort_keys)
-                splat_kernels.launch_emit_tile_keys(
-                    w_xy_opacity, to_warp(color_depth.view(torch.int32)), w_radii, w_tile_ends, width=width,
-                    height=height, keys=w_sort_keys[:pair_count], gaussian_ids=w_sorted_ids[:pair_count],
-                )
-                wp.utils.radix_sort_pairs(w_sort_keys, w_sorted_ids, pair_count, begin_bit=0,
-                                          end_bit=32 + splat_kernels.tile_key_bits(tiles_x * tiles_y))
-                splat_kernels.launch_tile_ranges(w_sort_keys, pair_count, to_warp(tile_ranges))
-            del sort_keys
             w_background = to_warp(background.reshape(1, 3), wp.vec3)
             splat_kernels.launch_composite_forward(
                 to_warp(tile_ranges), w_sorted_ids, w_xy_opacity, w_conics, w_color_depth, w_background, width=width,
@@ -111,8 +133,10 @@ class _RasterizeGaussians(torch.autograd.Function):
         ctx.width, ctx.height, ctx.sh_degree = width, height, sh_degree
         ctx.densify_grad_out = densify_grad_out
         # The per-Gaussian buffers are returned as-is for the info dict (built only when asked for).
-        ctx.mark_non_differentiable(radii, xy_opacity, color_depth)
-        return image, alpha, depth, radii, xy_opacity, color_depth
+        # [pair count, bad-input flags] on the device, for a caller that checks them off the hot path
+        status = tile_ends_and_flag[gaussian_count:]
+        ctx.mark_non_differentiable(radii, xy_opacity, color_depth, status)
+        return image, alpha, depth, radii, xy_opacity, color_depth, status
 
     @staticmethod
     def backward(ctx, grad_image, grad_alpha, grad_depth, *unused_info_grads):
@@ -175,7 +199,7 @@ class _RasterizeGaussians(torch.autograd.Function):
         if ctx.needs_input_grad[5]:
             grad_background = (grad_image * final_transmittance[..., None]).sum(dim=(0, 1))
         return (grad_means, grad_quats, grad_scales, grad_opacities, grad_coefficients, grad_background,
-                None, None, None, None, None, None)
+                None, None, None, None, None, None, None)
 
 
 def rasterize_gaussians(
@@ -193,6 +217,7 @@ def rasterize_gaussians(
     sh_degree: int | None = None,
     densify_grad_out: torch.Tensor | None = None,
     return_info: bool = False,
+    intersection_capacity: int | None = None,
 ):
     """Render 3D Gaussians into one camera with tile-based EWA splatting (3DGS / gsplat 1.5.3 conventions).
 
@@ -219,13 +244,19 @@ def rasterize_gaussians(
         densify_grad_out: optional float32 tensor [N, 2] on the same device; the backward pass adds to it, per
             Gaussian, the sum over pixels of |d loss / d mean2d| per image axis [loss units per pixel].
         return_info: also return a dict of per-Gaussian projection results.
+        intersection_capacity: None: size the sort buffers to the exact number of (Gaussian, tile) pairs, read
+            from the device (one host synchronization; non-finite inputs raise). An int: sort in buffers of
+            this many pairs without any host read (capturable in a CUDA graph); pairs past it are dropped, so
+            the image is then wrong, and non-finite inputs do not raise: both show in ``info["status"]``, which
+            the caller checks off the hot path (:func:`rasterizer_status`).
 
     Returns:
         ``(image, alpha, depth)``: float32 tensors of shapes [H, W, 3] (RGB), [H, W] (1 - final transmittance)
         and [H, W] (sum over composited Gaussians of weight times camera-space z, not normalized by alpha).
         With ``return_info`` a fourth item: ``{"radii": [N, 2] int32 per-axis radius in pixels (0 = culled),
         "means2d": [N, 2] float32 projected centres in pixels (pixel centres at integers; 0 where culled),
-        "depths": [N] float32 camera-space z}`` (not differentiable).
+        "depths": [N] float32 camera-space z, "status": [2] int32 on the device: the number of (Gaussian, tile)
+        pairs the image needs and the non-finite-input flags (0 = none)}`` (not differentiable).
 
     Raises:
         TypeError: a tensor argument is not a floating-point tensor, or a size is not an int.
@@ -271,13 +302,38 @@ def rasterize_gaussians(
     def prepare(tensor):
         return tensor.to(torch.float32).contiguous()
 
-    image, alpha, depth, radii, xy_opacity, color_depth = _RasterizeGaussians.apply(
+    if intersection_capacity is not None and (isinstance(intersection_capacity, bool) or not isinstance(
+            intersection_capacity, int) or intersection_capacity < 1):
+        raise ValueError(f"intersection_capacity must be None or an int >= 1, got {intersection_capacity!r}")
+
+    image, alpha, depth, radii, xy_opacity, color_depth, status = _RasterizeGaussians.apply(
         prepare(means), prepare(quats), prepare(scales), prepare(opacities), prepare(coefficients),
         prepare(background), prepare(K.detach()), prepare(world_to_camera.detach()), width, height, kernel_degree,
-        densify_grad_out,
+        densify_grad_out, intersection_capacity,
     )
     if return_info:
         kept = radii.detach().bool().any(dim=1, keepdim=True)
         means2d = torch.where(kept, xy_opacity.detach()[:, :2] - 0.5, 0.0)  # back to integer pixel centres
-        return image, alpha, depth, {"radii": radii, "means2d": means2d, "depths": color_depth.detach()[:, 3].clone()}
+        return image, alpha, depth, {"radii": radii, "means2d": means2d, "depths": color_depth.detach()[:, 3].clone(),
+                                     "status": status}
     return image, alpha, depth
+
+
+def rasterizer_status(info: dict) -> int:
+    """Check a rasterization's device-side status (one host read): the number of (Gaussian, tile) pairs it
+    needed.
+
+    Args:
+        info: the info dict of :func:`rasterize_gaussians` (``return_info=True``).
+
+    Returns:
+        The pair count; an ``intersection_capacity`` below it means the image dropped pairs (grow the capacity).
+
+    Raises:
+        ValueError: the inputs held non-finite values.
+    """
+    pair_count, flags = info["status"].tolist()
+    if flags:
+        bad = [name for bit, name in _BAD_INPUT_NAMES if flags & bit]
+        raise ValueError(f"rasterize_gaussians: non-finite values in {', '.join(bad)}")
+    return int(pair_count)

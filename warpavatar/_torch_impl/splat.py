@@ -93,8 +93,10 @@ def _tile_boxes(means2d: torch.Tensor, radii: torch.Tensor, tiles_x: int, tiles_
 
 
 def rasterize_gaussians(means, quats, scales, opacities, colors, K, world_to_camera, width: int, height: int, *,
-                        background=None, sh_degree: int | None = None, densify_grad_out=None, return_info=False):
-    """Reference of :func:`warpavatar.ops.rasterize_gaussians` (same arguments, types and outputs)."""
+                        background=None, sh_degree: int | None = None, densify_grad_out=None, return_info=False,
+                        intersection_capacity: int | None = None):
+    """Reference of :func:`warpavatar.ops.rasterize_gaussians` (same arguments, types and outputs; it has no
+    sort buffers, so ``intersection_capacity`` changes nothing and ``info["status"]`` only counts the pairs)."""
     device, dtype = means.device, means.dtype
     means2d, conics, depths, radii = project_gaussians(means, quats, scales, K, world_to_camera, width, height)
 
@@ -162,6 +164,9 @@ def rasterize_gaussians(means, quats, scales, opacities, colors, K, world_to_cam
         depth.reshape(height, width),
     )
     if return_info:
-        info = {"radii": radii, "means2d": (means2d.detach() - 0.5).float(), "depths": depths.detach()}
+        box_tiles = (boxes[:, 1] - boxes[:, 0]).clamp_min(0) * (boxes[:, 3] - boxes[:, 2]).clamp_min(0)
+        status = torch.stack([box_tiles.sum(), torch.zeros((), dtype=box_tiles.dtype, device=device)])
+        info = {"radii": radii, "means2d": (means2d.detach() - 0.5).float(), "depths": depths.detach(),
+                "status": status.to(torch.int32)}
         return outputs + (info,)
     return outputs

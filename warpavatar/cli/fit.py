@@ -69,6 +69,10 @@ def add_fit_options(parser: argparse.ArgumentParser, *, device_help: str | None 
     parser.add_argument("--device", default=None if device_help else default_device(),
                         help=device_help or "torch device: cpu or cuda (default: %(default)s)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.add_argument("--cuda-graph", choices=("auto", "on", "off"), default="auto",
+                        help="capture the steady training step (between densification rounds) as a CUDA graph and "
+                             "replay it: 'auto' on CUDA devices, 'on' (CUDA required), 'off'; the fit is the same, "
+                             "only faster (default: %(default)s)")
     add_config_arguments(parser)
 
 
@@ -100,7 +104,7 @@ def main(argv=None) -> int:
     if args.overwrite:
         remove_fit_outputs(output)
     start = time.time()
-    trainer = Trainer(video, config, output, device=device)
+    trainer = Trainer(video, config, output, device=device, cuda_graph=args.cuda_graph)
     if args.resume and not (output / "checkpoint.pt").is_file():
         print(f"no checkpoint.pt in {output}: the fit starts from the beginning")
     with stop_on_interrupt(trainer):

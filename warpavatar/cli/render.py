@@ -13,6 +13,7 @@ import torch
 import tqdm
 
 from warpavatar.cli.common import avatar_parser, check_output_path, friendly_errors, load_avatar, load_motion_for
+from warpavatar.model.playback import Player
 
 DESCRIPTION = """Render a fitted avatar animated by a motion, as an MP4 (OpenCV) or a folder of PNG frames.
 
@@ -67,7 +68,6 @@ def main(argv=None) -> int:
     row_step = float(codes[-1] - codes[0]) / (count - 1) if count > 1 else 1.0
     fps = args.fps or motion.fps / max(row_step, 1.0)
     background = torch.tensor(args.background, dtype=torch.float32, device=device)
-    grid = avatar.field.grid_weights()
     avatar.prepare_sequence(motion.bone_transforms, frame_ids=motion.frame_ids, fps=motion.fps,
                             progress=not args.no_progress)
 
@@ -78,12 +78,15 @@ def main(argv=None) -> int:
     if not to_video:
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
+    players = {}
     try:
         for t in tqdm.trange(count, disable=args.no_progress, desc="render"):
             bones = torch.as_tensor(motion.bone_transforms[t], dtype=torch.float32, device=device)
             inputs = {name: torch.as_tensor(values[t], device=device) for name, values in part_inputs.items()}
-            image, _, _ = avatar.render(cameras[t], bones, background=background, frame_index=t, grid=grid,
-                                        inputs=inputs)
+            size = (int(cameras[t].width), int(cameras[t].height))
+            if size not in players:  # one player (its buffers, its CUDA graph) per image size
+                players[size] = Player(avatar, cameras[t], background=background)
+            image, _, _ = players[size].render(bones, camera=cameras[t], inputs=inputs, frame_index=t)
             pixels = cv2.cvtColor((image.clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR)
             if to_video:
                 if writer is None:

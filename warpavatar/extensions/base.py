@@ -19,6 +19,12 @@ One training step calls, in this order::
       ... optimizers step ...
     after_step(step)            parameters may be projected onto constraints
 
+Between densification events the shapes of a step stay fixed, so on CUDA the trainer captures the device work
+from posing to ``after_step`` as a CUDA graph and replays it (``--cuda-graph``), refilling only the frame's
+buffers; ``begin_step``, ``frame_input`` and ``optimizers`` run every step on the host. An extension whose step
+does host work (reads values back, follows a per-step schedule, swaps tensors) keeps the default
+``step_capturable() -> False`` and the trainer runs those steps eagerly.
+
 When density control clones, splits and prunes Gaussians, it calls ``before_densify(visible_count)`` while the
 old Gaussians still exist, then ``on_gaussians_renumbered(source_index)``. At the end ``finish()`` runs before
 the avatar is written and ``write_outputs(folder)`` after; ``state_dict``/``load_state_dict`` carry everything
@@ -213,6 +219,15 @@ class Extension:
 
     def after_step(self, step: StepContext) -> None:
         """The optimizers have stepped (project parameters onto constraints here)."""
+
+    def step_capturable(self, step: StepContext) -> bool:
+        """Whether the device work of this step (posing through :meth:`losses`, the backward,
+        :meth:`after_backward`, the optimizers and :meth:`after_step`) may be captured once as a CUDA graph and
+        replayed for the following steps of the same shapes (``--cuda-graph``). Return True only when those hooks
+        read nothing from the device, make no decision on host values that change between such steps (the step
+        number, a frame index, a counter) and change tensors only in place; :meth:`begin_step` and
+        :meth:`frame_input` run every step, outside the graph. The default, False, runs every step eagerly."""
+        return False
 
     def before_densify(self, visible_count: torch.Tensor) -> None:
         """Density control is about to renumber the Gaussians; ``visible_count`` [N]: steps each was seen in

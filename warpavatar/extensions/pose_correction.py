@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
+from warpavatar._src.cuda_graph import adam_options
 from warpavatar.extensions.base import Extension, LossTerm, option
 from warpavatar.geometry import match_pose, mlp, quat_from_vector, quat_multiply
 from warpavatar.model.parts import AvatarPart
@@ -143,7 +144,7 @@ class PoseCorrection(AvatarPart):
         Runs on the device without a host synchronization.
         """
         best, matched = match_pose(self.frame_poses, bone_transforms, tolerance=tolerance)
-        return self.frame_codes[best] * matched
+        return self.frame_codes.index_select(0, best.reshape(1))[0] * matched
 
     def regularization(self) -> torch.Tensor:
         """Mean squared raw output of the last forward with gradients (keeps the correction small where images
@@ -191,7 +192,10 @@ class PoseCorrectionExtension(Extension):
         if options.frame_codes:
             part.set_frame_poses(fit.frames.bone_transforms)
         self.part = fit.avatar.add_part(part)
-        self.optimizer = torch.optim.Adam(part.parameters(), lr=fit.config.field_lr)
+        self.optimizer = torch.optim.Adam(part.parameters(), lr=fit.config.field_lr, **adam_options(fit.device))
+
+    def step_capturable(self, step) -> bool:
+        return True  # device work only; what changes (train_field) changes the step's graph key too
 
     def begin_step(self, step) -> None:
         self.part.requires_grad_(step.train_field)  # trains with the field, from the joint stage on

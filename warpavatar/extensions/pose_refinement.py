@@ -253,6 +253,9 @@ class PoseRefinementExtension(Extension):
     def _training(self, step) -> bool:
         return self.part is not None and self.options.refine_poses_from <= step.step <= self._last_step()
 
+    def step_capturable(self, step) -> bool:
+        return self.part is None  # refining: the step trains the pose of its frame, a host index
+
     def begin_step(self, step) -> None:
         if self.part is None:
             return

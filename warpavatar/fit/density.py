@@ -26,6 +26,7 @@ class DensityControl:
         self.extent = extent
         self.generator = generator
         self.grad_accum = self.visible_count = None
+        self._pixel_to_ndc: dict[tuple[int, int], torch.Tensor] = {}
 
     def reset(self, count: int, device) -> None:
         """Start a new round's statistics for ``count`` Gaussians."""
@@ -36,8 +37,10 @@ class DensityControl:
     def accumulate(self, grad_out: torch.Tensor, radii: torch.Tensor, camera) -> None:
         """Add one step's screen gradients [N,2] (pixels) and visibility (``radii`` [N,2] > 0 somewhere)."""
         # absolute screen gradient in NDC units (pixels -> [-1, 1]) as 3DGS thresholds it
-        scale = torch.tensor([camera.width * 0.5, camera.height * 0.5], device=grad_out.device)
-        self.grad_accum += grad_out * scale
+        size = (camera.width, camera.height)
+        if size not in self._pixel_to_ndc:  # made once per size: no host-to-device copy in a step
+            self._pixel_to_ndc[size] = torch.tensor([size[0] * 0.5, size[1] * 0.5], device=grad_out.device)
+        self.grad_accum += grad_out * self._pixel_to_ndc[size]
         self.visible_count += (radii > 0).any(dim=-1).float()
 
     @torch.no_grad()

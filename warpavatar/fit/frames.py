@@ -91,10 +91,15 @@ class TrainingFrames:
 
         The image is the frame itself, or (``composite_target``) its masked foreground over the background.
         """
-        image = self.images[index].float() / 255.0
-        if self.masks is None:
+        return self.target_of(self.images[index], None if self.masks is None else self.masks[index])
+
+    def target_of(self, image: torch.Tensor, mask: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """:meth:`target` of a frame's uint8 image [H,W,3] and mask [H,W] (or None), wherever they are held
+        (a training step's buffers, refilled every step, as a CUDA graph needs)."""
+        image = image.float() / 255.0
+        if mask is None:
             return image, None
-        mask = self.masks[index].float() / 255.0
+        mask = mask.float() / 255.0
         if not self.composite_target:
             return image, mask
         return image * mask[..., None] + self.background * (1 - mask[..., None]), mask

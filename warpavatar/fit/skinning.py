@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 
+from warpavatar._src.cuda_graph import adam_options
 from warpavatar.extensions.base import LossTerm
 from warpavatar.model.skinning_field import VoxelSkinningField, bone_distance_prior, bone_sample_points
 
@@ -33,7 +34,7 @@ class SkinningStage:
         #: the warm-up's target [D*H*W, J]: the rigid bone-distance prior at every grid point
         self.prior = bone_distance_prior(field.grid_points.reshape(-1, 3), heads, tails,
                                          temperature=config.skinning_prior_temperature * extent)
-        self.optimizer = torch.optim.Adam(field.parameters(), lr=config.field_lr)
+        self.optimizer = torch.optim.Adam(field.parameters(), lr=config.field_lr, **adam_options(device))
         self._frozen: torch.Tensor | None = None  # the grid while the field is frozen
         self._current: tuple[int, torch.Tensor] | None = None  # (step, its grid)
 
@@ -63,6 +64,11 @@ class SkinningStage:
         self._current = (step, grid)
         return grid
 
+    def forget_step(self) -> None:
+        """Evaluate the grid anew at the next :meth:`grid` call, even for the same step (capturing a step that
+        just ran eagerly)."""
+        self._current = None
+
     def losses(self, step, groups: torch.Tensor | None) -> dict[str, LossTerm]:
         """TAGA's bone regularization while the field trains (``groups``: see
         :meth:`~warpavatar.model.skinning_field.VoxelSkinningField.bone_loss`)."""
@@ -79,7 +85,8 @@ class SkinningStage:
         optimizer keeps its moments for every parameter but the replaced last layer."""
         old_parameters = list(self.field.parameters())
         self.field.add_joints(parents)
-        optimizer = torch.optim.Adam(self.field.parameters(), lr=self.config.field_lr)
+        optimizer = torch.optim.Adam(self.field.parameters(), lr=self.config.field_lr,
+                                     **adam_options(self.field.bbox_min.device))
         kept = {id(parameter) for parameter in self.field.parameters()}
         for parameter in old_parameters:
             if id(parameter) in kept and parameter in self.optimizer.state:

@@ -14,11 +14,15 @@ import json
 import math
 import os
 import time
+import warnings
 from pathlib import Path
+from types import SimpleNamespace
 
 import torch
 import tqdm
 
+from warpavatar import ops
+from warpavatar._src.cuda_graph import capture_cuda_graph, resolve_cuda_graph
 from warpavatar.extensions import FitContext, LossTerm, StepContext, get_extension
 from warpavatar.fit.checkpoint import CHECKPOINT_NAME, read_checkpoint, save_checkpoint
 from warpavatar.fit.config import FitConfig, changed_options
@@ -41,9 +45,13 @@ class Trainer:
         config: the fit configuration.
         output_dir: where checkpoints, the avatar file, the log and previews go.
         device: torch device to train on.
+        cuda_graph: ``auto`` (on CUDA: capture the steady training step as a CUDA graph and replay it; should a
+            capture fail, the fit logs it and goes on eagerly), ``on`` (the same, CUDA required, a failed capture
+            raises) or ``off`` (every step eager). The results are the same either way.
     """
 
-    def __init__(self, video, config: FitConfig, output_dir: str | os.PathLike, *, device="cpu"):
+    def __init__(self, video, config: FitConfig, output_dir: str | os.PathLike, *, device="cpu",
+                 cuda_graph: str = "auto"):
         self.config = config
         self.output_dir = Path(output_dir)
         self.device = torch.device(device)
@@ -78,6 +86,18 @@ class Trainer:
         self.step = 0
         self.frame_order: list[int] = []
         self._stop_requested = False
+        #: whether steady steps are captured and replayed as a CUDA graph (``cuda_graph``: auto, on, off)
+        self.use_cuda_graph = resolve_cuda_graph(cuda_graph, self.device)
+        self._cuda_graph_mode = cuda_graph
+        #: the rasterizer's sort capacity in (Gaussian, tile) pairs; None until the first step has counted them
+        self.intersection_capacity: int | None = None
+        self._pair_peak = torch.zeros(1, dtype=torch.int32, device=self.device)
+        self._input_flags = torch.zeros(1, dtype=torch.int32, device=self.device)
+        self._buffers: dict[tuple[int, int], SimpleNamespace] = {}
+        self._graph = None  # (key, torch.cuda.CUDAGraph, its outputs, its target and mask)
+        #: steps replayed from a captured CUDA graph so far (this session)
+        self.graph_replays = 0
+        self._capture_stream = torch.cuda.Stream(device=self.device) if self.use_cuda_graph else None
 
     @property
     def gaussians(self) -> GaussianModel:
@@ -117,25 +137,38 @@ class Trainer:
         return terms
 
     # ------------------------------------------------------------------------------------------------ a step
-    def train_step(self) -> tuple[StepContext, dict[str, LossTerm]]:
-        """One optimizer step on one training frame; returns the step and its loss terms (device tensors)."""
-        config, frames = self.config, self.frames
-        number = self.step
-        train_field = number >= config.gaussian_only_steps
-        step = StepContext(step=number, index=self._next_frame(), train_field=train_field,
-                           read_grid=lambda: self.skinning.grid(number, train_field=train_field))
-        for extension in self.extensions:
-            extension.begin_step(step)
-        step.target, step.mask = frames.target(step.index)
-        self.gaussians.set_position_lr(self._position_lr(number))
-        inputs = {extension.name: value for extension in self.extensions
-                  if (value := extension.frame_input(step)) is not None}
-        camera = frames.cameras[step.index]
+    def _frame_buffers(self, index: int) -> SimpleNamespace:
+        """The step's inputs, refilled with training frame ``index`` (device-to-device copies): tensors that keep
+        their storage from step to step, so that one captured step serves every frame of their size."""
+        frames = self.frames
+        camera = frames.cameras[index]
+        size = (camera.width, camera.height)
+        buffers = self._buffers.get(size)
+        if buffers is None:
+            buffers = self._buffers[size] = SimpleNamespace(
+                bones=frames.bone_transforms[index].clone(), image=frames.images[index].clone(),
+                mask=None if frames.masks is None else frames.masks[index].clone(),
+                camera=SimpleNamespace(K=camera.K.clone(), world_to_camera=camera.world_to_camera.clone(),
+                                       width=camera.width, height=camera.height))
+            return buffers
+        buffers.bones.copy_(frames.bone_transforms[index])
+        buffers.image.copy_(frames.images[index])
+        if buffers.mask is not None:
+            buffers.mask.copy_(frames.masks[index])
+        buffers.camera.K.copy_(camera.K)
+        buffers.camera.world_to_camera.copy_(camera.world_to_camera)
+        return buffers
+
+    def _step_work(self, step: StepContext, buffers, degree: int, inputs: dict, optimizers: list):
+        """The device work of a step, from the frame's buffers to the optimizers' update: no host reads, so it
+        runs eagerly or is captured as a CUDA graph. Returns (image, alpha, loss terms incl. ``loss``)."""
+        frames = self.frames
+        step.target, step.mask = frames.target_of(buffers.image, buffers.mask)
         grad_out = torch.zeros(self.gaussians.count, 2, device=self.device)
-        step.posed = self.avatar.pose(frames.bone_transforms[step.index], grid=step.grid, inputs=inputs,
-                                      sh_degree=min(config.sh_degree, number // max(1, config.sh_increase_every)))
-        step.image, step.alpha, _, info = self.avatar.rasterize(step.posed, camera, background=frames.background,
-                                                                densify_grad_out=grad_out, return_info=True)
+        step.posed = self.avatar.pose(buffers.bones, grid=step.grid, inputs=inputs, sh_degree=degree)
+        step.image, step.alpha, _, info = self.avatar.rasterize(
+            step.posed, buffers.camera, background=frames.background, densify_grad_out=grad_out, return_info=True,
+            intersection_capacity=self.intersection_capacity)
         terms = self._core_losses(step)
         for extension in self.extensions:
             for name, term in extension.losses(step).items():
@@ -143,9 +176,6 @@ class Trainer:
                     raise ValueError(f"extension {extension.name!r} returns a loss term {name!r} another part has")
                 terms[name] = term
         loss = sum(term.weight * term.value for term in terms.values())
-        optimizers = [self.gaussians.optimizer, *self.skinning.optimizers(step)]
-        for extension in self.extensions:
-            optimizers += extension.optimizers(step)
         for optimizer in optimizers:
             optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -155,10 +185,109 @@ class Trainer:
             optimizer.step()
         for extension in self.extensions:
             extension.after_step(step)
-        self.density.accumulate(grad_out, info["radii"], camera)
-        self.density.after_step(number, self.gaussians, self.extensions)
-        self.step += 1
+        self.density.accumulate(grad_out, info["radii"], buffers.camera)
+        # the rasterizer's status, kept on the device until the next check: the most pairs a step needed, and
+        # any non-finite-input flags
+        status = info["status"]
+        torch.maximum(self._pair_peak, status[:1], out=self._pair_peak)
+        torch.bitwise_or(self._input_flags, status[1:], out=self._input_flags)
         terms["loss"] = LossTerm(1.0, loss)
+        return step.image, step.alpha, terms
+
+    def _graph_key(self, step: StepContext, degree: int, buffers, optimizers: list) -> tuple:
+        """What a captured step depends on beyond its buffers' values: shapes, schedules and the storage of every
+        tensor it updates (a new parameter, moment or statistic means capturing again)."""
+        storage = [tensor.data_ptr() for optimizer in optimizers for group in optimizer.param_groups
+                   for parameter in group["params"]
+                   for tensor in (parameter, *(v for v in optimizer.state.get(parameter, {}).values()
+                                               if isinstance(v, torch.Tensor)))]
+        return (degree, step.train_field, self.gaussians.count, self.intersection_capacity, id(buffers),
+                tuple(id(optimizer) for optimizer in optimizers), tuple(storage),
+                self.density.grad_accum.data_ptr(), self.density.visible_count.data_ptr())
+
+    def check_rasterizer(self) -> None:
+        """Read the rasterizer's status since the last check (one host read; runs at log steps and after
+        densification, whose next step rasterizes with exact buffers): raise on non-finite inputs, and grow the
+        intersection capacity to twice the most pairs a step needed when that passed the capacity (those steps
+        dropped pairs) or came near it.
+
+        Raises:
+            ValueError: a step rasterized non-finite values.
+        """
+        peak, flags = int(self._pair_peak), int(self._input_flags)
+        if flags:
+            ops.rasterizer_status({"status": torch.tensor([peak, flags])})  # raises, naming the inputs
+        if self.intersection_capacity is None or peak > 0.9 * self.intersection_capacity:
+            if self.intersection_capacity is not None and peak > self.intersection_capacity:
+                self._log({"step": self.step, "note": f"intersection capacity {self.intersection_capacity} "
+                           f"exceeded ({peak} pairs): grown to {2 * peak}"})
+            self.intersection_capacity = max(1024, 2 * peak)
+
+    def train_step(self) -> tuple[StepContext, dict[str, LossTerm]]:
+        """One optimizer step on one training frame; returns the step and its loss terms (device tensors).
+
+        The step's device work (:meth:`_step_work`) reads nothing from the device. On CUDA (``cuda_graph``) it is
+        captured as a graph once shapes and parameters settle and replayed while they stay, unless an extension
+        says the step cannot be (:meth:`~warpavatar.extensions.Extension.step_capturable`).
+        """
+        config = self.config
+        number = self.step
+        train_field = number >= config.gaussian_only_steps
+        step = StepContext(step=number, index=self._next_frame(), train_field=train_field,
+                           read_grid=lambda: self.skinning.grid(number, train_field=train_field))
+        for extension in self.extensions:
+            extension.begin_step(step)
+        self.gaussians.set_position_lr(self._position_lr(number))
+        inputs = {extension.name: value for extension in self.extensions
+                  if (value := extension.frame_input(step)) is not None}
+        degree = min(config.sh_degree, number // max(1, config.sh_increase_every))
+        buffers = self._frame_buffers(step.index)
+        optimizers = [self.gaussians.optimizer, *self.skinning.optimizers(step)]
+        for extension in self.extensions:
+            optimizers += extension.optimizers(step)
+        capturable = (self.use_cuda_graph and self.intersection_capacity is not None and not inputs
+                      and all(extension.step_capturable(step) for extension in self.extensions))
+        if not capturable:
+            image, alpha, terms = self._step_work(step, buffers, degree, inputs, optimizers)
+        else:
+            key = self._graph_key(step, degree, buffers, optimizers)
+            if self._graph is not None and self._graph[0] == key:
+                self._graph[1].replay()
+                self.graph_replays += 1
+                image, alpha, terms, posed = self._graph[2]
+                step.posed, step.target, step.mask = posed, *self._graph[3]
+            else:  # this step eagerly (on the capture stream), then capture it for the steps that follow
+                self._graph = None
+                self._capture_stream.wait_stream(torch.cuda.current_stream(self.device))
+                with torch.cuda.stream(self._capture_stream):
+                    image, alpha, terms = self._step_work(step, buffers, degree, inputs, optimizers)
+                torch.cuda.current_stream(self.device).wait_stream(self._capture_stream)
+                self.skinning.forget_step()  # the graph evaluates the grid itself
+                capture = StepContext(step=number, index=step.index, train_field=train_field,
+                                      read_grid=step.read_grid)
+                try:
+                    graph, outputs = capture_cuda_graph(
+                        lambda: self._step_work(capture, buffers, degree, inputs, optimizers), device=self.device,
+                        warmup=0, stream=self._capture_stream)
+                except RuntimeError as error:  # this step already ran eagerly: under auto, go on without graphs
+                    if self._cuda_graph_mode == "on":
+                        raise
+                    self.use_cuda_graph = False
+                    self._log({"step": number, "note": f"CUDA graph capture failed, the fit goes on eagerly: {error}"})
+                    warnings.warn(f"CUDA graph capture failed, the fit goes on eagerly: {error}", RuntimeWarning)
+                else:
+                    # the key after the eager step: it made the optimizers' moments of a first step
+                    key = self._graph_key(step, degree, buffers, optimizers)
+                    self._graph = (key, graph, (*outputs, capture.posed), (capture.target, capture.mask))
+        step.image, step.alpha = image, alpha
+        count = self.gaussians.count
+        self.density.after_step(number, self.gaussians, self.extensions)
+        if self.intersection_capacity is None:
+            self.check_rasterizer()
+        elif self.gaussians.count != count:  # new Gaussians: the next step counts their pairs with exact buffers
+            self.check_rasterizer()
+            self.intersection_capacity = None
+        self.step += 1
         return step, terms
 
     def _log_record(self, step: StepContext, terms: dict[str, LossTerm]) -> dict:
@@ -241,6 +370,7 @@ class Trainer:
             step, terms = self.train_step()
             bar.update(1)
             if self.step % config.log_every == 0 or self.step == config.iterations:
+                self.check_rasterizer()
                 record = self._log_record(step, terms)  # the only host reads of a step, every log_every steps
                 self._log({**record, "step": self.step, "seconds": round(time.time() - start_time, 2)})
                 bar.set_postfix(loss=f"{record['loss']:.4f}", psnr=f"{record['psnr']:.2f}", n=record["gaussians"])

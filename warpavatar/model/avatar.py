@@ -229,9 +229,10 @@ class Avatar(torch.nn.Module):
                               return_info=return_info)
 
     def rasterize(self, posed: PosedGaussians, camera, *, background: torch.Tensor | None = None,
-                  densify_grad_out: torch.Tensor | None = None, return_info: bool = False):
+                  densify_grad_out: torch.Tensor | None = None, return_info: bool = False,
+                  intersection_capacity: int | None = None):
         """Shade posed Gaussians for a camera (:meth:`view_colors`, then the parts) and rasterize them; returns
-        what :meth:`render` returns."""
+        what :meth:`render` returns (``intersection_capacity``: see :func:`warpavatar.ops.rasterize_gaussians`)."""
         device = self.gaussians.means.device
         K = torch.as_tensor(camera.K, dtype=torch.float32, device=device)
         world_to_camera = torch.as_tensor(camera.world_to_camera, dtype=torch.float32, device=device)
@@ -241,7 +242,7 @@ class Avatar(torch.nn.Module):
         return ops.rasterize_gaussians(
             posed["means"], posed["quats"], posed["scales"], posed["opacities"], colors, K, world_to_camera,
             int(camera.width), int(camera.height), background=background,
-            densify_grad_out=densify_grad_out, return_info=return_info)
+            densify_grad_out=densify_grad_out, return_info=return_info, intersection_capacity=intersection_capacity)
 
     @staticmethod
     def view_colors(posed: PosedGaussians, world_to_camera: torch.Tensor, *, origin: torch.Tensor | None = None

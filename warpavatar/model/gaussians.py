@@ -11,6 +11,7 @@ import math
 
 import torch
 
+from warpavatar._src.cuda_graph import adam_options
 from warpavatar.geometry import SH_C0, quat_to_matrix
 
 __all__ = ["rgb_to_sh_dc", "sh_dc_to_rgb", "GaussianModel"]
@@ -86,6 +87,9 @@ class GaussianModel(torch.nn.Module):
     def make_optimizer(self, *, lr_position: float, lr_scale: float, lr_rotation: float, lr_opacity: float,
                        lr_color: float) -> torch.optim.Adam:
         """Create the Adam optimizer with one group per parameter (3DGS settings, eps 1e-15)."""
+        options = adam_options(self.means.device)
+        if options.get("capturable"):  # a tensor, so that a captured step reads the rate of the step it replays
+            lr_position = torch.tensor(float(lr_position), device=self.means.device)
         groups = [
             {"params": [self.means], "lr": lr_position, "name": "means"},
             {"params": [self.log_scales], "lr": lr_scale, "name": "log_scales"},
@@ -94,13 +98,18 @@ class GaussianModel(torch.nn.Module):
             {"params": [self.sh_dc], "lr": lr_color, "name": "sh_dc"},
             {"params": [self.sh_rest], "lr": lr_color / 20.0, "name": "sh_rest"},
         ]
-        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, **options)
         return self.optimizer
 
     def set_position_lr(self, lr: float) -> None:
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
-                group["lr"] = lr
+                if isinstance(group["lr"], torch.Tensor):
+                    group["lr"].fill_(lr)  # in place: a captured optimizer step reads this tensor
+                elif self.optimizer.defaults.get("capturable"):  # a float again (a loaded state dict)
+                    group["lr"] = torch.tensor(float(lr), device=self.means.device)
+                else:
+                    group["lr"] = lr
 
     def _replace_parameters(self, build, build_moment=None) -> None:
         """Swap every parameter for ``build(name, old_tensor)`` and its Adam moments for

@@ -173,5 +173,6 @@ class VoxelSkinningField(torch.nn.Module):
         weights = self.weights(sample_points, grid)
         if groups is not None:
             weights = weights @ groups.to(weights)
-        target = torch.nn.functional.one_hot(sample_bones, weights.shape[1]).to(weights)
+        # (one_hot would check the indices' range on the host)
+        target = torch.zeros_like(weights).scatter_(1, sample_bones[:, None], 1.0)
         return ((weights - target) ** 2).sum(-1).mean()

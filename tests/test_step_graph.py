@@ -1,0 +1,228 @@
+"""The capture-ready paths: the rasterizer with a fixed intersection capacity (no host read), the training step
+without host synchronizations (and, where CUDA exists, replayed from a CUDA graph), and the playback
+:class:`~warpavatar.model.playback.Player`."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from warpavatar import _torch_impl as reference
+from warpavatar import ops
+from tests.test_splat import make_scene, random_cotangents, render_and_grad
+
+
+def _rasterize_with(capacity):
+    def rasterize(*args, **kwargs):
+        return ops.rasterize_gaussians(*args, intersection_capacity=capacity, **kwargs)
+    return rasterize
+
+
+@pytest.mark.parametrize("seed, sh_degree", [(3, None), (4, 2)])
+def test_capacity_matches_exact_buffers(seed, sh_degree):
+    """Images, gradients and densification gradients are identical with a capacity that holds every pair."""
+    scene, sizes = make_scene(seed, gaussian_count=300, width=48, height=40, sh_degree=sh_degree)
+    cotangents = random_cotangents(sizes, "cpu", seed)
+    exact = render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents, densify=True)
+    *_, info = ops.rasterize_gaussians(scene["means"], scene["quats"], scene["scales"], scene["opacities"],
+                                       scene["colors"], scene["K"], scene["world_to_camera"], sizes["width"],
+                                       sizes["height"], sh_degree=sh_degree, return_info=True)
+    pair_count = ops.rasterizer_status(info)
+    assert pair_count > 300
+    *_, reference_info = reference.rasterize_gaussians(
+        scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["colors"], scene["K"],
+        scene["world_to_camera"], sizes["width"], sizes["height"], sh_degree=sh_degree, return_info=True)
+    assert ops.rasterizer_status(reference_info) == pair_count
+    for capacity in (pair_count, 2 * pair_count + 17):
+        outputs, grads, densify = render_and_grad(_rasterize_with(capacity), scene, sizes, cotangents, densify=True)
+        assert all(torch.equal(a, b) for a, b in zip(outputs, exact[0]))
+        assert grads.keys() == exact[1].keys()
+        assert all(torch.equal(grads[name], exact[1][name]) for name in grads)
+        assert torch.equal(densify, exact[2])
+
+
+def test_capacity_overflow_is_flagged_not_fatal():
+    scene, sizes = make_scene(5, gaussian_count=300, width=48, height=40)
+    args = [scene[k] for k in ("means", "quats", "scales", "opacities", "colors", "K", "world_to_camera")]
+    image, _, _, info = ops.rasterize_gaussians(*args, sizes["width"], sizes["height"], return_info=True)
+    needed = ops.rasterizer_status(info)
+    short, _, _, short_info = ops.rasterize_gaussians(*args, sizes["width"], sizes["height"], return_info=True,
+                                                      intersection_capacity=needed // 2)
+    assert ops.rasterizer_status(short_info) == needed  # the count needed, past the capacity
+    assert torch.isfinite(short).all() and not torch.equal(short, image)
+    # non-finite input: the exact path raises at once, the capped path flags it on the device
+    args[0] = args[0].clone()
+    args[0][7, 1] = float("nan")
+    with pytest.raises(ValueError, match="non-finite values in means"):
+        ops.rasterize_gaussians(*args, sizes["width"], sizes["height"])
+    *_, bad_info = ops.rasterize_gaussians(*args, sizes["width"], sizes["height"], return_info=True,
+                                           intersection_capacity=2 * needed)
+    with pytest.raises(ValueError, match="non-finite values in means"):
+        ops.rasterizer_status(bad_info)
+    with pytest.raises(ValueError, match="intersection_capacity"):
+        ops.rasterize_gaussians(*args, sizes["width"], sizes["height"], intersection_capacity=0)
+
+
+# ------------------------------------------------------------------------------------------------ playback
+@pytest.fixture(scope="module")
+def demo_video():
+    from warpavatar import data
+
+    return data.load_video_folder(data.demo_subject_path() / "train", scale=0.25)
+
+
+def _playback_avatar(video):
+    from tests.conftest import small_avatar
+    from warpavatar.extensions.pose_correction import PoseCorrection
+
+    avatar = small_avatar(video.skeleton, seed=3, per_bone=40, cells=8, distill_steps=5, random_frames=True)
+    field = avatar.field
+    part = PoseCorrection(field.bbox_min, field.bbox_max, torch.as_tensor(video.skeleton.parents), hidden=16)
+    with torch.no_grad():  # a correction that is not the identity
+        for parameter in part.parameters():
+            parameter.normal_(0.0, 0.05)
+    avatar.add_part(part)
+    return avatar
+
+
+def test_player_draws_what_render_draws(demo_video):
+    from warpavatar.model.playback import Player
+
+    avatar = _playback_avatar(demo_video)
+    background = torch.tensor([0.2, 0.3, 0.4])
+    player = Player(avatar, demo_video.cameras[0], background=background, cuda_graph="off", check_every=2)
+    assert player.capacity is None and not player.use_graph
+    for frame in (0, 3, 5, 2):
+        camera = demo_video.cameras[frame]
+        bones = torch.as_tensor(demo_video.bone_transforms[frame], dtype=torch.float32)
+        image, alpha, depth = player.render(bones, camera=camera)
+        with torch.no_grad():
+            expected = avatar.render(camera, bones, background=background)
+        assert torch.equal(image, expected[0]) and torch.equal(alpha, expected[1]) and torch.equal(depth, expected[2])
+        assert alpha.max() > 0.5
+    assert player.capacity is not None
+
+
+def test_player_grows_a_capacity_that_overflowed(demo_video):
+    from warpavatar.model.playback import Player
+
+    avatar = _playback_avatar(demo_video)
+    player = Player(avatar, demo_video.cameras[0], cuda_graph="off", check_every=1)
+    bones = torch.as_tensor(demo_video.bone_transforms[1], dtype=torch.float32)
+    player.render(bones)
+    player.capacity = 10  # far too small: the check sees it, grows the capacity and draws the frame again
+    image, _, _ = player.render(bones)
+    assert player.capacity > 1000
+    with torch.no_grad():
+        assert torch.equal(image, avatar.render(demo_video.cameras[0], bones)[0])
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="cuda-graph on needs a CUDA device"):
+            Player(avatar, demo_video.cameras[0], cuda_graph="on")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+def test_player_graph_replays_match_eager_frames(demo_video):
+    from warpavatar.model.playback import Player
+
+    avatar = _playback_avatar(demo_video).to("cuda:0")
+    background = torch.tensor([0.2, 0.3, 0.4], device="cuda:0")
+    graphed = Player(avatar, demo_video.cameras[0], background=background, cuda_graph="on", check_every=3)
+    eager = Player(avatar, demo_video.cameras[0], background=background, cuda_graph="off", check_every=3)
+    assert graphed.use_graph
+    for frame in (0, 1, 4, 2, 6, 3):
+        bones = torch.as_tensor(demo_video.bone_transforms[frame], dtype=torch.float32, device="cuda:0")
+        ours = [t.clone() for t in graphed.render(bones, camera=demo_video.cameras[frame])]
+        theirs = eager.render(bones, camera=demo_video.cameras[frame])
+        for a, b in zip(ours, theirs):  # atomics in the compositing may round differently
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+    assert graphed._graph is not None
+
+
+# ------------------------------------------------------------------------------------------------ training step
+def _tiny_trainer(video_folder, tmp_path, *, device="cpu", cuda_graph="off", **overrides):
+    from warpavatar.fit import Trainer, preset
+
+    values = dict(iterations=60, image_scale=0.25, max_train_frames=6, init_points_per_bone=20,
+                  init_carve_candidates=4000, init_carve_points=300, sh_degree=1, sh_increase_every=8,
+                  grid_cells=12, grid_min_cells=4, field_hidden=16, field_layers=1, field_warmup_steps=0,
+                  gaussian_only_steps=4, densify_from=6, densify_until=14, densify_every=6,
+                  densify_grad_threshold=1e-6, opacity_reset_every=12, pose_correction=True,
+                  pose_correction_hidden=16, log_every=1000, checkpoint_every=100000, preview_frames=0)
+    values.update(overrides)
+    return Trainer(video_folder, preset("quick", **values), tmp_path, device=device, cuda_graph=cuda_graph)
+
+
+@pytest.fixture(scope="module")
+def small_video():
+    from warpavatar import data
+
+    return data.load_video_folder(data.demo_subject_path() / "train", scale=0.25)
+
+
+def test_steady_training_step_reads_nothing_from_the_device(small_video, tmp_path):
+    from tests.conftest import load_tool
+
+    trainer = _tiny_trainer(small_video, tmp_path)
+    for _ in range(3):  # the first step counts the rasterizer's pairs (exact buffers, one read)
+        trainer.train_step()
+    trainer.step = 20  # past densification, the field training
+    assert trainer.intersection_capacity is not None and trainer.extension("pose_correction") is not None
+    counter = load_tool("bench_avatar")._OpCounter()
+    with counter:
+        for _ in range(2):
+            trainer.train_step()
+    assert counter.host_reads == 0, counter.ops
+    assert sum(counter.ops.values()) > 300
+
+
+def test_sync_free_steps_fit_what_exact_steps_fit(small_video, tmp_path, monkeypatch):
+    """With the fixed-capacity rasterizer and static buffers, a fit through densification, an opacity reset and
+    the start of the field's training ends bit for bit where the exact, synchronizing rasterizer ends."""
+    from warpavatar.model import Avatar
+
+    steps = 16
+    fast = _tiny_trainer(small_video, tmp_path / "fast")
+    initial_count = fast.gaussians.count
+    for _ in range(steps):
+        fast.train_step()
+    exact_rasterize = Avatar.rasterize
+    monkeypatch.setattr(Avatar, "rasterize", lambda self, *args, intersection_capacity=None, **kwargs:
+                        exact_rasterize(self, *args, **kwargs))
+    exact = _tiny_trainer(small_video, tmp_path / "exact")
+    for _ in range(steps):
+        exact.train_step()
+    assert fast.gaussians.count == exact.gaussians.count != 0
+    assert fast.gaussians.count != initial_count  # it densified
+    for (name, ours), (_, theirs) in zip(fast.avatar.named_parameters(), exact.avatar.named_parameters()):
+        assert torch.equal(ours, theirs), name
+    assert torch.equal(fast.density.grad_accum, exact.density.grad_accum)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+def test_captured_steps_match_eager_steps(small_video, tmp_path):
+    results = []
+    for mode in ("on", "off"):
+        trainer = _tiny_trainer(small_video, tmp_path / mode, device="cuda:0", cuda_graph=mode)
+        losses = []
+        for _ in range(16):  # the field from 4, densification at 6 and 12: captures, replays, captures again
+            _, terms = trainer.train_step()
+            losses.append(float(terms["loss"].value))
+        assert (trainer.graph_replays > 5) == (mode == "on")
+        results.append((losses, trainer.gaussians.count,
+                        {name: p.detach().clone() for name, p in trainer.avatar.named_parameters()}))
+    (graph_losses, graph_count, graph_parameters), (eager_losses, eager_count, eager_parameters) = results
+    assert graph_count == eager_count and graph_parameters.keys() == eager_parameters.keys()
+    # the same kernels in the same order; only the order of atomic additions may differ
+    torch.testing.assert_close(torch.tensor(graph_losses), torch.tensor(eager_losses), rtol=1e-3, atol=1e-5)
+    for name in graph_parameters:
+        torch.testing.assert_close(graph_parameters[name], eager_parameters[name], rtol=1e-3, atol=1e-4)
+
+
+def test_bench_kernels_avatar_quick_runs(capsys):
+    from tests.conftest import load_tool
+
+    assert load_tool("bench_kernels").main(["avatar", "--quick", "--device", "cpu"]) == 0
+    table = capsys.readouterr().out
+    for measure in ("rasterizer fwd / fwd+bwd ms", "training step ms (eager)", "playback FPS (eager)"):
+        assert measure in table
+    assert "0 host reads" in table

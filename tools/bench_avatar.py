@@ -1,0 +1,274 @@
+"""Benchmark of a fitted avatar (``python tools/bench_kernels.py avatar --avatar PATH/avatar.pt --video FOLDER``).
+
+Times, side by side in one run:
+
+* the rasterizer (forward, forward + backward, peak memory) on the avatar's posed and shaded Gaussians (the first
+  training frame's pose and camera), at the training size and at 1920x1080 (the camera's intrinsics scaled to
+  that width, the principal point re-centred), against ``gsplat.rasterization`` on the same Gaussians when
+  gsplat imports (CUDA only);
+* the training step (``Trainer.train_step``) at the avatar's Gaussian count, past densification (the steady step),
+  eager and replayed from a CUDA graph, with the work of one step counted: Warp launches (``wp.launch`` plus the
+  scan and sort of ``warp.utils``), torch operators (each dispatched aten op, about one kernel each on CUDA), host
+  reads (aten ``_local_scalar_dense`` = ``.item()`` / ``float(t)`` / ``bool(t)``, ``nonzero``, boolean-mask
+  indexing, and ``Tensor.tolist`` of a device tensor; reads of an optimizer's host-side step counts are
+  counted apart, as they synchronize nothing), and on CUDA the runtime's kernel launches and synchronizations as the
+  torch profiler records them;
+* playback at 1920x1080 (:class:`warpavatar.model.playback.Player`: pose + shade + rasterize) in frames per
+  second over the training motion, eager and from a CUDA graph.
+
+Without ``--avatar`` (as ``--quick`` on CPU does) the avatar is the one a fresh fit of the video starts from.
+``--video`` defaults to the built-in demo subject. Times are medians (``bench_common.time_function``).
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import copy
+import dataclasses
+import os
+import sys
+import tempfile
+import traceback
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+from bench_common import time_function  # noqa: E402
+from bench_splat import _count_warp_calls, _gsplat, _measure, _ratio  # noqa: E402
+
+from warpavatar import data  # noqa: E402
+from warpavatar.fit import Trainer, preset  # noqa: E402
+from warpavatar.fit.config import FitConfig  # noqa: E402
+from warpavatar.model import Avatar  # noqa: E402
+from warpavatar.model.playback import Player  # noqa: E402
+
+__all__ = ["run", "count_step_work"]
+
+#: a small fit for ``--quick`` (seconds on a CPU)
+QUICK_CONFIG = dict(iterations=400, image_scale=0.25, max_train_frames=6, init_points_per_bone=20,
+                    init_carve_candidates=4000, init_carve_points=300, sh_degree=1, sh_increase_every=10,
+                    grid_cells=16, grid_min_cells=6, field_hidden=16, field_layers=1, field_warmup_steps=0,
+                    gaussian_only_steps=0, densify_from=1000, densify_until=1000, pose_correction=True,
+                    pose_correction_hidden=16, log_every=1000, checkpoint_every=100000, preview_frames=0)
+SYNC_OPS = ("_local_scalar_dense", "nonzero", "masked_select", "unique", "_unique2")
+
+
+class _OpCounter(TorchDispatchMode):
+    """Counts the aten operators dispatched inside it, and those that read values back to the host."""
+
+    def __init__(self):
+        super().__init__()
+        self.ops = collections.Counter()
+        self.host_reads = 0
+        self.optimizer_reads = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        name = func.overloadpacket.__name__
+        self.ops[name] += 1
+        boolean_index = name == "index" and any(
+            isinstance(index, torch.Tensor) and index.dtype == torch.bool for index in (args[1] if len(args) > 1 else ()))
+        if name in SYNC_OPS or boolean_index:
+            # the step counts of a non-capturable Adam are host tensors: reading them is no device sync
+            if name == "_local_scalar_dense" and args[0].device.type == "cpu" and any(
+                    f"torch{os.sep}optim{os.sep}" in frame.filename for frame in traceback.extract_stack()):
+                self.optimizer_reads += 1
+            else:
+                self.host_reads += 1
+        return func(*args, **(kwargs or {}))
+
+
+@contextlib.contextmanager
+def _count_tolist(counter: dict):
+    original = torch.Tensor.tolist
+
+    def tolist(tensor):
+        if tensor.device.type != "cpu":  # (on CPU a tensor's values are on the host already)
+            counter["tolist"] = counter.get("tolist", 0) + 1
+        return original(tensor)
+
+    torch.Tensor.tolist = tolist
+    try:
+        yield
+    finally:
+        torch.Tensor.tolist = original
+
+
+def count_step_work(step, *, device: str, steps: int = 4) -> dict:
+    """Per-step averages over ``steps`` calls of ``step()``: ``warp`` launches (with the warp.utils calls),
+    ``torch_ops`` (aten operators), ``host_reads`` (see the module docstring), and on CUDA ``cuda_launches`` and
+    ``cuda_syncs`` (profiler runtime events)."""
+    warp_calls: dict = {}
+    reads: dict = {}
+    counter = _OpCounter()
+    with _count_warp_calls(warp_calls), _count_tolist(reads), counter:
+        for _ in range(steps):
+            step()
+    result = {"warp": (warp_calls.get("launch", 0) + warp_calls.get("utils", 0)) / steps,
+              "torch_ops": sum(counter.ops.values()) / steps,
+              "host_reads": (counter.host_reads + reads.get("tolist", 0)) / steps,
+              "optimizer_reads": counter.optimizer_reads / steps,
+              "top_ops": ", ".join(f"{name} {count / steps:g}" for name, count in counter.ops.most_common(6))}
+    if device.startswith("cuda"):
+        from torch.profiler import ProfilerActivity, profile
+
+        torch.cuda.synchronize(device)
+        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as profiler:
+            for _ in range(steps):
+                step()
+            torch.cuda.synchronize(device)
+        names = collections.Counter(event.name for event in profiler.events())
+        launches = sum(count for name, count in names.items() if name in ("cudaLaunchKernel", "cuLaunchKernel",
+                                                                          "cudaLaunchKernelExC", "cuLaunchKernelEx"))
+        syncs = sum(count for name, count in names.items() if name in (
+            "cudaStreamSynchronize", "cudaDeviceSynchronize", "cuStreamSynchronize", "cuCtxSynchronize",
+            "cudaEventSynchronize", "cudaMemcpy"))
+        result.update(cuda_launches=launches / steps, cuda_syncs=(syncs - 1) / steps,  # minus the closing one
+                      graph_launches=names.get("cudaGraphLaunch", 0) / steps)
+    return result
+
+
+# --------------------------------------------------------------------------------------------- set-up
+def _load(avatar_path, video_path, device: str, quick: bool):
+    video_path = video_path or data.demo_subject_path() / "train"
+    if avatar_path:
+        state = torch.load(avatar_path, map_location="cpu", weights_only=False)
+        config = FitConfig.from_dict(state["config"]) if state.get("config") else preset("default")
+        fitted = Avatar.from_state(state, device=device)
+    else:
+        config, fitted = preset("quick" if quick else "default", **(QUICK_CONFIG if quick else {})), None
+    if quick and fitted is not None:  # a fitted avatar's config on small frames (as many: frame codes)
+        config = dataclasses.replace(config, image_scale=min(config.image_scale, 0.25))
+    video = data.load_video_folder(video_path, scale=config.image_scale)
+    return video, config, fitted
+
+
+def _steady_trainer(video, config, fitted, device: str, folder: str, *, cuda_graph: str) -> Trainer:
+    """A trainer at its steady step (past densification, the field training), with the fitted avatar's
+    Gaussians, field and parts when given."""
+    trainer = Trainer(video, config, folder, device=device, cuda_graph=cuda_graph)
+    if fitted is not None:
+        trainer.avatar.gaussians = copy.deepcopy(fitted.gaussians)
+        trainer._make_gaussian_optimizer()
+        trainer.density.reset(trainer.gaussians.count, trainer.device)
+        trainer.skinning.field.load_state_dict(fitted.field.state_dict())
+        for name, part in trainer.avatar.parts.items():
+            if name in fitted.parts:
+                part.load_state_dict(fitted.parts[name].state_dict())
+        trainer.avatar.shading_origin = fitted.shading_origin
+    trainer.step = max(config.densify_until + 1, config.gaussian_only_steps, 0)
+    return trainer
+
+
+def _posed_scene(avatar: Avatar, video, device: str):
+    """The avatar's Gaussians posed for the first frame and shaded for its camera, as rasterizer inputs."""
+    camera = video.cameras[0]
+    with torch.no_grad():
+        posed = avatar.pose(torch.as_tensor(video.bone_transforms[0], dtype=torch.float32, device=device))
+        world_to_camera = torch.as_tensor(camera.world_to_camera, dtype=torch.float32, device=device)
+        colors = avatar.view_colors(posed, world_to_camera, origin=avatar.shading_origin)
+    tensors = [posed["means"], posed["quats"], posed["scales"], posed["opacities"], colors]
+    return [t.detach().contiguous().clone() for t in tensors], camera
+
+
+def _camera_at(camera, width: int, height: int, device: str):
+    """The camera's intrinsics scaled to ``width`` (principal point re-centred), as a scene dict of bench_splat."""
+    K = torch.as_tensor(camera.K, dtype=torch.float32, device=device).clone()
+    factor = width / camera.width
+    K[0, 0] *= factor
+    K[1, 1] *= factor
+    K[0, 2], K[1, 2] = (width - 1) / 2, (height - 1) / 2
+    return {"K": K, "world_to_camera": torch.as_tensor(camera.world_to_camera, dtype=torch.float32, device=device),
+            "width": width, "height": height}
+
+
+# --------------------------------------------------------------------------------------------- rows
+def _raster_rows(avatar, video, device, warmup, repeats, quick) -> list[dict]:
+    from warpavatar.ops import rasterize_gaussians
+
+    tensors, camera = _posed_scene(avatar, video, device)
+    sizes = [(camera.width, camera.height), (160, 90) if quick else (1920, 1080)]
+    rows = []
+    for width, height in sizes:
+        scene = _camera_at(camera, width, height, device)
+        parameters = [t.clone().requires_grad_() for t in tensors]
+
+        def ours():
+            return rasterize_gaussians(*parameters, scene["K"], scene["world_to_camera"], width, height)
+
+        forward_ms, backward_ms, peak = _measure(ours, parameters, device, warmup, repeats)
+        row = {"measure": "rasterizer fwd / fwd+bwd ms", "size": f"{width}x{height}",
+               "ours": f"{forward_ms:.3f} / {forward_ms + backward_ms:.3f}", "gsplat": None, "ratio": None,
+               "notes": f"{tensors[0].shape[0]} Gaussians; peak {peak:.0f} MiB" if peak is not None else
+               f"{tensors[0].shape[0]} Gaussians"}
+        theirs = _gsplat(scene, parameters) if device.startswith("cuda") else None
+        if theirs is not None:
+            g_forward, g_backward, g_peak = _measure(theirs, parameters, device, warmup, repeats)
+            row.update(gsplat=f"{g_forward:.3f} / {g_forward + g_backward:.3f}",
+                       ratio=f"{_ratio(forward_ms, g_forward):.2f} / "
+                             f"{_ratio(forward_ms + backward_ms, g_forward + g_backward):.2f}")
+            row["notes"] += f" (gsplat peak {g_peak:.0f} MiB)"
+        rows.append(row)
+    return rows
+
+
+def _step_row(trainer, video, device, warmup, repeats) -> dict:
+    milliseconds = time_function(trainer.train_step, device=device, warmup=warmup, repeats=repeats)
+    counts = count_step_work(trainer.train_step, device=device)
+    size = f"{video.cameras[0].width}x{video.cameras[0].height}"
+    notes = (f"{trainer.gaussians.count} Gaussians; per step: {counts['warp']:g} Warp launches, "
+             f"{counts['torch_ops']:g} torch ops, {counts['host_reads']:g} host reads "
+             f"(+{counts['optimizer_reads']:g} of host step counts)")
+    if "cuda_launches" in counts:
+        notes += (f", {counts['cuda_launches']:g} CUDA kernel launches, {counts['cuda_syncs']:g} syncs, "
+                  f"{counts['graph_launches']:g} graph launches")
+    if trainer.use_cuda_graph:
+        notes += f", {trainer.graph_replays} of the steps replayed"
+    return {"measure": f"training step ms ({'CUDA graph' if trainer.use_cuda_graph else 'eager'})", "size": size,
+            "ours": milliseconds, "gsplat": None, "ratio": None, "notes": notes + f"; top ops: {counts['top_ops']}"}
+
+
+def _playback_rows(avatar, video, device, repeats, quick) -> list[dict]:
+    width, height = (160, 90) if quick else (1920, 1080)
+    scene = _camera_at(video.cameras[0], width, height, device)
+    camera = type("Camera", (), scene)
+    bones = torch.as_tensor(video.bone_transforms, dtype=torch.float32, device=device)
+    rows = []
+    for mode in ["off"] + (["on"] if device.startswith("cuda") else []):
+        player = Player(avatar, camera, cuda_graph=mode)
+        frame = iter(range(10 ** 9))
+
+        def draw():
+            player.render(bones[next(frame) % bones.shape[0]])
+
+        milliseconds = time_function(draw, device=device, warmup=3, repeats=max(repeats, 3 if quick else 200))
+        counts = count_step_work(draw, device=device)
+        rows.append({"measure": f"playback FPS ({'CUDA graph' if player.use_graph else 'eager'})",
+                     "size": f"{width}x{height}", "ours": 1000.0 / milliseconds, "gsplat": None, "ratio": None,
+                     "notes": f"{milliseconds:.3f} ms/frame; per frame: {counts['warp']:g} Warp launches, "
+                              f"{counts['torch_ops']:g} torch ops, {counts['host_reads']:g} host reads"
+                              + (f", {counts['cuda_syncs']:g} syncs" if "cuda_syncs" in counts else "")})
+    return rows
+
+
+def run(device: str, quick: bool, *, avatar: str | None = None, video: str | None = None) -> list[dict]:
+    """Benchmark rows (see the module docstring)."""
+    warmup, repeats = (1, 3) if quick else (5, 20)
+    video_folder, config, fitted = _load(avatar, video, device, quick)
+    with tempfile.TemporaryDirectory() as folder:
+        eager = _steady_trainer(video_folder, config, fitted, device, folder, cuda_graph="off")
+        rows = _raster_rows(eager.avatar, video_folder, device, warmup, repeats, quick)
+        rows.append(_step_row(eager, video_folder, device, warmup, repeats))
+    if device.startswith("cuda"):
+        with tempfile.TemporaryDirectory() as folder:
+            graphed = _steady_trainer(video_folder, config, fitted, device, folder, cuda_graph="on")
+            rows.append(_step_row(graphed, video_folder, device, warmup, repeats))
+    rows += _playback_rows(eager.avatar, video_folder, device, repeats, quick)
+    return rows
+
+if __name__ == "__main__":
+    from bench_common import markdown_table
+
+    print(markdown_table(run("cuda:0" if torch.cuda.is_available() else "cpu", quick="--quick" in sys.argv)))

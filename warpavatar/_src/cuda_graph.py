@@ -1,0 +1,85 @@
+"""Capturing torch and Warp work together into one CUDA graph, and replaying it.
+
+Warp's kernels run on torch's current stream (:func:`~warpavatar._src.warp_utils.torch_stream_scope`), so a
+torch capture (``torch.cuda.graph``) records them too once Warp is told that an external capture is active
+(``wp.capture_begin(external=True)``, as Warp's PyTorch interoperability guide shows). The captured function
+must not read anything from the device and must not allocate with Warp's allocator (every buffer here is a
+torch tensor, which the capture takes from its private memory pool); it is run a few times on the capture
+stream first, so that Warp modules are loaded and torch's allocator and Warp's sort scratch space are warm.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import torch
+import warp as wp
+
+from warpavatar._src.warp_utils import init_warp, warp_device
+
+__all__ = ["cuda_graphs_available", "capture_cuda_graph", "resolve_cuda_graph", "adam_options"]
+
+
+def cuda_graphs_available(device) -> bool:
+    """Whether ``device`` is a CUDA device (the only kind whose work can be captured)."""
+    return torch.device(device).type == "cuda" and torch.cuda.is_available()
+
+
+def adam_options(device) -> dict:
+    """Keyword options of ``torch.optim.Adam`` for parameters on ``device``: on CUDA the fused kernels, safe to
+    capture in a CUDA graph (their step counts stay on the device); elsewhere the multi-tensor (foreach) loop."""
+    if torch.device(device).type == "cuda":
+        return {"fused": True, "capturable": True}
+    return {"foreach": True}
+
+
+def resolve_cuda_graph(mode: str, device) -> bool:
+    """The ``--cuda-graph`` setting (``auto``, ``on``, ``off``) as a yes/no for ``device``.
+
+    Raises:
+        ValueError: an unknown mode, or ``on`` on a device without CUDA graphs.
+    """
+    if mode not in ("auto", "on", "off"):
+        raise ValueError(f"cuda_graph must be auto, on or off, got {mode!r}")
+    available = cuda_graphs_available(device)
+    if mode == "on" and not available:
+        raise ValueError(f"--cuda-graph on needs a CUDA device, the device is {torch.device(device)}")
+    return available and mode != "off"
+
+
+def capture_cuda_graph(function: Callable[[], Any], *, device, warmup: int = 2, stream=None
+                       ) -> tuple[torch.cuda.CUDAGraph, Any]:
+    """Run ``function`` ``warmup`` times on a side stream, then capture one call into a CUDA graph.
+
+    Args:
+        function: the work; takes no arguments, reads its inputs from tensors the caller refills before each
+            replay, and returns its outputs (tensors that each replay overwrites in place).
+        device: the CUDA device.
+        warmup: eager calls before the capture (they load Warp modules and warm the allocator; 0 when the
+            caller already ran ``function``'s work eagerly on ``stream``, e.g. a training step with side effects).
+        stream: the side stream (a ``torch.cuda.Stream`` of ``device``; default a new one).
+
+    Returns:
+        ``(graph, outputs)``: ``graph.replay()`` reruns the work, leaving its results in ``outputs``.
+    """
+    init_warp()
+    device = torch.device(device)
+    name = warp_device(device)
+    stream = torch.cuda.Stream(device=device) if stream is None else stream
+    stream.wait_stream(torch.cuda.current_stream(device))
+    with torch.cuda.stream(stream):
+        for _ in range(warmup):
+            function()
+    torch.cuda.current_stream(device).wait_stream(stream)
+    graph = torch.cuda.CUDAGraph()
+    warp_stream = wp.stream_from_torch(stream)
+    # one capture mode on both sides (Warp must be told the mode of the capture torch opened)
+    with wp.ScopedDevice(name), wp.ScopedStream(warp_stream, sync_enter=False), \
+            torch.cuda.graph(graph, stream=stream, capture_error_mode="thread_local"):
+        wp.capture_begin(stream=warp_stream, force_module_load=False, external=True,
+                         capture_mode=wp.CaptureMode.THREAD_LOCAL)
+        try:
+            outputs = function()
+        finally:
+            wp.capture_end(stream=warp_stream)
+    return graph, outputs

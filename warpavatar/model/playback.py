@@ -1,0 +1,161 @@
+"""Playback of an avatar frame after frame: pose + shade + rasterize with no host synchronization, replayed from
+a CUDA graph.
+
+A :class:`Player` keeps every input of a frame in tensors of its own (the bone transforms, the camera matrices,
+the parts' explicit inputs), which :meth:`Player.render` refills before drawing, and rasterizes with a fixed
+intersection capacity (:func:`warpavatar.ops.rasterize_gaussians`), so a frame reads nothing from the device
+and, on CUDA, is captured once as a graph (:mod:`warpavatar._src.cuda_graph`) and replayed per frame. The first
+frame is drawn with exact buffers to learn how many (Gaussian, tile) pairs the avatar makes, and the capacity
+is set to ``capacity_factor`` times that; every ``check_every`` frames the player reads the frame's pair count
+(one synchronization) and, when a pose needs more than the capacity, grows it, captures again and redraws the
+frame.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Any, Mapping
+
+import torch
+
+from warpavatar import ops
+from warpavatar._src.cuda_graph import capture_cuda_graph, resolve_cuda_graph
+from warpavatar.model.parts import AvatarPart
+
+__all__ = ["Player"]
+
+
+class _Camera:
+    """The player's camera: its matrices in tensors that keep their storage (a captured graph reads them)."""
+
+    def __init__(self, camera, device):
+        self.K = torch.as_tensor(camera.K, dtype=torch.float32, device=device).clone()
+        self.world_to_camera = torch.as_tensor(camera.world_to_camera, dtype=torch.float32, device=device).clone()
+        self.width, self.height = int(camera.width), int(camera.height)
+
+    def load(self, camera) -> None:
+        if (int(camera.width), int(camera.height)) != (self.width, self.height):
+            raise ValueError(f"the player draws {self.width}x{self.height} images, the camera is "
+                             f"{int(camera.width)}x{int(camera.height)} (make another Player)")
+        self.K.copy_(torch.as_tensor(camera.K, dtype=torch.float32))
+        self.world_to_camera.copy_(torch.as_tensor(camera.world_to_camera, dtype=torch.float32))
+
+
+class Player:
+    """Draws an avatar in a sequence of poses through one camera size, reusing its buffers from frame to frame.
+
+    Args:
+        avatar: the :class:`~warpavatar.model.avatar.Avatar` (its field is read once: the grid is cached).
+        camera: object with ``K`` [3,3], ``world_to_camera`` [4,4], ``width``, ``height`` [px]; later frames may
+            bring other matrices, not another size.
+        background: [3] RGB in 0..1 (default black).
+        sh_degree: SH degree to render with (default: all the avatar has).
+        cuda_graph: ``auto`` (a graph on CUDA), ``on`` (a graph, CUDA required) or ``off`` (eager). Avatars with
+            parts that keep state over a sequence (they need the frame's index, a host number) always run eagerly.
+        capacity_factor: intersection capacity as a multiple of the largest pair count seen (>= 1).
+        check_every: read the pair count every this many frames (the only host read of playback).
+
+    Raises:
+        ValueError: bad options, or ``cuda_graph="on"`` without CUDA.
+    """
+
+    def __init__(self, avatar, camera, *, background: torch.Tensor | None = None, sh_degree: int | None = None,
+                 cuda_graph: str = "auto", capacity_factor: float = 2.0, check_every: int = 30):
+        if not capacity_factor >= 1.0:
+            raise ValueError(f"capacity_factor must be >= 1, got {capacity_factor}")
+        if check_every < 1:
+            raise ValueError(f"check_every must be >= 1, got {check_every}")
+        self.avatar = avatar
+        self.device = avatar.gaussians.means.device
+        self.sh_degree = sh_degree
+        self.capacity_factor = float(capacity_factor)
+        self.check_every = int(check_every)
+        #: whether parts keep state over a sequence (then frames need their index and run eagerly)
+        self.stateful = any(type(part).prepare_sequence is not AvatarPart.prepare_sequence
+                            for part in avatar.parts.values())
+        self.use_graph = resolve_cuda_graph(cuda_graph, self.device) and not self.stateful
+        self._cuda_graph_mode = cuda_graph
+        #: intersection capacity of the rasterizer (None until the first frame)
+        self.capacity: int | None = None
+        self._camera = _Camera(camera, self.device)
+        self._background = None if background is None else \
+            torch.as_tensor(background, dtype=torch.float32, device=self.device).clone()
+        self._bones = torch.zeros(avatar.joint_count, 4, 4, device=self.device)
+        self._inputs: dict[str, torch.Tensor] = {}
+        self._frame_index: int | None = None
+        with torch.no_grad():
+            self._grid = avatar.field.grid_weights()
+        self._graph = None
+        self._graph_outputs = None
+        self._frames_since_check = 0
+
+    def _draw(self):
+        """One frame from the player's tensors: (image, alpha, depth, status)."""
+        posed = self.avatar.pose(self._bones, sh_degree=self.sh_degree, grid=self._grid, inputs=self._inputs,
+                                 frame_index=self._frame_index)
+        image, alpha, depth, info = self.avatar.rasterize(posed, self._camera, background=self._background,
+                                                          return_info=True, intersection_capacity=self.capacity)
+        return image, alpha, depth, info["status"]
+
+    def _load(self, bone_transforms, inputs: Mapping[str, Any] | None, camera, frame_index) -> None:
+        self._bones.copy_(torch.as_tensor(bone_transforms, dtype=torch.float32))
+        inputs = dict(inputs or {})
+        if self._inputs and set(inputs) != set(self._inputs):
+            raise ValueError(f"the player was started with inputs for {sorted(self._inputs)}, got {sorted(inputs)}")
+        for name, value in inputs.items():
+            value = torch.as_tensor(value, device=self.device)
+            if name in self._inputs:
+                self._inputs[name].copy_(value)
+            else:
+                self._inputs[name] = value.clone()
+        if camera is not None:
+            self._camera.load(camera)
+        self._frame_index = frame_index if self.stateful else None
+
+    def _grow(self, pair_count: int) -> None:
+        self.capacity = max(1024, math.ceil(self.capacity_factor * pair_count))
+        self._graph = self._graph_outputs = None
+
+    @torch.no_grad()
+    def render(self, bone_transforms, *, camera=None, inputs: Mapping[str, Any] | None = None,
+               frame_index: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Draw one frame.
+
+        Args:
+            bone_transforms: [J,4,4] rest-to-posed transforms (torch or numpy).
+            camera: the camera of this frame (same size as the player's), or None to keep the last one.
+            inputs: explicit inputs of parts by part name (see :meth:`Avatar.pose`); the same names every frame.
+            frame_index: the frame's index in the sequence prepared with :meth:`Avatar.prepare_sequence` (used
+                by parts that keep state over time).
+
+        Returns:
+            ``(image [H,W,3], alpha [H,W], depth [H,W])``. With a CUDA graph these tensors are the graph's
+            outputs, overwritten by the next frame: copy what you keep.
+        """
+        self._load(bone_transforms, inputs, camera, frame_index)
+        if self.capacity is None:  # the first frame: exact buffers, to learn the pair count
+            image, alpha, depth, status = self._draw()
+            self._grow(ops.rasterizer_status({"status": status}))
+            return image, alpha, depth
+        if self.use_graph and self._graph is None:
+            try:
+                self._graph, self._graph_outputs = capture_cuda_graph(self._draw, device=self.device)
+            except RuntimeError as error:  # under auto, play on eagerly
+                if self._cuda_graph_mode == "on":
+                    raise
+                self.use_graph = False
+                warnings.warn(f"CUDA graph capture failed, playback goes on eagerly: {error}", RuntimeWarning)
+        if self.use_graph:
+            self._graph.replay()
+            image, alpha, depth, status = self._graph_outputs
+        else:
+            image, alpha, depth, status = self._draw()
+        self._frames_since_check += 1
+        if self._frames_since_check >= self.check_every:
+            self._frames_since_check = 0
+            pair_count = ops.rasterizer_status({"status": status})
+            if pair_count > self.capacity:  # this frame dropped pairs: grow and draw it again
+                self._grow(pair_count)
+                return self.render(bone_transforms, camera=camera, inputs=inputs, frame_index=frame_index)
+        return image, alpha, depth
