@@ -17,7 +17,11 @@ import warp as wp
 
 from warpavatar._src.warp_utils import init_warp, warp_device
 
-__all__ = ["cuda_graphs_available", "capture_cuda_graph", "resolve_cuda_graph", "adam_options"]
+__all__ = ["CAPTURE_MODE", "cuda_graphs_available", "capture_cuda_graph", "resolve_cuda_graph", "adam_options"]
+
+CAPTURE_MODE = "thread_local"
+"""The CUDA stream-capture mode of both sides (torch's ``capture_error_mode``: ``global``, ``thread_local`` or
+``relaxed``; Warp's matching :class:`warp.CaptureMode`)."""
 
 
 def cuda_graphs_available(device) -> bool:
@@ -75,9 +79,9 @@ def capture_cuda_graph(function: Callable[[], Any], *, device, warmup: int = 2, 
     warp_stream = wp.stream_from_torch(stream)
     # one capture mode on both sides (Warp must be told the mode of the capture torch opened)
     with wp.ScopedDevice(name), wp.ScopedStream(warp_stream, sync_enter=False), \
-            torch.cuda.graph(graph, stream=stream, capture_error_mode="thread_local"):
+            torch.cuda.graph(graph, stream=stream, capture_error_mode=CAPTURE_MODE):
         wp.capture_begin(stream=warp_stream, force_module_load=False, external=True,
-                         capture_mode=wp.CaptureMode.THREAD_LOCAL)
+                         capture_mode=getattr(wp.CaptureMode, CAPTURE_MODE.upper()))
         try:
             outputs = function()
         finally:

@@ -51,7 +51,8 @@ class Player:
             bring other matrices, not another size.
         background: [3] RGB in 0..1 (default black).
         sh_degree: SH degree to render with (default: all the avatar has).
-        cuda_graph: ``auto`` (a graph on CUDA), ``on`` (a graph, CUDA required) or ``off`` (eager). Avatars with
+        cuda_graph: ``auto`` (a graph on CUDA), ``on`` (a graph, CUDA required) or ``off`` (eager, the default until
+            captures are verified on a GPU). Avatars with
             parts that keep state over a sequence (they need the frame's index, a host number) always run eagerly.
         capacity_factor: intersection capacity as a multiple of the largest pair count seen (>= 1).
         check_every: read the pair count every this many frames (the only host read of playback).
@@ -61,7 +62,7 @@ class Player:
     """
 
     def __init__(self, avatar, camera, *, background: torch.Tensor | None = None, sh_degree: int | None = None,
-                 cuda_graph: str = "auto", capacity_factor: float = 2.0, check_every: int = 30):
+                 cuda_graph: str = "off", capacity_factor: float = 2.0, check_every: int = 30):
         if not capacity_factor >= 1.0:
             raise ValueError(f"capacity_factor must be >= 1, got {capacity_factor}")
         if check_every < 1:
@@ -141,7 +142,7 @@ class Player:
         if self.use_graph and self._graph is None:
             try:
                 self._graph, self._graph_outputs = capture_cuda_graph(self._draw, device=self.device)
-            except RuntimeError as error:  # under auto, play on eagerly
+            except Exception as error:  # noqa: BLE001 (torch 2.11 raises AcceleratorError) under auto, play on eagerly
                 if self._cuda_graph_mode == "on":
                     raise
                 self.use_graph = False
