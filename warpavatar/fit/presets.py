@@ -41,7 +41,7 @@ CORE_PRESETS: dict[str, dict] = {
     # The built-in demo (warpavatar-fit --demo, README's first command): ``quick`` shortened to fit in about
     # 3 minutes on 2 CPU cores with the same held-out quality (BENCHMARKS.md, issue 18): 1200 steps, the
     # stages and densification window scaled with them, and half the Gaussians (the Warp compositing kernels,
-    # single-threaded on the CPU, cost in proportion to them).
+    # single-threaded on the CPU, cost in proportion to them; the budget is soft: about 6.5k at the end).
     "demo": dict(
         iterations=1200,
         init_points_per_bone=60,
@@ -52,7 +52,7 @@ CORE_PRESETS: dict[str, dict] = {
         densify_from=150,
         densify_until=850,
         densify_every=70,
-        max_gaussians=5000,
+        max_gaussians=4000,
     ),
 }
 
