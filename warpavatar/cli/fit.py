@@ -66,7 +66,7 @@ def add_fit_options(parser: argparse.ArgumentParser, *, device_help: str | None 
     parser.add_argument("--preset", choices=preset_names(), default=None,
                         help="named configuration: 'default' (quality, GPU), 'quick' (small, CPU, minutes) or "
                              "'demo' (quick shortened for the built-in demo); default: 'default' on CUDA, 'quick' "
-                             "on CPU, 'demo' with --demo")
+                             "on CPU, 'demo' with warpavatar-fit --demo")
     parser.add_argument("--device", default=None if device_help else default_device(),
                         help=device_help or "torch device: cpu or cuda (default: %(default)s)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
