@@ -4,14 +4,16 @@ errors into clear messages."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import math
+import os
 import sys
 from pathlib import Path
 
 import torch
 
-__all__ = ["default_device", "resolve_device", "ArgumentParser", "positive_number",
+__all__ = ["default_device", "resolve_device", "cpu_torch_settings", "ArgumentParser", "positive_number",
            "check_output_path", "friendly_errors", "avatar_parser", "load_avatar", "load_motion_for"]
 
 
@@ -24,6 +26,31 @@ def resolve_device(name: str) -> torch.device:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("error: --device cuda was asked for but torch sees no CUDA device")
     return device
+
+
+@contextlib.contextmanager
+def cpu_torch_settings(device: torch.device):
+    """While active, on the CPU: one torch thread (unless ``OMP_NUM_THREADS`` says otherwise) and denormal
+    floats flushed to zero; both restored on exit. Elsewhere it does nothing.
+
+    A fit's heavy work on the CPU is Warp's kernels, which run on one core; torch's share is many small
+    operations, which a second thread hardly speeds up and which, on a machine whose cores are busy, cost
+    several times more CPU with two threads (OpenMP's waits). Adam's second moments of rarely seen Gaussians
+    decay into denormals, which the CPU handles far slower than normal floats (BENCHMARKS.md, issue 18).
+    """
+    if device.type != "cpu":
+        yield
+        return
+    threads = torch.get_num_threads()
+    flush = torch.set_flush_denormal(True)
+    if "OMP_NUM_THREADS" not in os.environ:
+        torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+        if flush:
+            torch.set_flush_denormal(False)
 
 
 class ArgumentParser(argparse.ArgumentParser):

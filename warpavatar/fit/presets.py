@@ -2,7 +2,8 @@
 
 A preset is the core's values (:data:`CORE_PRESETS`) plus what each registered extension declares for it
 (:attr:`~warpavatar.extensions.Extension.presets`: its switch and its options, e.g. a shorter schedule in
-``quick``).
+``quick``). A preset named in :data:`PRESET_BASES` starts from another preset's values (core and extensions)
+and changes some of them.
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ from __future__ import annotations
 from warpavatar.extensions import registered
 from warpavatar.fit.config import FitConfig
 
-__all__ = ["CORE_PRESETS", "preset_names", "preset_values", "preset"]
+__all__ = ["CORE_PRESETS", "PRESET_BASES", "preset_names", "preset_values", "preset"]
 
 CORE_PRESETS: dict[str, dict] = {
     # Quality preset, for a GPU.
@@ -37,7 +38,26 @@ CORE_PRESETS: dict[str, dict] = {
         opacity_reset_every=0,
         checkpoint_every=500,
     ),
+    # The built-in demo (warpavatar-fit --demo, README's first command): ``quick`` shortened to fit in about
+    # 3 minutes on 2 CPU cores with the same held-out quality (BENCHMARKS.md, issue 18): 1200 steps, the
+    # stages and densification window scaled with them, and half the Gaussians (the Warp compositing kernels,
+    # single-threaded on the CPU, cost in proportion to them; the budget is soft: about 6.5k at the end).
+    "demo": dict(
+        iterations=1200,
+        init_points_per_bone=60,
+        init_carve_points=3000,
+        sh_increase_every=400,
+        field_warmup_steps=200,
+        gaussian_only_steps=400,
+        densify_from=150,
+        densify_until=850,
+        densify_every=70,
+        max_gaussians=4000,
+    ),
 }
+
+PRESET_BASES: dict[str, str] = {"demo": "quick"}
+"""Presets that start from another preset's values (its core values and each extension's) and override some."""
 
 
 def preset_names() -> list[str]:
@@ -52,6 +72,7 @@ def preset_values(name: str) -> dict:
     """
     if name not in CORE_PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose one of {preset_names()}")
+    base = preset_values(PRESET_BASES[name]) if name in PRESET_BASES else {}
     values = dict(CORE_PRESETS[name])
     for extension in registered():
         for key, value in extension.presets.get(name, {}).items():
@@ -59,10 +80,10 @@ def preset_values(name: str) -> dict:
                 raise ValueError(f"preset {name!r}: {extension.__name__} sets {key}={value!r}, another part "
                                  f"{values[key]!r}")
             values[key] = value
-    return values
+    return {**base, **values}
 
 
 def preset(name: str = "default", **overrides) -> FitConfig:
-    """The named preset (``"default"`` or ``"quick"``) with some flat values overridden (core fields,
+    """The named preset (``"default"``, ``"quick"`` or ``"demo"``) with some flat values overridden (core fields,
     extension switches such as ``dynamics=True``, extension options such as ``dynamics_hidden=32``)."""
     return FitConfig.from_flat({**preset_values(name), **overrides})
