@@ -125,7 +125,7 @@ def test_conflicting_and_missing_extensions_are_refused_clearly():
             preset("quick", spin=True, lighting=True)
         with pytest.raises(ValueError, match="--tilt needs --spin"):
             preset("quick", tilt=True)
-        config = preset("quick", spin=True, tilt=True, spin_weight=2.0, refine_poses="off", garment="off")
+        config = preset("quick", spin=True, tilt=True, spin_weight=2.0, refine_poses="off")
         assert list(config.extensions) == ["spin", "tilt"]
     finally:
         unregister("tilt")
@@ -152,8 +152,7 @@ def test_the_registry_keeps_names_and_options_apart():
 def test_config_round_trips_and_reads_the_flat_layout_of_earlier_versions():
     config = preset("quick", dynamics=True, dynamics_hidden=16, lighting=True, pose_correction=True)
     assert type(config).from_dict(config.to_dict()) == config
-    assert list(config.extensions) == ["pose_refinement", "pose_correction", "dynamics", "garment",
-                                      "lighting"]  # registry order
+    assert list(config.extensions) == ["pose_refinement", "pose_correction", "dynamics", "lighting"]  # registry order
     # an earlier config.json: every field at the top level, extensions switched by booleans
     flat = preset_values("quick")
     flat.update(dynamics=True, dynamics_hidden=16, lighting=True, pose_correction=True, secondary_motion=False,

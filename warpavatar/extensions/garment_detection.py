@@ -19,11 +19,13 @@ The rule, each threshold a geometric statement rather than a tuned number:
    side) score little because the chains hardly move apart; cloth blended half and half between the legs of
    someone walking scores a quarter of the legs' separation. Seeds: ``split >= threshold`` times the body's longest side (default 1 %: 1.7 cm on a
    1.7 m person, a sliding no point of a rigid surface does).
+   The score is averaged over each point's k-NN neighbourhood first: a fitted field blends cloth patch by
+   patch, with Gaussians in between that one limb explains, and a garment is a region, not scattered points.
 2. Growth (hysteresis): neighbours on the k-NN graph of the canonical Gaussians whose split is at least a
    quarter of the threshold join the seeds' region (a garment's split fades towards its sides, where one leg
    dominates, but does not drop to zero while it still hangs between the limbs).
 3. Connected components of that region on the k-NN graph (edges no longer than ``link`` times the median
-   nearest-neighbour spacing: a garment is one connected surface) are kept when they hold at least
+   distance to the k-th neighbour, the surface's sampling scale: a garment is one connected surface) are kept when they hold at least
    ``min_fraction`` of all Gaussians: a crotch or an armpit, where a body's surface meets two limbs, is a
    small patch; a garment covers a sizeable part of the body.
 4. Attachment: the lowest common ancestor of the two heaviest mutually unrelated joints of the component (a
@@ -172,7 +174,7 @@ def detect_garments(
     threshold: float = 0.005,
     min_fraction: float = 0.03,
     neighbours: int = 8,
-    link: float = 4.0,
+    link: float = 2.0,
 ) -> list[GarmentRegion]:
     """Find the garments among canonical Gaussians from their skinning weights (see the module docstring).
 
@@ -184,7 +186,7 @@ def detect_garments(
         threshold: :func:`split_motion` of a seed, as a fraction of the canonical points' longest side.
         min_fraction: smallest garment as a fraction of all Gaussians, ``(0, 1)``.
         neighbours: k of the k-NN graph the components are found on.
-        link: longest link of that graph, in median nearest-neighbour spacings.
+        link: longest link of that graph, in median distances to the k-th neighbour.
 
     Returns:
         The garments, largest first (empty when there is none).
@@ -199,8 +201,17 @@ def detect_garments(
     split = split_motion(means, weights.float(), related, bone_transforms) / max(extent, 1e-12)
     index, distance = ops.knn_graph(means.detach().float().contiguous(), min(neighbours, count - 1))
     valid = index >= 0
-    spacing = distance[:, 0][valid[:, 0]].median() if bool(valid[:, 0].any()) else torch.tensor(0.0)
+    # the sampling scale of the surface: the median distance to the k-th neighbour (the nearest one is no
+    # scale: density control leaves clones almost on top of each other)
+    last = distance[:, -1][valid[:, -1]]
+    spacing = last.median() if last.numel() else torch.tensor(0.0)
     index = torch.where(valid & (distance <= link * spacing), index, -1)
+    # a garment is a surface region, not scattered points: score each point by the mean over itself and its
+    # linked neighbours (a fitted field blends cloth patch by patch, with single Gaussians in between that
+    # one leg explains)
+    linked = index >= 0
+    gathered = torch.where(linked, split[index.clamp_min(0)], torch.zeros_like(distance))
+    split = (split + gathered.sum(dim=1)) / (1.0 + linked.sum(dim=1))
     region = split >= threshold
     weak = split >= 0.25 * threshold
     while True:  # grow the seeds through neighbours that are split at least weakly
