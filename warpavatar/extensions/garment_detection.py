@@ -31,8 +31,10 @@ The rule, each threshold a geometric statement rather than a tuned number:
 4. Attachment: the lowest common ancestor of the two heaviest mutually unrelated joints of the component (a
    skirt split between the thighs hangs from their common ancestor, the hips); a user may name the joint.
 
-Robots, animals and tightly dressed people get weights inside one chain everywhere except at small patches, so
-no component passes step 3 and the fit runs exactly as without the garment extension.
+Robots, animals and tightly dressed people should get weights inside one chain everywhere except at small
+patches, so that no component passes step 3 and the fit runs exactly as without the garment extension. Known
+weakness: a field that has not separated neighbouring chains yet (fingers side by side, arms against the head
+in short CPU fits of the robot) scores like cloth; hence ``--garment`` is off by default for now.
 """
 
 from __future__ import annotations
