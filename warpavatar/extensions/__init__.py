@@ -14,12 +14,14 @@ Built in, in hook order:
 - ``pose_correction`` (``--pose-correction``): a pose-conditioned correction of the canonical Gaussians.
 - ``secondary_motion`` (``--secondary-motion``): per-training-frame displacements on SMAD's graph.
 - ``dynamics`` (``--dynamics``): SMAD's learned secondary dynamics.
+- ``garment`` (``--garment auto|off``): loose garments detected and simulated as cloth.
 - ``lighting`` (``--lighting``): a global world-frame irradiance.
 """
 
 from warpavatar.extensions.backward_mapping import BackwardMappingExtension
 from warpavatar.extensions.base import Extension, FitContext, LossTerm, NoOptions, StepContext, option
 from warpavatar.extensions.dynamics import DynamicsExtension
+from warpavatar.extensions.garment import GarmentExtension
 from warpavatar.extensions.joint_growth import JointGrowthExtension
 from warpavatar.extensions.lighting import LightingExtension
 from warpavatar.extensions.pose_correction import PoseCorrectionExtension
@@ -31,6 +33,6 @@ __all__ = ["Extension", "FitContext", "StepContext", "LossTerm", "NoOptions", "o
            "registered", "get_extension", "load_entry_points"]
 
 for _extension in (PoseRefinementExtension, JointGrowthExtension, BackwardMappingExtension, PoseCorrectionExtension,
-                   SecondaryMotionExtension, DynamicsExtension, LightingExtension):
+                   SecondaryMotionExtension, DynamicsExtension, GarmentExtension, LightingExtension):
     register(_extension)
 load_entry_points()

@@ -1,0 +1,257 @@
+"""The garment extension: detection, the simulated part, fitting through the simulation, files and consumers."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from warpavatar import data
+from warpavatar.extensions.garment import GarmentPart
+from warpavatar.extensions.garment_detection import (detect_garments, lowest_common_ancestor, related_joints,
+                                                     split_motion, split_weight)
+from warpavatar.fit import Trainer, preset
+from warpavatar.model import Avatar
+from warpavatar.model.parts import frame_intervals
+
+# a pelvis (0) with a spine (1) and two legs (2, 3), each leg with a shin (4, 5)
+PARENTS = [-1, 0, 0, 0, 2, 3]
+
+
+def _ring(centre_xy, radius, heights, count, generator):
+    angle = 2 * math.pi * torch.rand(count, generator=generator)
+    z = heights[0] + (heights[1] - heights[0]) * torch.rand(count, generator=generator)
+    r = radius(z) if callable(radius) else torch.full_like(z, radius)
+    return torch.stack([centre_xy[0] + r * torch.cos(angle), centre_xy[1] + r * torch.sin(angle), z], dim=1)
+
+
+def _body(generator, *, skirt: bool):
+    """Legs, shins and a torso as cylinders of points, each skinned to its bone; with ``skirt``, a cone from the
+    hips to the knees whose weights blend the two legs by side (as a fitted field gives cloth between them)."""
+    parts = [(_ring((0.0, 0.0), 0.12, (1.0, 1.5), 800, generator), 1),
+             (_ring((0.0, 0.1), 0.06, (0.5, 1.0), 500, generator), 2),
+             (_ring((0.0, -0.1), 0.06, (0.5, 1.0), 500, generator), 3),
+             (_ring((0.0, 0.1), 0.05, (0.0, 0.5), 400, generator), 4),
+             (_ring((0.0, -0.1), 0.05, (0.0, 0.5), 400, generator), 5)]
+    means = torch.cat([points for points, _ in parts])
+    weights = torch.cat([torch.nn.functional.one_hot(torch.full((p.shape[0],), j), 6).float() for p, j in parts])
+    if skirt:
+        cone = _ring((0.0, 0.0), lambda z: 0.14 + 0.3 * (1.0 - z), (0.45, 1.0), 1200, generator)
+        left = (0.5 + 0.5 * (cone[:, 1] / 0.45).clamp(-1, 1)) * 0.9
+        cone_weights = torch.zeros(cone.shape[0], 6)
+        cone_weights[:, 2], cone_weights[:, 3], cone_weights[:, 0] = left, 0.9 - left, 0.1
+        means, weights = torch.cat([means, cone]), torch.cat([weights, cone_weights])
+    return means, weights
+
+
+def _walk(frame_count=8, swing=0.5):
+    """The legs (and their shins) swing in opposition about the hips (z = 1) while the torso stays."""
+    transforms = torch.eye(4).repeat(frame_count, 6, 1, 1)
+    for frame in range(frame_count):
+        angle = swing * math.sin(2 * math.pi * frame / frame_count)
+        for joints, sign in (((2, 4), 1.0), ((3, 5), -1.0)):
+            c, s = math.cos(sign * angle), math.sin(sign * angle)
+            rotation = torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+            pivot = torch.tensor([0.0, 0.0, 1.0])
+            for joint in joints:
+                transforms[frame, joint, :3, :3] = rotation
+                transforms[frame, joint, :3, 3] = pivot - rotation @ pivot
+    return transforms
+
+
+def test_joint_relations_and_common_ancestors():
+    related = related_joints(PARENTS)
+    assert related[0, 4] and related[4, 0] and related[2, 4] and not related[2, 3] and not related[4, 5]
+    assert not related[1, 2]
+    assert lowest_common_ancestor(PARENTS, 4, 5) == 0 and lowest_common_ancestor(PARENTS, 4, 2) == 2
+    weights = torch.tensor([[0.0, 0.0, 0.7, 0.3, 0.0, 0.0], [0.5, 0.0, 0.5, 0.0, 0.0, 0.0]])
+    assert torch.allclose(split_weight(weights, related), torch.tensor([0.3, 0.0]))
+    # 0.7 x 0.3 of how far apart the two legs carry the point; nothing for a blend along one chain
+    points = torch.tensor([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5]])
+    motion = _walk()
+    expected = torch.stack([0.21 * (t[2] @ torch.tensor([0.0, 0.0, 0.5, 1.0]) - t[3] @ torch.tensor([0.0, 0.0, 0.5, 1.0]))
+                            [:3].norm() for t in motion]).mean()
+    assert torch.allclose(split_motion(points, weights, related, motion), torch.stack([expected, torch.tensor(0.0)]),
+                          atol=1e-6)
+
+
+def test_detection_finds_the_skirt_between_two_legs_and_nothing_on_a_bare_body():
+    generator = torch.Generator().manual_seed(0)
+    means, weights = _body(generator, skirt=True)
+    found = detect_garments(means, weights, PARENTS, _walk())
+    assert len(found) == 1
+    garment = found[0]
+    is_skirt = torch.zeros(means.shape[0], dtype=torch.bool)
+    is_skirt[-1200:] = True
+    hits = is_skirt[garment.gaussian_ids]
+    assert hits.float().mean() > 0.9 and hits.sum() > 0.8 * 1200  # (the smoothing reaches the legs it touches)
+    assert garment.joint == 0 and set(garment.split_joints) == {2, 3}
+    bare, bare_weights = _body(torch.Generator().manual_seed(0), skirt=False)
+    assert detect_garments(bare, bare_weights, PARENTS, _walk()) == []
+    # the same skirt on a body that does not move its legs apart is not told from the body
+    assert detect_garments(means, weights, PARENTS, torch.eye(4).repeat(4, 6, 1, 1)) == []
+
+
+# ---------------------------------------------------------------------------------------------- tiny fits
+def _tiny(**overrides):
+    values = dict(iterations=24, image_scale=0.5, max_train_frames=6, init_points_per_bone=20,
+                  init_carve_candidates=8000, init_carve_points=600, sh_degree=1, grid_cells=12, grid_min_cells=4,
+                  field_hidden=16, field_layers=1, field_warmup_steps=6, gaussian_only_steps=6, densify_from=8,
+                  densify_every=8, densify_until=20, checkpoint_every=1000, log_every=4, preview_frames=1,
+                  garment_from=10)
+    values.update(overrides)
+    return preset("quick", **values)
+
+
+# a forced garment on the robot: every slightly split Gaussian, hung from the root; coarse nodes and substeps
+FORCED = dict(garment_threshold=0.0005, garment_min_fraction=0.01, garment_voxel=0.12, garment_substep=1.0 / 60.0,
+              garment_window=2, garment_refresh_every=6)
+
+
+@pytest.fixture(scope="module")
+def video():
+    return data.load_video_folder(data.demo_subject_path() / "train", max_frames=8, scale=0.5)
+
+
+@pytest.fixture(scope="module")
+def forced(video, tmp_path_factory):
+    config = _tiny(garment="auto", garment_attach=video.skeleton.names[0], **FORCED)
+    trainer = Trainer(video, config, tmp_path_factory.mktemp("forced"))
+    part_before = {}
+
+    def snapshot():
+        part = trainer.avatar.part("garment")
+        if part is not None and not part_before:
+            part_before.update({n: p.detach().clone() for n, p in part.cloth.named_parameters()})
+
+    original = trainer.extension("garment").optimizers
+
+    def optimizers(step):
+        snapshot()
+        return original(step)
+
+    trainer.extension("garment").optimizers = optimizers
+    trainer.fit(progress=False)
+    return trainer, config, part_before
+
+
+def test_auto_changes_nothing_until_a_garment_is_found(video, tmp_path):
+    # detection reads the model and draws no random numbers: a fit where it has not found a garment (here: not
+    # yet run) is the fit with the garment off, bit for bit
+    auto = Trainer(video, _tiny(garment="auto", garment_from=1000), tmp_path / "auto")
+    auto.fit(progress=False)
+    assert auto.avatar.part("garment") is None
+    off = Trainer(video, _tiny(garment="off"), tmp_path / "off")
+    off.fit(progress=False)
+    assert off.extension("garment") is None
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh_dc"):
+        assert torch.equal(getattr(auto.gaussians, name), getattr(off.gaussians, name)), name
+
+
+def test_a_forced_garment_trains_its_cloth(forced):
+    trainer, _, before = forced
+    part = trainer.avatar.part("garment")
+    assert part is not None and part.gaussian_ids.numel() > 0 and part.attached.numel() > 0
+    assert part.anchor.shape == part.gaussian_ids.shape
+    assert int(part.gaussian_ids.max()) < trainer.gaussians.count
+    changed = [name for name, value in part.cloth.named_parameters() if not torch.equal(value.detach(), before[name])]
+    assert "stiffness_logit" in changed and "rest_length_logit" in changed
+    for value in part.cloth.parameters():
+        assert torch.isfinite(value).all()
+    log = [line for line in (trainer.log_path.read_text().splitlines()) if "garment_stiffness" in line]
+    assert log, "the cloth's values are logged"
+
+
+def test_resume_gives_the_same_avatar_bit_for_bit(forced, video, tmp_path):
+    whole, config, _ = forced
+    Trainer(video, config, tmp_path / "parts").fit(progress=False, stop_at=14)
+    resumed = Trainer(video, config, tmp_path / "parts")
+    resumed.fit(resume=True, progress=False)
+    for name in ("means", "quats", "sh_dc"):
+        assert torch.equal(getattr(whole.gaussians, name), getattr(resumed.gaussians, name)), name
+    for (name, a), b in zip(whole.avatar.part("garment").cloth.named_parameters(),
+                            resumed.avatar.part("garment").cloth.parameters()):
+        assert torch.equal(a, b), name
+
+
+def _motion(video, count=6):
+    bones = torch.as_tensor(video.bone_transforms[:count], dtype=torch.float32)
+    return bones.flip(0).contiguous()  # the training motion backwards: a motion the fit never saw
+
+
+def test_the_part_round_trips_through_the_avatar_file_and_renders_the_same(forced, video, tmp_path):
+    trainer = forced[0]
+    path = trainer.avatar.save(tmp_path / "avatar.pt")
+    loaded = Avatar.load(path)
+    part = loaded.part("garment")
+    assert isinstance(part, GarmentPart)
+    camera = video.cameras[0]
+    with torch.no_grad():
+        for avatar in (trainer.avatar, loaded):
+            avatar.prepare_sequence(_motion(video))
+        for index in (0, 3):
+            pose = trainer.frames.bone_transforms[index]  # a training instant: the table
+            assert torch.equal(trainer.avatar.render(camera, pose)[0], loaded.render(camera, pose)[0])
+            pose = _motion(video)[index]  # the prepared motion
+            assert torch.equal(trainer.avatar.render(camera, pose)[0], loaded.render(camera, pose)[0])
+        lone = trainer.frames.bone_transforms[2].clone()
+        lone[:, 2, 3] += 0.05  # a pose of no sequence: the cloth settles there
+        image = trainer.avatar.render(camera, lone)[0]
+        assert torch.isfinite(image).all() and torch.equal(image, loaded.render(camera, lone)[0])
+
+
+def test_a_new_motion_starts_settled_and_the_attached_nodes_follow_the_body(forced, video):
+    part = forced[0].avatar.part("garment")
+    motion = _motion(video)
+    bones = torch.stack([forced[0].avatar.pose_bones(b) for b in motion])
+    intervals = frame_intervals(range(motion.shape[0]), 30.0)
+    with torch.no_grad():
+        positions, velocities = part.rollout(bones, intervals.tolist())
+        # settled: the nodes drift by less than a tenth of their spacing per frame at frame 0
+        speed = velocities[0].norm(dim=1).mean()
+        assert speed * intervals[0] < 0.1 * part.hyper["voxel_size"]
+        for frame in range(motion.shape[0]):
+            assert torch.allclose(positions[frame][part.attached], part.attachment_targets(bones[frame]), atol=1e-5)
+        # the free nodes are simulated, not skinned: they differ from the skinned shape
+        skinned, _ = part.skinned_nodes(bones[3])
+        free = torch.ones(part.node_count, dtype=torch.bool)
+        free[part.attached] = False
+        assert (positions[3][free] - skinned[free]).norm(dim=1).max() > 1e-3
+        # a still pose stays still (settled), and two rollouts are the same (determinism)
+        still = bones[:1].expand(4, -1, -1, -1).contiguous()
+        rest, _ = part.rollout(still, [1 / 30] * 4)
+        assert (rest[-1] - rest[0]).norm(dim=1).max() < 0.05 * part.hyper["voxel_size"] + 1e-4
+        again, _ = part.rollout(bones, intervals.tolist())
+        assert torch.equal(again, positions)
+
+
+def test_consumers_run_the_simulation(forced, video):
+    from warpavatar.io.animation import posed_frames
+
+    avatar = forced[0].avatar
+    part = avatar.part("garment")
+    motion = _motion(video).numpy()
+    frames = list(posed_frames(avatar, motion, frame_ids=np.arange(motion.shape[0]), fps=30.0))
+    ids = part.gaussian_ids
+    garment_means = [posed["means"][ids] for posed in frames]
+    assert (garment_means[1] - garment_means[4]).norm(dim=1).max() > 1e-3  # the cloth moves between samples
+    # and it is not what skinning alone gives
+    avatar.parts.pop("garment")
+    try:
+        skinned = avatar.pose(torch.as_tensor(motion[4]))["means"][ids]
+    finally:
+        avatar.add_part(part)
+    assert (skinned - garment_means[4]).norm(dim=1).max() > 1e-3
+
+
+def test_bad_garment_options_are_one_line_errors(capsys, tmp_path):
+    from warpavatar.cli import fit as fit_cli
+
+    demo = str(data.demo_subject_path() / "train")
+    for flags, message in ((["--garment-attach", "Nowhere"], "no such joint"),
+                           (["--garment-from", "-3"], "--garment-from"),
+                           (["--garment-window", "0"], "--garment-window")):
+        status = fit_cli.main([demo, "-o", str(tmp_path / "out"), "--preset", "quick", "--iterations", "2",
+                               "--no-progress", "--overwrite", "--garment", "auto", *flags])
+        error = capsys.readouterr().err.strip()
+        assert status == 2 and message in error and "\n" not in error, error

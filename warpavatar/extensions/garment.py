@@ -1,0 +1,565 @@
+"""A loose garment as simulated cloth: detected in the fit, fitted by differentiable simulation, rolled out by
+every consumer.
+
+The part (:class:`GarmentPart`). The garment's Gaussians (``gaussian_ids`` into the avatar's) are
+voxel-downsampled into cloth *nodes* in canonical space; a :class:`~warpavatar.sim.ClothModel` joins them by
+stretch and bend springs with learnable rest lengths, stiffness, damping, drag and mass scale. Some nodes are
+*attached*: they follow their canonical rest position skinned by the body (a waistband on the hips); the others
+are free particles under gravity, pushed out of the body's capsules (fitted once to the non-garment Gaussians,
+:func:`~warpavatar.sim.fit_body_capsules`). After skinning (:meth:`GarmentPart.deform_posed`), each garment
+Gaussian rides on its nearest node: centre ``x_node + R_node offset``, rotation ``q_node * q_canonical``, where
+``offset`` is its canonical centre minus the node's rest position and ``R_node`` the rotation of the node's
+neighbourhood from rest (:func:`~warpavatar.sim.node_rotations`, warm-started by the node's skinning rotation):
+appearance stays on the cloth, whatever the body does.
+
+Where a frame's cloth state comes from, in this order:
+
+1. an explicit input (a fit's window of simulated frames, with gradients);
+2. the table of the training rollout when the pose is a training frame's (novel views of training instants
+   see the cloth as the whole training motion, rolled out from a settled rest at frame 0, left it);
+3. the sequence prepared by :meth:`GarmentPart.prepare_sequence` when the pose is one of its frames (a new
+   motion: settled at its first pose, then simulated frame by frame);
+4. otherwise the cloth settled at that pose (one pose on its own: it hangs at rest, never an unsimulated
+   smear). This case reads the device once to know it is in it.
+
+The fit (:class:`GarmentExtension`) detects garments at ``--garment-from`` (:mod:`.garment_detection`), builds
+the part, and from then on trains it by truncated backpropagation through time, in the manner of the
+dynamics extension: a no-grad rollout of the whole training sequence (refreshed every
+``--garment-refresh-every`` steps) caches every frame's state; a step simulates the ``--garment-window`` frames
+before its training frame from the cached state, with gradients, so the image loss reaches the cloth's
+parameters through those substeps. Nothing is learned per training frame: novel poses use the same physics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from warpavatar import ops
+from warpavatar.extensions.base import Extension, option
+from warpavatar.extensions.garment_detection import detect_garments, related_joints
+from warpavatar.extensions.graph import voxel_downsample
+from warpavatar.geometry import match_pose
+from warpavatar.model.parts import AvatarPart
+from warpavatar.sim import (Capsules, ClothGraph, ClothModel, ClothState, capsules_near, cloth_graph,
+                            fit_body_capsules, nearest_nodes, node_rotations, pose_capsules, ride_on_nodes)
+from warpavatar.sim.capsules import select
+
+__all__ = ["GarmentPart", "GarmentOptions", "GarmentExtension"]
+
+_IDENTITY_QUAT = (1.0, 0.0, 0.0, 0.0)
+
+
+class GarmentPart(AvatarPart):
+    """A simulated garment: its Gaussians ride on the nodes of a mass-spring cloth hung from the body.
+
+    Args:
+        gaussian_ids: int64 ``[G]`` the garment's Gaussians among the avatar's.
+        nodes: canonical rest positions of the cloth nodes [world units], ``[M, 3]``.
+        node_weights: skinning weights of the nodes ``[M, J+E]`` (what the attached nodes and the warm start of
+            the node rotations are skinned with).
+        attached: int64 ``[A]`` ids of the nodes held by the body.
+        joint: the joint the garment hangs from (skeleton index; reported, and the attachment's reference).
+        capsules: canonical body capsules, one per skeleton joint; ``capsule_ids`` int64 ``[C]``: the ones the
+            garment can meet (posed by those joints' transforms).
+        voxel_size: node spacing [world units].
+        max_substep: longest simulation substep [s].
+        up: the world's up direction (gravity is ``-9.81 up``).
+        joint_count: joints J of the skeleton (the leading transforms that name a pose); default ``J+E``.
+        graph: the cloth's edges (None: :func:`~warpavatar.sim.cloth_graph` of ``nodes``).
+        settle_frames: at most this many frames of settling before a sequence or a lone pose.
+    """
+
+    name = "garment"
+
+    def __init__(self, gaussian_ids: torch.Tensor, nodes: torch.Tensor, node_weights: torch.Tensor,
+                 attached: torch.Tensor, *, joint: int, capsules: Capsules, capsule_ids: torch.Tensor,
+                 voxel_size: float, max_substep: float = 1.0 / 240.0, up=(0.0, 0.0, 1.0),
+                 joint_count: int | None = None, graph: ClothGraph | None = None, settle_frames: int = 300):
+        super().__init__()
+        nodes = nodes.detach().float().contiguous()
+        device = nodes.device
+        if nodes.shape[0] < 2:
+            raise ValueError(f"a garment needs at least 2 cloth nodes, got {nodes.shape[0]}")
+        if graph is None:
+            graph = cloth_graph(nodes, neighbours=min(8, nodes.shape[0] - 1))
+        joint_count = int(node_weights.shape[1] if joint_count is None else joint_count)
+        self.hyper = dict(joint=int(joint), joint_count=joint_count, voxel_size=float(voxel_size), max_substep=float(max_substep),
+                          up=tuple(float(u) for u in up), settle_frames=int(settle_frames))
+        self.register_buffer("gaussian_ids", torch.as_tensor(gaussian_ids, device=device).long().clone())
+        self.register_buffer("nodes", nodes.clone())
+        self.register_buffer("node_weights", node_weights.detach().float().to(device).clone())
+        self.register_buffer("stretch", graph.stretch.to(device).long().clone())
+        self.register_buffer("bend", graph.bend.to(device).long().clone())
+        self.register_buffer("capsule_start", capsules.segment_start.detach().float().to(device).clone())
+        self.register_buffer("capsule_end", capsules.segment_end.detach().float().to(device).clone())
+        self.register_buffer("capsule_radius", capsules.radius.detach().float().to(device).clone())
+        self.register_buffer("capsule_ids", torch.as_tensor(capsule_ids, device=device).long().clone())
+        self.register_buffer("anchor", torch.zeros(0, dtype=torch.int64, device=device))
+        self.cloth = ClothModel(nodes, graph, torch.as_tensor(attached, device=device).long(), max_substep=max_substep,
+                                up=self.hyper["up"])
+        # the table of the training rollout: poses [T,J,4,4], node positions [T,M,3], node rotations [T,M,4]
+        self.register_buffer("frame_poses", torch.zeros(0, 1, 4, 4, device=device))
+        self.register_buffer("frame_positions", torch.zeros(0, nodes.shape[0], 3, device=device))
+        self.register_buffer("frame_quats", torch.zeros(0, nodes.shape[0], 4, device=device))
+        self._sequence: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+        self._lone: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None  # last settled lone pose
+
+    @property
+    def node_count(self) -> int:
+        return self.nodes.shape[0]
+
+    @property
+    def attached(self) -> torch.Tensor:
+        return self.cloth.attached
+
+    # ------------------------------------------------------------------------------------------ binding
+    @torch.no_grad()
+    def bind(self, canonical_means: torch.Tensor) -> None:
+        """Anchor each garment Gaussian on its nearest node: ``canonical_means`` [N,3] of all the avatar's."""
+        self.anchor = nearest_nodes(canonical_means.detach()[self.gaussian_ids], self.nodes)
+
+    @torch.no_grad()
+    def renumber(self, source_index: torch.Tensor, canonical_means: torch.Tensor) -> None:
+        """Follow density control: new Gaussian ``i`` comes from old ``source_index[i]`` (a clone or a split of a
+        garment Gaussian is one too); then re-anchor on the new canonical means [N,3]."""
+        old_count = int(source_index.max()) + 1 if source_index.numel() else 0
+        old_count = max(old_count, int(self.gaussian_ids.max()) + 1 if self.gaussian_ids.numel() else 0)
+        member = torch.zeros(old_count, dtype=torch.bool, device=source_index.device)
+        member[self.gaussian_ids] = True
+        self.gaussian_ids = torch.nonzero(member[source_index]).reshape(-1)
+        self.bind(canonical_means)
+
+    @torch.no_grad()
+    def set_node_weights(self, node_weights: torch.Tensor) -> None:
+        """Replace the nodes' skinning weights ``[M, J+E]`` (the field trained; joints grew)."""
+        self.node_weights = node_weights.detach().float().clone()
+
+    # ------------------------------------------------------------------------------------ the body's part
+    def _bones(self, bones: torch.Tensor) -> torch.Tensor:
+        return bones[: self.node_weights.shape[1]]
+
+    def skinned_nodes(self, bones: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Node positions [M,3] and rotations [M,4] as skinning alone would pose them (``bones`` [J+E,4,4])."""
+        identity = self.nodes.new_tensor(_IDENTITY_QUAT).expand(self.node_count, 4).contiguous()
+        return ops.lbs(self.nodes, self.node_weights, self._bones(bones).contiguous(), quats=identity)
+
+    def attachment_targets(self, bones: torch.Tensor) -> torch.Tensor:
+        """Where the attached nodes are in a pose [A,3]: their rest positions skinned by the body."""
+        attached = self.attached
+        points, _ = ops.lbs(self.nodes[attached].contiguous(), self.node_weights[attached].contiguous(),
+                            self._bones(bones).contiguous())
+        return points
+
+    def posed_capsules(self, bones: torch.Tensor) -> Capsules:
+        """The garment's candidate capsules in a pose (``bones``: the skeleton's transforms first)."""
+        ids = self.capsule_ids
+        canonical = select(Capsules(self.capsule_start, self.capsule_end, self.capsule_radius), ids)
+        return pose_capsules(canonical, bones[ids])
+
+    # ------------------------------------------------------------------------------------------ simulation
+    @torch.no_grad()
+    def settled(self, bones: torch.Tensor, frame_interval: float) -> ClothState:
+        """The cloth at rest in one pose: skinned there, then settled (extra drag) under gravity."""
+        positions, _ = self.skinned_nodes(bones)
+        state = self.cloth.rest_state(positions)
+        state, _ = self.cloth.settle(state, self.attachment_targets(bones), capsules=self.posed_capsules(bones),
+                                     frame_interval=float(frame_interval), max_frames=self.hyper["settle_frames"])
+        return state
+
+    def step(self, state: ClothState, previous_bones: torch.Tensor, bones: torch.Tensor, seconds: float
+             ) -> ClothState:
+        """One frame of ``seconds`` from the pose ``previous_bones`` to ``bones`` (differentiable)."""
+        return self.cloth.step(state, self.attachment_targets(bones), float(seconds),
+                               capsules=self.posed_capsules(bones),
+                               previous_capsules=self.posed_capsules(previous_bones))
+
+    @torch.no_grad()
+    def rollout(self, bones: torch.Tensor, seconds: list[float], *, progress: bool = False
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Simulate a motion (no gradients): settled at its first pose, then frame by frame.
+
+        Args:
+            bones: [T,J+E,4,4] every skinning transform of each frame.
+            seconds: [T] seconds from each frame to the one before (the first: the settling frame's length).
+
+        Returns:
+            ``(positions, velocities)`` of the nodes, ``[T, M, 3]`` each.
+        """
+        state = self.settled(bones[0], seconds[0])
+        positions, velocities = [state.positions], [state.velocities]
+        frames = range(1, bones.shape[0])
+        if progress:
+            import tqdm
+
+            frames = tqdm.tqdm(frames, desc="garment", unit="frame")
+        for frame in frames:
+            state = self.step(state, bones[frame - 1], bones[frame], seconds[frame])
+            positions.append(state.positions)
+            velocities.append(state.velocities)
+        return torch.stack(positions), torch.stack(velocities)
+
+    def node_quats(self, positions: torch.Tensor, bones: torch.Tensor) -> torch.Tensor:
+        """Rotation [M,4] of every node's neighbourhood from rest to ``positions`` [M,3], warm-started by skinning."""
+        with torch.no_grad():
+            _, initial = self.skinned_nodes(bones)
+        return node_rotations(self.nodes, positions, self.cloth.edges, initial=initial, iterations=4)
+
+    @torch.no_grad()
+    def _table(self, bones: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
+        return torch.stack([self.node_quats(p, b) for p, b in zip(positions, bones)])
+
+    @torch.no_grad()
+    def set_training_rollout(self, poses: torch.Tensor, bones: torch.Tensor, positions: torch.Tensor) -> None:
+        """Keep the training sequence's poses [T,J,4,4] (as given) and its rolled-out node positions [T,M,3]."""
+        self.frame_poses = poses.detach().float().clone()
+        self.frame_positions = positions.detach().float().clone()
+        self.frame_quats = self._table(bones, positions)
+
+    @torch.no_grad()
+    def prepare_sequence(self, bones: torch.Tensor, intervals: torch.Tensor, *, progress: bool = False) -> None:
+        """Roll a new motion out (settled at its first pose) so its frames get their simulated cloth."""
+        positions, _ = self.rollout(bones, intervals.tolist(), progress=progress)
+        self._sequence = (bones[:, :self.hyper["joint_count"]].detach().float().clone(), positions, self._table(bones, positions))
+
+    def _lookup(self, frame, bones: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        pose = frame.bone_transforms
+        tables = [(self.frame_poses, self.frame_positions, self.frame_quats)]
+        if self._sequence is not None:
+            tables.append(self._sequence)
+        positions = torch.zeros_like(self.nodes)
+        quats = torch.zeros(self.node_count, 4, device=self.nodes.device)
+        found = torch.zeros((), device=self.nodes.device)
+        for poses, table_positions, table_quats in tables:
+            if poses.shape[0] == 0:
+                continue
+            best, matched = match_pose(poses, pose)
+            use = matched * (1.0 - found)
+            positions = positions + use * table_positions[best]
+            quats = quats + use * table_quats[best]
+            found = found + use
+        if float(found) < 0.5:  # a lone pose: hang the cloth at rest there
+            key = self._lone
+            if key is None or key[0].shape != pose.shape or not torch.equal(key[0], pose):
+                state = self.settled(bones, 1.0 / 30.0)
+                self._lone = (pose.detach().clone(), state.positions, self.node_quats(state.positions, bones))
+            return self._lone[1], self._lone[2]
+        return positions, quats
+
+    # ------------------------------------------------------------------------------------------ posing
+    def deform_posed(self, posed, frame):
+        """Replace the garment Gaussians' skinned centres and rotations by the cloth's (see the module docstring)."""
+        ids = self.gaussian_ids
+        if ids.numel() == 0:
+            return posed
+        bones = posed["bone_transforms"]
+        explicit = frame.input(self.name)
+        if explicit is not None:
+            positions = explicit
+            quats = self.node_quats(positions, bones)
+        else:
+            positions, quats = self._lookup(frame, bones)
+        if self.anchor.shape[0] != ids.shape[0]:
+            self.bind(posed["canonical_means"])
+        anchor = self.anchor
+        offset = posed["canonical_means"].index_select(0, ids) - self.nodes.index_select(0, anchor)
+        means, rotations = ride_on_nodes(positions, quats, anchor, offset,
+                                         posed["canonical_quats"].index_select(0, ids))
+        posed = type(posed)(posed)
+        posed["means"] = posed["means"].index_copy(0, ids, means.to(posed["means"].dtype))
+        posed["quats"] = posed["quats"].index_copy(0, ids, rotations.to(posed["quats"].dtype))
+        return posed
+
+    # ------------------------------------------------------------------------------------------- files
+    def state_for_file(self) -> dict:
+        return {"state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()}, "hyper": dict(self.hyper)}
+
+    @classmethod
+    def from_file_state(cls, state: dict, *, device="cpu") -> "GarmentPart":
+        weights = {k: v.to(device) for k, v in state["state_dict"].items()}
+        hyper = state["hyper"]
+        part = cls(weights["gaussian_ids"], weights["nodes"], weights["node_weights"], weights["cloth.attached"],
+                   joint=hyper["joint"], capsules=Capsules(weights["capsule_start"], weights["capsule_end"],
+                                                           weights["capsule_radius"]),
+                   capsule_ids=weights["capsule_ids"], voxel_size=hyper["voxel_size"],
+                   max_substep=hyper["max_substep"], up=hyper["up"], joint_count=hyper["joint_count"],
+                   graph=ClothGraph(weights["stretch"], weights["bend"]), settle_frames=hyper["settle_frames"])
+        for name in ("anchor", "frame_poses", "frame_positions", "frame_quats"):
+            setattr(part, name, weights[name])
+        part.load_state_dict(weights)
+        return part
+
+
+@dataclass
+class GarmentOptions:
+    """Options of the garment extension."""
+
+    garment: str = option("off", "detect loose garments and simulate them as cloth ('auto'), or not ('off')",
+                          product=True, choices=("auto", "off"))
+    garment_attach: str = option("", "name of the joint the garment hangs from, overriding the detected one "
+                                 "(default: detected)", product=True)
+    garment_from: int = option(3000, "step at which garments are detected and their cloth starts to train (after "
+                               "the skinning field has trained for a while)")
+    garment_threshold: float = option(0.005, "garment seeds: Gaussians whose skinning weights blend limbs that "
+                                      "move apart (weight x weight x distance apart over the training motion) by "
+                                      "at least this fraction of the body's longest side (0-1)")
+    garment_min_fraction: float = option(0.03, "smallest garment, as a fraction of all Gaussians (0-1)")
+    garment_voxel: float = option(0.03, "cloth node spacing as a fraction of the canonical box's longest side")
+    garment_window: int = option(3, "frames simulated with gradients before each training frame (truncated "
+                                 "backpropagation through time)")
+    garment_refresh_every: int = option(50, "steps between no-grad rollouts of the whole training motion "
+                                        "(the cached states the windows start from)")
+    garment_substep: float = option(1.0 / 240.0, "longest simulation substep [s]; the cloth's stiffness bound "
+                                    "scales with its inverse square")
+    lr_garment: float = option(0.02, "Adam learning rate of the cloth's parameters (logits of rest lengths, "
+                               "stiffness, damping, drag, mass scale)")
+
+
+class GarmentExtension(Extension):
+    """Detect a loose garment, simulate it as cloth and fit its physics through the simulation (see the module
+    docstring)."""
+
+    name = "garment"
+    switch_modes = ("auto", "off")
+    default_mode = "off"  # until GPU fits confirm the detection on subjects with and without loose cloth
+    title = "simulated garments (--garment)"
+    summary = ("detect loose garments (Gaussians whose skinning weights split between independent limbs) at "
+               "--garment-from and simulate each as a mass-spring cloth hung from the body; its physics is fitted "
+               "through the simulation and every consumer rolls the cloth out ('auto'), or never ('off')")
+    options_type = GarmentOptions
+    presets = {"quick": {"garment_from": 1200}}
+
+    @classmethod
+    def check(cls, options, config) -> None:
+        for name in ("garment_from", "garment_window", "garment_refresh_every"):
+            if getattr(options, name) < (0 if name == "garment_from" else 1):
+                raise ValueError(f"--{name.replace('_', '-')} must be >= {0 if name == 'garment_from' else 1}, "
+                                 f"got {getattr(options, name)}")
+        for name in ("garment_threshold", "garment_min_fraction"):
+            if not 0.0 < getattr(options, name) < 1.0:
+                raise ValueError(f"--{name.replace('_', '-')} must be in (0, 1), got {getattr(options, name)}")
+        for name in ("garment_voxel", "garment_substep", "lr_garment"):
+            if not getattr(options, name) > 0.0:
+                raise ValueError(f"--{name.replace('_', '-')} must be > 0, got {getattr(options, name)}")
+
+    def attach(self) -> None:
+        names = self.fit.frames.skeleton.names
+        if self.options.garment_attach and self.options.garment_attach not in names:
+            raise ValueError(f"--garment-attach {self.options.garment_attach!r}: no such joint; the skeleton's "
+                             f"joints are {', '.join(names)}")
+        self.part: GarmentPart | None = None
+        self.decided = False  # detection ran (found a garment or not)
+        self.report: dict = {}
+        self.cache: tuple[torch.Tensor, torch.Tensor] | None = None  # node positions, velocities [T,M,3]
+        self.bones: torch.Tensor | None = None  # the training frames' skinning transforms [T,J+E,4,4]
+        self.refreshed = -1
+        self.step = 0
+        self.optimizer: torch.optim.Optimizer | None = None
+
+    # ------------------------------------------------------------------------------------------ detection
+    def _skeleton_weights(self, weights: torch.Tensor) -> torch.Tensor:
+        groups = self.fit.avatar.skinning_groups()
+        return weights if groups is None else weights @ groups
+
+    @torch.no_grad()
+    def detect(self, grid: torch.Tensor) -> None:
+        """Find the garment and build its part (or decide there is none)."""
+        fit, options = self.fit, self.options
+        skeleton = fit.frames.skeleton
+        means = fit.avatar.gaussians.means.detach()
+        weights = self._skeleton_weights(fit.skinning.field.weights(means, grid))
+        regions = detect_garments(means, weights, skeleton.parents, fit.frames.bone_transforms,
+                                  threshold=options.garment_threshold,
+                                  min_fraction=options.garment_min_fraction)
+        self.decided = True
+        up = torch.as_tensor(skeleton.up, dtype=torch.float32, device=means.device)
+        height = means @ up
+        low, high = float(height.min()), float(height.max())
+        self.report = {"garments": len(regions), "gaussians": int(means.shape[0])}
+        if not regions:
+            fit.log({"step": self.step, "garment": "none"})
+            return
+        region = regions[0]
+        joint = region.joint
+        if options.garment_attach:
+            joint = skeleton.names.index(options.garment_attach)
+        ids = region.gaussian_ids
+        garment_height = height[ids]
+        span = max(high - low, 1e-9)
+        self.report.update(garment_gaussians=int(ids.numel()), joint=skeleton.names[joint],
+                           split=[skeleton.names[j] for j in region.split_joints],
+                           height_range=[round((float(garment_height.min()) - low) / span, 3),
+                                         round((float(garment_height.max()) - low) / span, 3)])
+        part = self._build(means, weights, grid, ids, joint)
+        self.report.update(nodes=part.node_count, attached=int(part.attached.numel()),
+                           capsules=int(part.capsule_ids.numel()))
+        fit.log({"step": self.step, "garment": dict(self.report)})
+
+    def _build(self, means, weights, grid, ids: torch.Tensor, joint: int) -> GarmentPart:
+        fit, options = self.fit, self.options
+        skeleton = fit.frames.skeleton
+        field = fit.skinning.field
+        voxel = options.garment_voxel * float((field.bbox_max - field.bbox_min).max())
+        nodes = voxel_downsample(means[ids], voxel)
+        node_weights = field.weights(nodes, grid)
+        skeleton_weights = self._skeleton_weights(node_weights)
+        garment = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
+        garment[ids] = True
+        attached = self._attached(means, weights, garment, nodes, skeleton_weights, skeleton.parents, joint, voxel)
+        device = means.device
+        heads = torch.as_tensor(skeleton.heads, dtype=torch.float32, device=device)
+        tails = torch.as_tensor(skeleton.tails, dtype=torch.float32, device=device)
+        capsules = fit_body_capsules(heads, tails, means, weights, exclude=garment)
+        radius = capsules.radius
+        if bool((radius > 0).any()):  # a bone the garment hides entirely (thighs under a skirt) gets a typical radius
+            radius = torch.where(radius > 0, radius, radius[radius > 0].median())
+        capsules = Capsules(capsules.segment_start, capsules.segment_end, radius)
+        extent = float((nodes.max(0).values - nodes.min(0).values).norm())
+        capsule_ids = capsules_near(capsules, nodes, margin=0.5 * extent)
+        part = GarmentPart(ids, nodes, node_weights, attached, joint=joint, capsules=capsules,
+                           capsule_ids=capsule_ids, voxel_size=voxel, max_substep=options.garment_substep,
+                           up=tuple(float(u) for u in skeleton.up), joint_count=len(skeleton.names))
+        part.bind(means)
+        self._use(part)
+        return part
+
+    @staticmethod
+    def _attached(means, weights, garment, nodes, node_weights, parents, joint: int, voxel: float) -> torch.Tensor:
+        """The nodes the body holds: those within 1.5 node spacings of the body Gaussians that move with the
+        attachment joint's side of the skeleton. That side is the joint, its ancestors, and the branches below
+        it that carry less than a quarter of the garment's skinning weight (a skirt is held by the hips and the
+        torso above them, not by the legs it hangs between). A node touching that body hangs from it; the band
+        is 1.5 spacings wide so that it is a closed ring of nodes rather than isolated points."""
+        related = related_joints(parents).to(means.device)
+        joint_count = weights.shape[1]
+        chains = [[j] for j in range(joint_count)]
+        for j in range(joint_count):  # the child of `joint` whose branch holds j (or -1)
+            current = j
+            while current >= 0 and int(parents[current]) != joint and current != joint:
+                current = int(parents[current])
+            chains[j] = current if current >= 0 and current != joint else -1
+        mass = node_weights.sum(dim=0)
+        branch_mass = torch.zeros(joint_count, device=means.device)
+        for j, child in enumerate(chains):
+            if child >= 0:
+                branch_mass[child] += mass[j]
+        holds = torch.zeros(joint_count, dtype=torch.bool, device=means.device)
+        for j in range(joint_count):
+            if not bool(related[joint, j]):
+                continue
+            child = chains[j]
+            holds[j] = child < 0 or bool(branch_mass[child] < 0.25 * mass.sum())
+        dominant = weights.argmax(dim=1)
+        body = means[~garment & holds[dominant]]
+        if body.shape[0] == 0:
+            body = means[~garment]
+        if body.shape[0] == 0:
+            distance = torch.zeros(nodes.shape[0], device=nodes.device)  # nothing else: the nearest half below
+        else:
+            distance = torch.cat([torch.cdist(chunk, body).min(dim=1).values for chunk in torch.split(nodes, 4096)])
+        attached = torch.nonzero(distance <= distance.min() + 1.5 * voxel).reshape(-1)
+        if attached.numel() > nodes.shape[0] // 2:  # keep the cloth mostly free: hold the nearest half at most
+            attached = distance.argsort()[: max(1, nodes.shape[0] // 2)].sort().values
+        return attached
+
+    def _use(self, part: GarmentPart) -> None:
+        self.part = self.fit.avatar.add_part(part)
+        self.optimizer = torch.optim.Adam(list(part.cloth.parameters()), lr=self.options.lr_garment)
+        self.cache = None
+        self.bones = None
+
+    # ------------------------------------------------------------------------------------------ training
+    def begin_step(self, step) -> None:
+        self.step = step.step
+        if not self.decided and step.step >= self.options.garment_from:
+            self.detect(step.grid)
+
+    def _training_bones(self) -> torch.Tensor:
+        frames = self.fit.frames
+        return torch.stack([self.fit.avatar.pose_bones(b) for b in frames.bone_transforms])
+
+    @torch.no_grad()
+    def refresh(self, grid: torch.Tensor | None = None) -> None:
+        """Re-read the nodes' skinning weights and roll the whole training motion out (no gradients): the cached
+        states the windows start from and the table novel views of training instants use."""
+        part, frames = self.part, self.fit.frames
+        field = self.fit.skinning.field
+        part.set_node_weights(field.weights(part.nodes, field.grid_weights() if grid is None else grid))
+        self.bones = self._training_bones()
+        positions, velocities = part.rollout(self.bones, frames.seconds)
+        self.cache = (positions, velocities)
+        part.set_training_rollout(frames.bone_transforms, self.bones, positions)
+        self.refreshed = self.step
+
+    def frame_input(self, step) -> torch.Tensor | None:
+        """Node positions [M,3] of training frame ``step.index``: the ``--garment-window`` frames before it
+        simulated with gradients from the cached state (which they then update)."""
+        self.state = None
+        if self.part is None:
+            return None
+        if self.cache is None or self.bones is None or \
+                step.step - self.refreshed >= self.options.garment_refresh_every:
+            self.refresh(step.grid)
+        part, frames = self.part, self.fit.frames
+        positions, velocities = self.cache
+        start = max(0, step.index - self.options.garment_window)
+        state = ClothState(positions[start].clone(), velocities[start].clone())
+        for frame in range(start + 1, step.index + 1):
+            state = part.step(state, self.bones[frame - 1], self.bones[frame], frames.seconds[frame])
+            positions[frame] = state.positions.detach()
+            velocities[frame] = state.velocities.detach()
+        self.state = state
+        return state.positions
+
+    def optimizers(self, step) -> list[torch.optim.Optimizer]:
+        return [] if self.part is None or self.state is None else [self.optimizer]
+
+    def on_gaussians_renumbered(self, source_index: torch.Tensor) -> None:
+        if self.part is not None:
+            self.part.renumber(source_index, self.fit.avatar.gaussians.means)
+
+    def log_values(self) -> dict[str, float]:
+        if self.part is None:
+            return {}
+        cloth = self.part.cloth
+        return {"garment_stiffness": float(torch.sigmoid(cloth.stiffness_logit.detach()).mean()),
+                "garment_damping": float(torch.sigmoid(cloth.damping_logit.detach())),
+                "garment_drag": float(torch.sigmoid(cloth.drag_logit.detach())),
+                "garment_mass_scale": float(cloth.masses().detach().mean() / cloth.base_mass.mean())}
+
+    def finish(self) -> None:
+        if self.part is not None:
+            self.refresh()
+
+    def summary_lines(self) -> list[str]:
+        if not self.decided:
+            return []  # the fit ended before --garment-from
+        report = self.report
+        if self.part is None:
+            return [f"garment: none detected among {report['gaussians']} Gaussians"]
+        return [f"garment: {report['garment_gaussians']} of {report['gaussians']} Gaussians (heights "
+                f"{report['height_range'][0]:.2f}-{report['height_range'][1]:.2f} of the body), split between "
+                f"{' and '.join(report['split'])}, hung from {report['joint']}: {report['nodes']} cloth nodes, "
+                f"{report['attached']} attached, {report['capsules']} body capsules"]
+
+    def state_dict(self) -> dict:
+        state = {"decided": self.decided, "report": dict(self.report), "refreshed": self.refreshed}
+        if self.part is not None:
+            state.update(part=self.part.state_for_file(), optimizer=self.optimizer.state_dict(),
+                         cache=None if self.cache is None else [tensor.cpu() for tensor in self.cache])
+        return state
+
+    def load_state_dict(self, state: dict) -> None:
+        if not state:
+            return
+        self.decided = bool(state["decided"])
+        self.report = dict(state["report"])
+        self.refreshed = int(state["refreshed"])
+        if "part" in state:
+            self._use(GarmentPart.from_file_state(state["part"], device=self.fit.device))
+            self.optimizer.load_state_dict(state["optimizer"])
+            if state["cache"] is not None:
+                self.cache = tuple(tensor.to(self.fit.device) for tensor in state["cache"])
+                self.bones = self._training_bones()
+
