@@ -4,10 +4,13 @@ The pipeline of one forward pass (conventions in ``docs/conventions.md``):
 
 1. :func:`launch_project` (one thread per Gaussian): EWA projection of each 3D Gaussian to a 2D mean, a 2D
    conic (inverse covariance), a camera depth, a per-axis pixel radius, an RGB colour (spherical harmonics
-   evaluated) and the number of 16x16 pixel tiles its radius box overlaps.
+   evaluated) and the number of 16x16 pixel tiles it reaches. The extent is opacity-aware: the radius box
+   bounds the ellipse where the Gaussian's alpha can reach 1/255 (:func:`reach_sigma`; Gaussians of opacity
+   below 1/255 are culled), and of the box's tiles only those whose pixel centres that ellipse meets count
+   (:func:`reaches_tile`), so thin diagonal Gaussians skip most of their box.
 2. Tile binning: an inclusive prefix sum of the tile counts (``wp.utils.array_scan``), then
-   :func:`launch_emit_tile_keys` writes one 64-bit key ``tile_id << 32 | depth bits`` per (Gaussian, tile)
-   pair, ``wp.utils.radix_sort_pairs`` sorts them (depth is positive, so its float bits sort like integers) and
+   :func:`launch_emit_tile_keys` writes one 64-bit key ``tile_id << 32 | depth bits`` per reached
+   (Gaussian, tile) pair, ``wp.utils.radix_sort_pairs`` sorts them (depth is positive, so its float bits sort like integers) and
    :func:`launch_tile_ranges` finds each tile's ``[start, end)`` range in the sorted list.
 3. :func:`launch_composite_forward` (one 256-thread block per tile, one thread per pixel): front-to-back
    alpha compositing; the block loads batches of 256 Gaussian records into shared memory, every thread
@@ -76,14 +79,14 @@ FAR_PLANE = wp.constant(1.0e10)
 """Gaussians with camera depth at or beyond this [world units] are culled (gsplat's default)."""
 BLUR_EPS2D = wp.constant(0.3)
 """Added to the diagonal of every 2D covariance [px^2] (anti-aliasing low-pass of 3DGS)."""
-RADIUS_SIGMAS = wp.constant(3.33)
-"""The radius box extends this many standard deviations along each image axis."""
 ALPHA_THRESHOLD = wp.constant(1.0 / 255.0)
 """A Gaussian whose alpha at a pixel is below this is skipped there."""
 ALPHA_MAX = wp.constant(0.999)
 """Alpha is clamped to this so that the transmittance stays invertible."""
 TRANSMITTANCE_MIN = wp.constant(1.0e-4)
 """A pixel stops before the Gaussian that would bring its transmittance to or below this."""
+SIGMA_MARGIN = wp.constant(0.05)
+"""Added to the largest reachable exponent ``ln(255 opacity)`` of the extent test (see :func:`reach_sigma`)."""
 
 GRAD_RECORD_FLOATS = 12
 """Floats of per-Gaussian screen-space gradient in the buffer written by the compositing backward.
@@ -272,6 +275,57 @@ def tile_box(center: wp.vec2, radius: wp.vec2i, tiles_x: int, tiles_y: int) -> w
 
 
 @wp.func
+def reach_sigma(opacity: float) -> float:
+    """Largest exponent ``sigma = d^T conic d / 2`` at which a Gaussian of this opacity can still be composited.
+
+    The compositing kernels take a Gaussian at a pixel only when ``sigma >= 0`` and
+    ``min(ALPHA_MAX, opacity * exp(-sigma)) >= ALPHA_THRESHOLD``, i.e. ``sigma <= ln(255 opacity)`` in exact
+    arithmetic (the clamp only lowers alpha, and ALPHA_MAX > ALPHA_THRESHOLD). The caller culls a Gaussian with
+    ``opacity < ALPHA_THRESHOLD``: its alpha is below the threshold everywhere (``exp(-sigma) <= 1``).
+
+    ``SIGMA_MARGIN`` (0.05, about 1 % of ``ln 255``, a box 0.5 % wider) covers the float32 rounding of the
+    compositing's test: ``__expf`` is within 9 ulp (1.1e-6 relative) for ``|x| <= 6``, which moves the limit by
+    1.1e-6; the float32 ``sigma`` of a pixel on the ellipse ``sigma = s`` is off by at most about
+    ``4 eps s / (1 - rho^2)`` (eps = 6e-8, rho the 2D correlation; the terms of the quadratic form cancel for
+    thin diagonal ellipses). The 0.3 px^2 blur bounds ``1 / (1 - rho^2)`` by ``lambda_max / 0.3``, so the margin
+    covers every Gaussian whose major standard deviation is below about 100 px; beyond that a pixel where the
+    float32 alpha sits within rounding of 1/255 may be skipped, a change of at most 1/255 of one colour there.
+    """
+    return wp.log(opacity / ALPHA_THRESHOLD) + SIGMA_MARGIN
+
+
+@wp.func
+def reaches_tile(center: wp.vec2, conic: wp.vec3, max_sigma: float, tile_x: int, tile_y: int, width: int,
+                 height: int) -> bool:
+    """Whether the ellipse ``sigma <= max_sigma`` contains a point of the tile's rectangle of pixel centres.
+
+    The rectangle spans the centres ``x + 0.5`` of the tile's pixels inside the image. The minimum of the convex
+    ``sigma`` over it is 0 when the mean lies inside, else it lies on an edge that faces the mean (from any other
+    boundary point the segment towards the mean enters the rectangle, along which sigma decreases); on the edge
+    ``x = x_e`` it is at ``dy = -b dx / c`` clamped to the edge (``c > 0``), likewise for the other edges.
+    """
+    x_lo = float(tile_x * TILE_SIZE) + 0.5
+    x_hi = float(wp.min((tile_x + 1) * TILE_SIZE, width)) - 0.5
+    y_lo = float(tile_y * TILE_SIZE) + 0.5
+    y_hi = float(wp.min((tile_y + 1) * TILE_SIZE, height)) - 0.5
+    a = conic[0]
+    b = conic[1]
+    c = conic[2]
+    best = float(1.0e30)
+    if center[0] < x_lo or center[0] > x_hi:
+        dx = wp.where(center[0] < x_lo, x_lo, x_hi) - center[0]
+        dy = wp.clamp(-b * dx / c, y_lo - center[1], y_hi - center[1])
+        best = wp.min(best, 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy)
+    if center[1] < y_lo or center[1] > y_hi:
+        dy = wp.where(center[1] < y_lo, y_lo, y_hi) - center[1]
+        dx = wp.clamp(-b * dy / a, x_lo - center[0], x_hi - center[0])
+        best = wp.min(best, 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy)
+    if best == 1.0e30:
+        return True  # the mean lies inside the rectangle
+    return best <= max_sigma
+
+
+@wp.func
 def finite_vec3(v: wp.vec3) -> bool:
     return wp.isfinite(v[0]) and wp.isfinite(v[1]) and wp.isfinite(v[2])
 
@@ -344,7 +398,7 @@ def project_kernel(
     conic = wp.vec3(0.0)
     color = wp.vec3(0.0)
     radius = wp.vec2i(0, 0)
-    box = wp.vec4i(0, 0, 0, 0)
+    touched = int(0)
     mean_camera = to_camera(view, mean)
     depth = mean_camera[2]
     if depth > NEAR_PLANE and depth < FAR_PLANE:
@@ -354,9 +408,13 @@ def project_kernel(
         a = covariance_2d[0] + BLUR_EPS2D
         c = covariance_2d[2] + BLUR_EPS2D
         det = a * c - covariance_2d[1] * covariance_2d[1]
-        if det > 0.0:
-            radius_x = wp.ceil(RADIUS_SIGMAS * wp.sqrt(a))
-            radius_y = wp.ceil(RADIUS_SIGMAS * wp.sqrt(c))
+        if det > 0.0 and opacity >= ALPHA_THRESHOLD:
+            # The box of the ellipse sigma <= max_sigma: half-widths sqrt(2 max_sigma Sigma_xx), ... (Sigma
+            # blurred); pixel centres are half-integers and tile edges integers, so no centre of the box lies
+            # on a tile edge and tile_box's floor / ceil keep every tile holding one.
+            max_sigma = reach_sigma(opacity)
+            radius_x = wp.ceil(wp.sqrt(2.0 * max_sigma * a))
+            radius_y = wp.ceil(wp.sqrt(2.0 * max_sigma * c))
             projected = project_mean(mean_camera, K)
             if (
                 projected[0] + radius_x > 0.0
@@ -369,11 +427,15 @@ def project_kernel(
                 radius = wp.vec2i(int(radius_x), int(radius_y))
                 box = tile_box(center, radius, tiles_x, tiles_y)
                 color = gaussian_color(coefficients, i, sh_degree, mean, camera_center_of(view))
+                for ty in range(box[2], box[3]):
+                    for tx in range(box[0], box[1]):
+                        if reaches_tile(center, conic, max_sigma, tx, ty, width, height):
+                            touched += 1
     xy_opacity[i] = wp.vec3(center[0], center[1], opacity)
     conics[i] = conic
     color_depth[i] = wp.vec4(color[0], color[1], color[2], depth)
     radii[i] = radius
-    tiles_touched[i] = (box[1] - box[0]) * (box[3] - box[2])
+    tiles_touched[i] = touched
 
 
 def launch_block_dim(device) -> int:
@@ -426,12 +488,23 @@ def tile_key_bits(tile_count: int) -> int:
     return max(int(tile_count).bit_length(), 1)
 
 
+@wp.func
+def tile_ends_count(tile_ends: wp.array(dtype=wp.int32), i: int) -> int:
+    """Entry ``i`` of the array whose inclusive prefix sum is ``tile_ends``."""
+    if i == 0:
+        return tile_ends[0]
+    return tile_ends[i] - tile_ends[i - 1]
+
+
 @wp.kernel(enable_backward=False)
 def emit_tile_keys_kernel(
     xy_opacity: wp.array(dtype=wp.vec3),
+    conics: wp.array(dtype=wp.vec3),
     depth_bits: wp.array2d(dtype=wp.int32),
     radii: wp.array(dtype=wp.vec2i),
     tile_ends: wp.array(dtype=wp.int32),
+    width: int,
+    height: int,
     tiles_x: int,
     tiles_y: int,
     keys: wp.array(dtype=wp.int64),
@@ -439,29 +512,46 @@ def emit_tile_keys_kernel(
 ):
     """Write the (tile << 32 | depth bits) key and the Gaussian index of every (Gaussian, tile) pair.
 
-    ``depth_bits`` is the ``color_depth`` buffer viewed as int32 ``[gaussian_count, 4]`` (column 3 is the
-    depth); ``tile_ends`` is the inclusive prefix sum of the tile counts.
+    A pair is emitted for each tile of the radius box that :func:`reaches_tile` accepts, the test that
+    :data:`project_kernel` counted with. ``depth_bits`` is the ``color_depth`` buffer viewed as int32
+    ``[gaussian_count, 4]`` (column 3 is the depth); ``tile_ends`` is the inclusive prefix sum of the tile
+    counts. Should the test ever accept fewer tiles here than when counting (a compiler contracting the
+    arithmetic differently in the two kernels), the rest of the Gaussian's slots get the tile id
+    ``tiles_x * tiles_y``, which sorts last and :data:`tile_ranges_kernel` ignores; more are never written.
     """
     i = wp.tid()
     radius = radii[i]
     if radius[0] == 0 and radius[1] == 0:
         return
     xyo = xy_opacity[i]
-    box = tile_box(wp.vec2(xyo[0], xyo[1]), radius, tiles_x, tiles_y)
+    center = wp.vec2(xyo[0], xyo[1])
+    conic = conics[i]
+    max_sigma = reach_sigma(xyo[2])
+    box = tile_box(center, radius, tiles_x, tiles_y)
     depth_key = wp.int64(depth_bits[i, 3])  # positive float: its bits order like the value
-    slot = tile_ends[i] - (box[1] - box[0]) * (box[3] - box[2])
+    end = tile_ends[i]
+    slot = end - tile_ends_count(tile_ends, i)
     for ty in range(box[2], box[3]):
         for tx in range(box[0], box[1]):
-            keys[slot] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | depth_key
-            gaussian_ids[slot] = i
-            slot += 1
+            if slot < end and reaches_tile(center, conic, max_sigma, tx, ty, width, height):
+                keys[slot] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | depth_key
+                gaussian_ids[slot] = i
+                slot += 1
+    while slot < end:
+        keys[slot] = (wp.int64(tiles_x * tiles_y) << wp.int64(32)) | depth_key
+        gaussian_ids[slot] = i
+        slot += 1
 
 
 def launch_emit_tile_keys(xy_opacity, depth_bits, radii, tile_ends, *, width: int, height: int, keys,
-                          gaussian_ids) -> None:
-    """Launch :data:`emit_tile_keys_kernel`; ``keys``/``gaussian_ids`` hold at least the total pair count."""
+                          gaussian_ids, conics) -> None:
+    """Launch :data:`emit_tile_keys_kernel`; ``keys``/``gaussian_ids`` hold at least the total pair count.
+
+    ``conics`` is :data:`project_kernel`'s output (the exact tile test needs it).
+    """
     gaussian_count = xy_opacity.shape[0]
-    for name, array in (("depth_bits", depth_bits), ("radii", radii), ("tile_ends", tile_ends)):
+    for name, array in (("depth_bits", depth_bits), ("radii", radii), ("tile_ends", tile_ends),
+                        ("conics", conics)):
         if array.shape[0] != gaussian_count:
             raise ValueError(f"{name} has {array.shape[0]} entries, expected {gaussian_count}")
     if keys.shape[0] != gaussian_ids.shape[0]:
@@ -473,7 +563,7 @@ def launch_emit_tile_keys(xy_opacity, depth_bits, radii, tile_ends, *, width: in
     wp.launch(
         emit_tile_keys_kernel,
         dim=gaussian_count,
-        inputs=[xy_opacity, depth_bits, radii, tile_ends, tiles_x, tiles_y],
+        inputs=[xy_opacity, conics, depth_bits, radii, tile_ends, width, height, tiles_x, tiles_y],
         outputs=[keys, gaussian_ids],
         block_dim=launch_block_dim(keys.device),
     )
@@ -483,7 +573,10 @@ def launch_emit_tile_keys(xy_opacity, depth_bits, radii, tile_ends, *, width: in
 def tile_ranges_kernel(sorted_keys: wp.array(dtype=wp.int64), pair_count: int, tile_ranges: wp.array2d(dtype=wp.int32)):
     """Write ``[start, end)`` of every tile present in the sorted keys (``tile_ranges`` starts zeroed)."""
     i = wp.tid()
+    tile_count = tile_ranges.shape[0]
     tile = int(sorted_keys[i] >> wp.int64(32))
+    if tile >= tile_count:
+        return  # padding of emit_tile_keys_kernel, sorted after every real tile
     if i == 0:
         tile_ranges[tile, 0] = 0
     else:
@@ -493,6 +586,10 @@ def tile_ranges_kernel(sorted_keys: wp.array(dtype=wp.int64), pair_count: int, t
             tile_ranges[previous, 1] = i
     if i == pair_count - 1:
         tile_ranges[tile, 1] = pair_count
+    else:
+        following = int(sorted_keys[i + 1] >> wp.int64(32))
+        if following >= tile_count:
+            tile_ranges[tile, 1] = i + 1
 
 
 def launch_tile_ranges(sorted_keys, pair_count: int, tile_ranges) -> None:

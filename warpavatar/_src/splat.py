@@ -93,6 +93,7 @@ class _RasterizeGaussians(torch.autograd.Function):
                 splat_kernels.launch_emit_tile_keys(
                     w_xy_opacity, to_warp(color_depth.view(torch.int32)), w_radii, w_tile_ends, width=width,
                     height=height, keys=w_sort_keys[:pair_count], gaussian_ids=w_sorted_ids[:pair_count],
+                    conics=w_conics,
                 )
                 wp.utils.radix_sort_pairs(w_sort_keys, w_sorted_ids, pair_count, begin_bit=0,
                                           end_bit=32 + splat_kernels.tile_key_bits(tiles_x * tiles_y))
