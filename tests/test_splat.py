@@ -456,7 +456,10 @@ def kernel_tile_pairs(scene, sizes):
     kernels.launch_emit_tile_keys(w(xy_opacity, wp.vec3), w(color_depth.view(torch.int32)),
                                   w(radii, wp.vec2i), w(ends), width=width, height=height, keys=w(keys),
                                   gaussian_ids=w(ids), conics=w(conics, wp.vec3))
-    tiles = keys >> 32
+    tiles = keys >> kernels.DEPTH_KEY_BITS
+    depth_keys = keys & ((1 << kernels.DEPTH_KEY_BITS) - 1)
+    depths = color_depth[ids.long(), 3]
+    assert torch.all(depth_keys == depths.view(torch.int32).long() - 0x3C000000), "depth keys keep the float bits"
     assert torch.all(tiles < tiles_x * tiles_y), "the emission padded: it accepted fewer tiles than counted"
     mask = torch.zeros(n, tiles_x * tiles_y, dtype=torch.bool)
     mask[ids.long(), tiles] = True

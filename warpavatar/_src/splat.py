@@ -96,7 +96,7 @@ class _RasterizeGaussians(torch.autograd.Function):
                     conics=w_conics,
                 )
                 wp.utils.radix_sort_pairs(w_sort_keys, w_sorted_ids, pair_count, begin_bit=0,
-                                          end_bit=32 + splat_kernels.tile_key_bits(tiles_x * tiles_y))
+                                          end_bit=splat_kernels.sort_key_bits(tiles_x * tiles_y))
                 splat_kernels.launch_tile_ranges(w_sort_keys, pair_count, to_warp(tile_ranges))
             del sort_keys
             w_background = to_warp(background.reshape(1, 3), wp.vec3)
