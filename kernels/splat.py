@@ -7,7 +7,7 @@ The pipeline of one forward pass (conventions in ``docs/conventions.md``):
    evaluated) and the number of 16x16 pixel tiles it reaches. The extent is opacity-aware: the radius box
    bounds the ellipse where the Gaussian's alpha can reach 1/255 (:func:`reach_sigma`; Gaussians of opacity
    below 1/255 are culled), and of the box's tiles only those whose pixel centres that ellipse meets count
-   (:func:`reaches_tile`), so thin diagonal Gaussians skip most of their box.
+   (:func:`row_tile_span`, exact, O(1) per tile row), so thin diagonal Gaussians skip most of their box.
 2. Tile binning: an inclusive prefix sum of the tile counts (``wp.utils.array_scan``), then
    :func:`launch_emit_tile_keys` writes one 64-bit key ``tile_id << 29 | depth key`` per reached
    (Gaussian, tile) pair (the depth key is the float bits of the depth, which order like the positive
@@ -299,34 +299,43 @@ def reach_sigma(opacity: float) -> float:
 
 
 @wp.func
-def reaches_tile(center: wp.vec2, conic: wp.vec3, max_sigma: float, tile_x: int, tile_y: int, width: int,
-                 height: int) -> bool:
-    """Whether the ellipse ``sigma <= max_sigma`` contains a point of the tile's rectangle of pixel centres.
+def row_tile_span(center: wp.vec2, conic: wp.vec3, max_sigma: float, tile_y: int, box: wp.vec4i, width: int,
+                  height: int) -> wp.vec2i:
+    """Tiles ``[x0, x1)`` of tile row ``tile_y`` (within ``box``) whose pixel centres the ellipse
+    ``sigma <= max_sigma`` meets, ``sigma = (a dx^2 + c dy^2) / 2 + b dx dy`` for ``conic = (a, b, c)``.
 
-    The rectangle spans the centres ``x + 0.5`` of the tile's pixels inside the image. The minimum of the convex
-    ``sigma`` over it is 0 when the mean lies inside, else it lies on an edge that faces the mean (from any other
-    boundary point the segment towards the mean enters the rectangle, along which sigma decreases); on the edge
-    ``x = x_e`` it is at ``dy = -b dx / c`` clamped to the edge (``c > 0``), likewise for the other edges.
+    The ellipse's part in the row's band of pixel-centre rows ``dy in [dy_lo, dy_hi]`` is convex, so its x
+    extent is an interval and a tile is met exactly when its pixel-centre columns meet that interval. For a
+    fixed ``dy`` the ellipse spans ``dx = -(b / a) dy +- h(dy)``, ``h = sqrt((2 max_sigma - (det / a) dy^2) / a)``
+    (``det = a c - b^2``); the right end is concave in ``dy`` with its maximum (the ellipse's rightmost point) at
+    ``dy_r = -b sqrt(2 max_sigma / (c det))``, the left end convex with its minimum at ``-dy_r``, so the band's
+    extent is the ends at those points clamped to the band (cut to ``|dy| <= sqrt(2 max_sigma a / det)``).
+    O(1) per row: the projection counts a Gaussian's tiles in O(rows) and the emission in O(rows + pairs).
     """
-    x_lo = float(tile_x * TILE_SIZE) + 0.5
-    x_hi = float(wp.min((tile_x + 1) * TILE_SIZE, width)) - 0.5
-    y_lo = float(tile_y * TILE_SIZE) + 0.5
-    y_hi = float(wp.min((tile_y + 1) * TILE_SIZE, height)) - 0.5
     a = conic[0]
     b = conic[1]
     c = conic[2]
-    best = float(1.0e30)
-    if center[0] < x_lo or center[0] > x_hi:
-        dx = wp.where(center[0] < x_lo, x_lo, x_hi) - center[0]
-        dy = wp.clamp(-b * dx / c, y_lo - center[1], y_hi - center[1])
-        best = wp.min(best, 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy)
-    if center[1] < y_lo or center[1] > y_hi:
-        dy = wp.where(center[1] < y_lo, y_lo, y_hi) - center[1]
-        dx = wp.clamp(-b * dy / a, x_lo - center[0], x_hi - center[0])
-        best = wp.min(best, 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy)
-    if best == 1.0e30:
-        return True  # the mean lies inside the rectangle
-    return best <= max_sigma
+    det = a * c - b * b
+    row_lo = tile_y * TILE_SIZE
+    row_hi = wp.min(row_lo + TILE_SIZE, height) - 1
+    reach_y = wp.sqrt(2.0 * max_sigma * a / det)
+    dy_lo = wp.max(float(row_lo) + 0.5 - center[1], -reach_y)
+    dy_hi = wp.min(float(row_hi) + 0.5 - center[1], reach_y)
+    if dy_lo > dy_hi:
+        return wp.vec2i(0, 0)
+    dy_right = -b * wp.sqrt(2.0 * max_sigma / (c * det))
+    dy = wp.clamp(dy_right, dy_lo, dy_hi)
+    x_max = center[0] - b / a * dy + wp.sqrt(wp.max(2.0 * max_sigma - det / a * dy * dy, 0.0) / a)
+    dy = wp.clamp(-dy_right, dy_lo, dy_hi)
+    x_min = center[0] - b / a * dy - wp.sqrt(wp.max(2.0 * max_sigma - det / a * dy * dy, 0.0) / a)
+    # Pixel columns whose centres (column + 0.5) lie in [x_min, x_max], as tiles, within the box.
+    column_first = wp.max(wp.ceil(x_min - 0.5), 0.0)
+    column_last = wp.min(wp.floor(x_max - 0.5), float(width - 1))
+    if column_first > column_last:
+        return wp.vec2i(0, 0)
+    x0 = wp.max(int(column_first) // TILE_SIZE, box[0])
+    x1 = wp.min(int(column_last) // TILE_SIZE + 1, box[1])
+    return wp.vec2i(x0, wp.max(x0, x1))
 
 
 @wp.func
@@ -432,9 +441,8 @@ def project_kernel(
                 box = tile_box(center, radius, tiles_x, tiles_y)
                 color = gaussian_color(coefficients, i, sh_degree, mean, camera_center_of(view))
                 for ty in range(box[2], box[3]):
-                    for tx in range(box[0], box[1]):
-                        if reaches_tile(center, conic, max_sigma, tx, ty, width, height):
-                            touched += 1
+                    span = row_tile_span(center, conic, max_sigma, ty, box, width, height)
+                    touched += span[1] - span[0]
     xy_opacity[i] = wp.vec3(center[0], center[1], opacity)
     conics[i] = conic
     color_depth[i] = wp.vec4(color[0], color[1], color[2], depth)
@@ -532,12 +540,12 @@ def emit_tile_keys_kernel(
     keys: wp.array(dtype=wp.int64),
     gaussian_ids: wp.array(dtype=wp.int32),
 ):
-    """Write the (tile << 29 | depth key) key (see :data:`DEPTH_KEY_BITS`) and the Gaussian index of every (Gaussian, tile) pair.
+    """Write the key ``tile << 29 | depth key`` (:data:`DEPTH_KEY_BITS`) and the Gaussian of every pair.
 
-    A pair is emitted for each tile of the radius box that :func:`reaches_tile` accepts, the test that
+    A pair is emitted for each tile of the radius box in the rows' :func:`row_tile_span`, the spans that
     :data:`project_kernel` counted with. ``depth_bits`` is the ``color_depth`` buffer viewed as int32
     ``[gaussian_count, 4]`` (column 3 is the depth); ``tile_ends`` is the inclusive prefix sum of the tile
-    counts. Should the test ever accept fewer tiles here than when counting (a compiler contracting the
+    counts. Should the spans ever hold fewer tiles here than when counting (a compiler contracting the
     arithmetic differently in the two kernels), the rest of the Gaussian's slots get the tile id
     ``tiles_x * tiles_y``, which sorts last and :data:`tile_ranges_kernel` ignores; more are never written.
     """
@@ -554,8 +562,9 @@ def emit_tile_keys_kernel(
     end = tile_ends[i]
     slot = end - tile_ends_count(tile_ends, i)
     for ty in range(box[2], box[3]):
-        for tx in range(box[0], box[1]):
-            if slot < end and reaches_tile(center, conic, max_sigma, tx, ty, width, height):
+        span = row_tile_span(center, conic, max_sigma, ty, box, width, height)
+        for tx in range(span[0], span[1]):
+            if slot < end:
                 keys[slot] = (wp.int64(ty * tiles_x + tx) << _DEPTH_KEY_SHIFT) | depth_key
                 gaussian_ids[slot] = i
                 slot += 1

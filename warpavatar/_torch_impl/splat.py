@@ -107,40 +107,48 @@ def reached_tiles(means2d, conics, opacities, radii, width: int, height: int) ->
     """[N, tiles_y * tiles_x] bool: the (Gaussian, tile) pairs the rasterizer lists (row-major tile ids).
 
     A tile is listed when it lies in the Gaussian's radius box and the ellipse ``sigma <= reach_sigma(opacity)``
-    (``sigma = d^T conic d / 2``) contains a point of the rectangle spanned by the centres of the tile's pixels
-    inside the image: the minimum of sigma over that rectangle, 0 with the mean inside, else on an edge facing
-    the mean at the clamped 1D minimum (the rule of ``kernels/splat.py``'s ``reaches_tile``).
+    (``sigma = d^T conic d / 2``) contains a pixel centre's position of the tile's rows and columns inside the
+    image: per tile row, the x extent of the ellipse within the row's band of pixel-centre rows (its ends at the
+    ellipse's leftmost / rightmost points clamped to the band), as pixel columns, as tiles (the rule and the
+    derivation of ``kernels/splat.py``'s ``row_tile_span``).
     """
     tiles_x, tiles_y = math.ceil(width / TILE_SIZE), math.ceil(height / TILE_SIZE)
     dtype = conics.dtype
     boxes = _tile_boxes(means2d, radii, tiles_x, tiles_y)
-    tile_y, tile_x = torch.meshgrid(torch.arange(tiles_y, device=conics.device),
-                                    torch.arange(tiles_x, device=conics.device), indexing="ij")
+    kept = (radii > 0).any(dim=1)
+    max_sigma = reach_sigma(opacities.detach().to(dtype)).clamp(min=0)[:, None]  # [N, 1]
+    mx, my = means2d.detach()[:, 0:1], means2d.detach()[:, 1:2]
+    a, b, c = (conics.detach()[:, k: k + 1] for k in range(3))
+    a, c = torch.where(kept[:, None], a, torch.ones_like(a)), torch.where(kept[:, None], c, torch.ones_like(c))
+    b = torch.where(kept[:, None], b, torch.zeros_like(b))
+    det = a * c - b * b
+    tile_rows = torch.arange(tiles_y, device=conics.device)
+    row_lo = (tile_rows * TILE_SIZE).to(dtype)[None]
+    row_hi = ((tile_rows + 1) * TILE_SIZE).clamp(max=height).to(dtype)[None] - 1
+    reach_y = torch.sqrt(2 * max_sigma * a / det)
+    dy_lo = torch.maximum(row_lo + 0.5 - my, -reach_y)
+    dy_hi = torch.minimum(row_hi + 0.5 - my, reach_y)  # [N, tiles_y]
+    dy_right = -b * torch.sqrt(2 * max_sigma / (c * det))
+
+    def half_width(dy):
+        return torch.sqrt(torch.clamp_min(2 * max_sigma - det / a * dy * dy, 0) / a)
+
+    dy = torch.minimum(torch.maximum(dy_right.expand_as(dy_lo), dy_lo), dy_hi)
+    x_max = mx - b / a * dy + half_width(dy)
+    dy = torch.minimum(torch.maximum((-dy_right).expand_as(dy_lo), dy_lo), dy_hi)
+    x_min = mx - b / a * dy - half_width(dy)
+    column_first = torch.ceil(x_min - 0.5).clamp_min(0)
+    column_last = torch.floor(x_max - 0.5).clamp_max(width - 1)
+    span_ok = (dy_lo <= dy_hi) & (column_first <= column_last)
+    tile_first = torch.div(column_first, TILE_SIZE, rounding_mode="floor").long()
+    tile_last = torch.div(column_last, TILE_SIZE, rounding_mode="floor").long()  # [N, tiles_y]
+
+    tile_y, tile_x = torch.meshgrid(tile_rows, torch.arange(tiles_x, device=conics.device), indexing="ij")
     tile_x, tile_y = tile_x.reshape(-1), tile_y.reshape(-1)
     in_box = ((tile_x[None] >= boxes[:, 0:1]) & (tile_x[None] < boxes[:, 1:2])
               & (tile_y[None] >= boxes[:, 2:3]) & (tile_y[None] < boxes[:, 3:4]))  # fmt: skip
-    x_lo = (tile_x * TILE_SIZE).to(dtype)[None] + 0.5
-    x_hi = ((tile_x + 1) * TILE_SIZE).clamp(max=width).to(dtype)[None] - 0.5
-    y_lo = (tile_y * TILE_SIZE).to(dtype)[None] + 0.5
-    y_hi = ((tile_y + 1) * TILE_SIZE).clamp(max=height).to(dtype)[None] - 0.5
-    mx, my = means2d.detach()[:, 0:1], means2d.detach()[:, 1:2]
-    a, b, c = (conics.detach()[:, k: k + 1] for k in range(3))
-    safe_a, safe_c = torch.where(a > 0, a, torch.ones_like(a)), torch.where(c > 0, c, torch.ones_like(c))
-
-    def sigma(dx, dy):
-        return 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-
-    outside_x = (mx < x_lo) | (mx > x_hi)
-    dx = torch.where(mx < x_lo, x_lo, x_hi) - mx
-    dy = torch.minimum(torch.maximum(-b * dx / safe_c, y_lo - my), y_hi - my)
-    best = torch.where(outside_x, sigma(dx, dy), torch.full_like(dx, math.inf))
-    outside_y = (my < y_lo) | (my > y_hi)
-    dy = torch.where(my < y_lo, y_lo, y_hi) - my
-    dx = torch.minimum(torch.maximum(-b * dy / safe_a, x_lo - mx), x_hi - mx)
-    best = torch.minimum(best, torch.where(outside_y, sigma(dx, dy), torch.full_like(dx, math.inf)))
-    best = torch.where(outside_x | outside_y, best, torch.zeros_like(best))
-    kept = (radii > 0).any(dim=1, keepdim=True)
-    return kept & in_box & (best <= reach_sigma(opacities.detach().to(dtype))[:, None])
+    in_span = (span_ok[:, tile_y] & (tile_x[None] >= tile_first[:, tile_y]) & (tile_x[None] <= tile_last[:, tile_y]))
+    return kept[:, None] & in_box & in_span
 
 
 def rasterize_gaussians(means, quats, scales, opacities, colors, K, world_to_camera, width: int, height: int, *,
