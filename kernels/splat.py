@@ -548,6 +548,7 @@ def emit_tile_keys_kernel(
     counts. Should the spans ever hold fewer tiles here than when counting (a compiler contracting the
     arithmetic differently in the two kernels), the rest of the Gaussian's slots get the tile id
     ``tiles_x * tiles_y``, which sorts last and :data:`tile_ranges_kernel` ignores; more are never written.
+    Nothing is written past the end of ``keys`` (buffers sized by a capacity below the pair count).
     """
     i = wp.tid()
     radius = radii[i]
@@ -559,8 +560,8 @@ def emit_tile_keys_kernel(
     max_sigma = reach_sigma(xyo[2])
     box = tile_box(center, radius, tiles_x, tiles_y)
     depth_key = wp.int64(depth_bits[i, 3]) - DEPTH_KEY_OFFSET  # positive float: its bits order like the value
-    end = tile_ends[i]
-    slot = end - tile_ends_count(tile_ends, i)
+    slot = tile_ends[i] - tile_ends_count(tile_ends, i)
+    end = wp.min(tile_ends[i], keys.shape[0])
     for ty in range(box[2], box[3]):
         span = row_tile_span(center, conic, max_sigma, ty, box, width, height)
         for tx in range(span[0], span[1]):
@@ -576,7 +577,8 @@ def emit_tile_keys_kernel(
 
 def launch_emit_tile_keys(xy_opacity, depth_bits, radii, tile_ends, *, width: int, height: int, keys,
                           gaussian_ids, conics) -> None:
-    """Launch :data:`emit_tile_keys_kernel`; ``keys``/``gaussian_ids`` hold at least the total pair count.
+    """Launch :data:`emit_tile_keys_kernel`; ``keys``/``gaussian_ids`` should hold the total pair count
+    (``tile_ends[-1]``); pairs beyond their length are dropped, not written out of bounds.
 
     ``conics`` is :data:`project_kernel`'s output (the exact tile test needs it).
     """

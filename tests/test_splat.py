@@ -12,7 +12,9 @@ import torch
 import warp as wp
 
 from warpavatar import ops
+from warpavatar._src.warp_utils import to_warp
 from warpavatar._torch_impl import splat as reference
+from warpavatar.kernels import splat as kernels
 
 DIFFERENTIABLE = ("means", "quats", "scales", "opacities", "colors", "background")
 
@@ -421,17 +423,8 @@ def test_matches_gsplat_when_available(device):
 # The opacity-aware extent and the exact tile test
 
 
-def kernel_tile_pairs(scene, sizes):
-    """The (Gaussian, tile) pairs the Warp kernels emit on CPU, as a [N, tiles] bool mask; and their count.
-
-    Runs the projection, the prefix sum and the key emission exactly as the op does; asserts that no padding
-    key was needed (the emission accepted as many tiles as the projection counted) and no pair repeats.
-    """
-    from warpavatar._src.warp_utils import to_warp
-    from warpavatar.kernels import splat as kernels
-
-    width, height = sizes["width"], sizes["height"]
-    tiles_x, tiles_y = math.ceil(width / 16), math.ceil(height / 16)
+def kernel_projection(scene, sizes):
+    """Run the Warp projection kernel and the prefix sum on CPU: (xy_opacity, conics, color_depth, radii, ends)."""
     n = scene["means"].shape[0]
     f32 = dict(dtype=torch.float32)
     xy_opacity, conics, color_depth = torch.empty(n, 3, **f32), torch.empty(n, 3, **f32), torch.empty(n, 4, **f32)
@@ -439,23 +432,39 @@ def kernel_tile_pairs(scene, sizes):
     ends, flags = torch.empty(n, dtype=torch.int32), torch.zeros(1, dtype=torch.int32)
     degree = -1 if sizes["sh_degree"] is None else sizes["sh_degree"]
     colors = scene["colors"].reshape(n, -1, 3).contiguous()
-
-    def w(tensor, dtype=None):
-        return to_warp(tensor, dtype)
-
     kernels.launch_project(
-        w(scene["means"], wp.vec3), w(scene["quats"], wp.vec4), w(scene["scales"], wp.vec3),
-        w(scene["opacities"]), w(colors, wp.vec3), w(scene["K"].reshape(1, 3, 3), wp.mat33),
-        w(scene["world_to_camera"].reshape(1, 4, 4), wp.mat44), width=width, height=height, sh_degree=degree,
-        used_coefficients=1 if degree < 0 else (degree + 1) ** 2, xy_opacity=w(xy_opacity, wp.vec3),
-        conics=w(conics, wp.vec3), color_depth=w(color_depth, wp.vec4), radii=w(radii, wp.vec2i),
-        tiles_touched=w(touched), bad_input_flags=w(flags))
-    wp.utils.array_scan(w(touched), w(ends), inclusive=True)
+        to_warp(scene["means"], wp.vec3), to_warp(scene["quats"], wp.vec4), to_warp(scene["scales"], wp.vec3),
+        to_warp(scene["opacities"]), to_warp(colors, wp.vec3), to_warp(scene["K"].reshape(1, 3, 3), wp.mat33),
+        to_warp(scene["world_to_camera"].reshape(1, 4, 4), wp.mat44), width=sizes["width"], height=sizes["height"],
+        sh_degree=degree, used_coefficients=1 if degree < 0 else (degree + 1) ** 2,
+        xy_opacity=to_warp(xy_opacity, wp.vec3), conics=to_warp(conics, wp.vec3),
+        color_depth=to_warp(color_depth, wp.vec4), radii=to_warp(radii, wp.vec2i), tiles_touched=to_warp(touched),
+        bad_input_flags=to_warp(flags))
+    wp.utils.array_scan(to_warp(touched), to_warp(ends), inclusive=True)
+    return xy_opacity, conics, color_depth, radii, ends
+
+
+def kernel_emit(projection, sizes, keys, ids):
+    xy_opacity, conics, color_depth, radii, ends = projection
+    kernels.launch_emit_tile_keys(to_warp(xy_opacity, wp.vec3), to_warp(color_depth.view(torch.int32)),
+                                  to_warp(radii, wp.vec2i), to_warp(ends), width=sizes["width"],
+                                  height=sizes["height"], keys=to_warp(keys), gaussian_ids=to_warp(ids),
+                                  conics=to_warp(conics, wp.vec3))
+
+
+def kernel_tile_pairs(scene, sizes):
+    """The (Gaussian, tile) pairs the Warp kernels emit on CPU, as a [N, tiles] bool mask; their count; radii.
+
+    Runs the projection, the prefix sum and the key emission exactly as the op does; asserts that no padding
+    key was needed (the emission accepted as many tiles as the projection counted) and no pair repeats.
+    """
+    tiles_x, tiles_y = math.ceil(sizes["width"] / 16), math.ceil(sizes["height"] / 16)
+    n = scene["means"].shape[0]
+    projection = kernel_projection(scene, sizes)
+    color_depth, radii, ends = projection[2:]
     pair_count = int(ends[-1])
     keys, ids = torch.empty(pair_count, dtype=torch.int64), torch.empty(pair_count, dtype=torch.int32)
-    kernels.launch_emit_tile_keys(w(xy_opacity, wp.vec3), w(color_depth.view(torch.int32)),
-                                  w(radii, wp.vec2i), w(ends), width=width, height=height, keys=w(keys),
-                                  gaussian_ids=w(ids), conics=w(conics, wp.vec3))
+    kernel_emit(projection, sizes, keys, ids)
     tiles = keys >> kernels.DEPTH_KEY_BITS
     depth_keys = keys & ((1 << kernels.DEPTH_KEY_BITS) - 1)
     depths = color_depth[ids.long(), 3]
@@ -562,3 +571,22 @@ def test_tile_test_lists_fewer_pairs_on_elongated_gaussians():
     for actual, expected, name in zip(render(ops.rasterize_gaussians, scene, sizes), render_without_tiles(scene, sizes),
                                       ("image", "alpha", "depth")):
         assert_images_close(actual, expected.float(), name)
+
+
+def test_tile_ranges_skip_padding_keys_and_emission_stays_in_its_buffer():
+    # Sorted keys of a 3-tile grid: tile 0 twice, tile 2 three times, then two padding keys (tile id 3).
+    shift = kernels.DEPTH_KEY_BITS
+    keys = torch.tensor([(0 << shift) | 5, (0 << shift) | 9, (2 << shift) | 1, (2 << shift) | 2, (2 << shift) | 7,
+                         (3 << shift) | 4, (3 << shift) | 8], dtype=torch.int64)
+    ranges = torch.zeros(3, 2, dtype=torch.int32)
+    kernels.launch_tile_ranges(to_warp(keys), keys.shape[0], to_warp(ranges))
+    assert ranges.tolist() == [[0, 2], [0, 0], [2, 5]]
+    # A key buffer shorter than the pair count: the emission fills it and writes nothing beyond.
+    scene, sizes = make_scene(23, gaussian_count=40, width=48, height=40)
+    projection = kernel_projection(scene, sizes)
+    pair_count = int(projection[-1][-1])
+    capacity = pair_count // 2
+    keys, ids = torch.full((pair_count,), -1, dtype=torch.int64), torch.full((pair_count,), -1, dtype=torch.int32)
+    kernel_emit(projection, sizes, keys[:capacity], ids[:capacity])
+    assert capacity > 20 and torch.all(keys[:capacity] >= 0) and torch.all(ids[:capacity] >= 0)
+    assert torch.all(keys[capacity:] == -1) and torch.all(ids[capacity:] == -1)
