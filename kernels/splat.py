@@ -4,10 +4,15 @@ The pipeline of one forward pass (conventions in ``docs/conventions.md``):
 
 1. :func:`launch_project` (one thread per Gaussian): EWA projection of each 3D Gaussian to a 2D mean, a 2D
    conic (inverse covariance), a camera depth, a per-axis pixel radius, an RGB colour (spherical harmonics
-   evaluated) and the number of 16x16 pixel tiles its radius box overlaps.
+   evaluated) and the number of 16x16 pixel tiles it reaches. The extent is opacity-aware: the radius box
+   bounds the ellipse where the Gaussian's alpha can reach 1/255 (:func:`reach_sigma`; Gaussians of opacity
+   below 1/255 are culled), and of the box's tiles only those whose pixel centres that ellipse meets count
+   (:func:`row_tile_span`, exact, O(1) per tile row), so thin diagonal Gaussians skip most of their box.
 2. Tile binning: an inclusive prefix sum of the tile counts (``wp.utils.array_scan``), then
-   :func:`launch_emit_tile_keys` writes one 64-bit key ``tile_id << 32 | depth bits`` per (Gaussian, tile)
-   pair, ``wp.utils.radix_sort_pairs`` sorts them (depth is positive, so its float bits sort like integers) and
+   :func:`launch_emit_tile_keys` writes one 64-bit key ``tile_id << 29 | depth key`` per reached
+   (Gaussian, tile) pair (the depth key is the float bits of the depth, which order like the positive
+   depths, less those of 2^-7: 29 bits span the depth range, see :data:`DEPTH_KEY_BITS`),
+   ``wp.utils.radix_sort_pairs`` sorts the :func:`sort_key_bits` low bits of them and
    :func:`launch_tile_ranges` finds each tile's ``[start, end)`` range in the sorted list.
 3. :func:`launch_composite_forward` (one 256-thread block per tile, one thread per pixel): front-to-back
    alpha compositing; the block loads batches of 256 Gaussian records into shared memory, every thread
@@ -64,6 +69,8 @@ __all__ = [
     "launch_composite_backward",
     "launch_project_backward",
     "tile_key_bits",
+    "sort_key_bits",
+    "DEPTH_KEY_BITS",
 ]
 
 TILE_SIZE = wp.constant(16)
@@ -76,14 +83,14 @@ FAR_PLANE = wp.constant(1.0e10)
 """Gaussians with camera depth at or beyond this [world units] are culled (gsplat's default)."""
 BLUR_EPS2D = wp.constant(0.3)
 """Added to the diagonal of every 2D covariance [px^2] (anti-aliasing low-pass of 3DGS)."""
-RADIUS_SIGMAS = wp.constant(3.33)
-"""The radius box extends this many standard deviations along each image axis."""
 ALPHA_THRESHOLD = wp.constant(1.0 / 255.0)
 """A Gaussian whose alpha at a pixel is below this is skipped there."""
 ALPHA_MAX = wp.constant(0.999)
 """Alpha is clamped to this so that the transmittance stays invertible."""
 TRANSMITTANCE_MIN = wp.constant(1.0e-4)
 """A pixel stops before the Gaussian that would bring its transmittance to or below this."""
+SIGMA_MARGIN = wp.constant(0.05)
+"""Added to the largest reachable exponent ``ln(255 opacity)`` of the extent test (see :func:`reach_sigma`)."""
 
 GRAD_RECORD_FLOATS = 12
 """Floats of per-Gaussian screen-space gradient in the buffer written by the compositing backward.
@@ -272,6 +279,66 @@ def tile_box(center: wp.vec2, radius: wp.vec2i, tiles_x: int, tiles_y: int) -> w
 
 
 @wp.func
+def reach_sigma(opacity: float) -> float:
+    """Largest exponent ``sigma = d^T conic d / 2`` at which a Gaussian of this opacity can still be composited.
+
+    The compositing kernels take a Gaussian at a pixel only when ``sigma >= 0`` and
+    ``min(ALPHA_MAX, opacity * exp(-sigma)) >= ALPHA_THRESHOLD``, i.e. ``sigma <= ln(255 opacity)`` in exact
+    arithmetic (the clamp only lowers alpha, and ALPHA_MAX > ALPHA_THRESHOLD). The caller culls a Gaussian with
+    ``opacity < ALPHA_THRESHOLD``: its alpha is below the threshold everywhere (``exp(-sigma) <= 1``).
+
+    ``SIGMA_MARGIN`` (0.05, about 1 % of ``ln 255``, a box 0.5 % wider) covers the float32 rounding of the
+    compositing's test: ``__expf`` is within 9 ulp (1.1e-6 relative) for ``|x| <= 6``, which moves the limit by
+    1.1e-6; the float32 ``sigma`` of a pixel on the ellipse ``sigma = s`` is off by at most about
+    ``4 eps s / (1 - rho^2)`` (eps = 6e-8, rho the 2D correlation; the terms of the quadratic form cancel for
+    thin diagonal ellipses). The 0.3 px^2 blur bounds ``1 / (1 - rho^2)`` by ``lambda_max / 0.3``, so the margin
+    covers every Gaussian whose major standard deviation is below about 100 px; beyond that a pixel where the
+    float32 alpha sits within rounding of 1/255 may be skipped, a change of at most 1/255 of one colour there.
+    """
+    return wp.log(opacity / ALPHA_THRESHOLD) + SIGMA_MARGIN
+
+
+@wp.func
+def row_tile_span(center: wp.vec2, conic: wp.vec3, max_sigma: float, tile_y: int, box: wp.vec4i, width: int,
+                  height: int) -> wp.vec2i:
+    """Tiles ``[x0, x1)`` of tile row ``tile_y`` (within ``box``) whose pixel centres the ellipse
+    ``sigma <= max_sigma`` meets, ``sigma = (a dx^2 + c dy^2) / 2 + b dx dy`` for ``conic = (a, b, c)``.
+
+    The ellipse's part in the row's band of pixel-centre rows ``dy in [dy_lo, dy_hi]`` is convex, so its x
+    extent is an interval and a tile is met exactly when its pixel-centre columns meet that interval. For a
+    fixed ``dy`` the ellipse spans ``dx = -(b / a) dy +- h(dy)``, ``h = sqrt((2 max_sigma - (det / a) dy^2) / a)``
+    (``det = a c - b^2``); the right end is concave in ``dy`` with its maximum (the ellipse's rightmost point) at
+    ``dy_r = -b sqrt(2 max_sigma / (c det))``, the left end convex with its minimum at ``-dy_r``, so the band's
+    extent is the ends at those points clamped to the band (cut to ``|dy| <= sqrt(2 max_sigma a / det)``).
+    O(1) per row: the projection counts a Gaussian's tiles in O(rows) and the emission in O(rows + pairs).
+    """
+    a = conic[0]
+    b = conic[1]
+    c = conic[2]
+    det = a * c - b * b
+    row_lo = tile_y * TILE_SIZE
+    row_hi = wp.min(row_lo + TILE_SIZE, height) - 1
+    reach_y = wp.sqrt(2.0 * max_sigma * a / det)
+    dy_lo = wp.max(float(row_lo) + 0.5 - center[1], -reach_y)
+    dy_hi = wp.min(float(row_hi) + 0.5 - center[1], reach_y)
+    if dy_lo > dy_hi:
+        return wp.vec2i(0, 0)
+    dy_right = -b * wp.sqrt(2.0 * max_sigma / (c * det))
+    dy = wp.clamp(dy_right, dy_lo, dy_hi)
+    x_max = center[0] - b / a * dy + wp.sqrt(wp.max(2.0 * max_sigma - det / a * dy * dy, 0.0) / a)
+    dy = wp.clamp(-dy_right, dy_lo, dy_hi)
+    x_min = center[0] - b / a * dy - wp.sqrt(wp.max(2.0 * max_sigma - det / a * dy * dy, 0.0) / a)
+    # Pixel columns whose centres (column + 0.5) lie in [x_min, x_max], as tiles, within the box.
+    column_first = wp.max(wp.ceil(x_min - 0.5), 0.0)
+    column_last = wp.min(wp.floor(x_max - 0.5), float(width - 1))
+    if column_first > column_last:
+        return wp.vec2i(0, 0)
+    x0 = wp.max(int(column_first) // TILE_SIZE, box[0])
+    x1 = wp.min(int(column_last) // TILE_SIZE + 1, box[1])
+    return wp.vec2i(x0, wp.max(x0, x1))
+
+
+@wp.func
 def finite_vec3(v: wp.vec3) -> bool:
     return wp.isfinite(v[0]) and wp.isfinite(v[1]) and wp.isfinite(v[2])
 
@@ -344,7 +411,7 @@ def project_kernel(
     conic = wp.vec3(0.0)
     color = wp.vec3(0.0)
     radius = wp.vec2i(0, 0)
-    box = wp.vec4i(0, 0, 0, 0)
+    touched = int(0)
     mean_camera = to_camera(view, mean)
     depth = mean_camera[2]
     if depth > NEAR_PLANE and depth < FAR_PLANE:
@@ -354,9 +421,13 @@ def project_kernel(
         a = covariance_2d[0] + BLUR_EPS2D
         c = covariance_2d[2] + BLUR_EPS2D
         det = a * c - covariance_2d[1] * covariance_2d[1]
-        if det > 0.0:
-            radius_x = wp.ceil(RADIUS_SIGMAS * wp.sqrt(a))
-            radius_y = wp.ceil(RADIUS_SIGMAS * wp.sqrt(c))
+        if det > 0.0 and opacity >= ALPHA_THRESHOLD:
+            # The box of the ellipse sigma <= max_sigma: half-widths sqrt(2 max_sigma Sigma_xx), ... (Sigma
+            # blurred); pixel centres are half-integers and tile edges integers, so no centre of the box lies
+            # on a tile edge and tile_box's floor / ceil keep every tile holding one.
+            max_sigma = reach_sigma(opacity)
+            radius_x = wp.ceil(wp.sqrt(2.0 * max_sigma * a))
+            radius_y = wp.ceil(wp.sqrt(2.0 * max_sigma * c))
             projected = project_mean(mean_camera, K)
             if (
                 projected[0] + radius_x > 0.0
@@ -369,11 +440,14 @@ def project_kernel(
                 radius = wp.vec2i(int(radius_x), int(radius_y))
                 box = tile_box(center, radius, tiles_x, tiles_y)
                 color = gaussian_color(coefficients, i, sh_degree, mean, camera_center_of(view))
+                for ty in range(box[2], box[3]):
+                    span = row_tile_span(center, conic, max_sigma, ty, box, width, height)
+                    touched += span[1] - span[0]
     xy_opacity[i] = wp.vec3(center[0], center[1], opacity)
     conics[i] = conic
     color_depth[i] = wp.vec4(color[0], color[1], color[2], depth)
     radii[i] = radius
-    tiles_touched[i] = (box[1] - box[0]) * (box[3] - box[2])
+    tiles_touched[i] = touched
 
 
 def launch_block_dim(device) -> int:
@@ -421,51 +495,96 @@ def launch_project(
 # ----------------------------------------------------------------------------------------------------------
 
 
+DEPTH_KEY_BITS = 29
+"""Low bits of a sort key holding the depth: its float32 bits less ``DEPTH_KEY_OFFSET`` (the bits of 2^-7).
+
+Kept depths lie in (NEAR_PLANE, FAR_PLANE) = (0.01, 1e10), float bits (0x3C23D70A, 0x501502F9); less the offset
+0x3C000000 that is (0x0023D70A, 0x141502F9), below 2^29 = 0x20000000. Subtracting keeps the order, so the
+sorted lists and the image are those of the full 32 bits, with 3 bits fewer to sort (at 384x384, 10 tile bits:
+39 bits, five 8-bit radix passes instead of six).
+"""
+DEPTH_KEY_OFFSET = wp.constant(wp.int64(0x3C000000))
+_DEPTH_KEY_SHIFT = wp.constant(wp.int64(DEPTH_KEY_BITS))
+
+
 def tile_key_bits(tile_count: int) -> int:
-    """Bits a tile id takes above the 32 depth bits of a sort key."""
+    """Bits a tile id takes above the ``DEPTH_KEY_BITS`` depth bits of a sort key (one more id, the padding
+    tile ``tile_count`` of :data:`emit_tile_keys_kernel`, fits too)."""
     return max(int(tile_count).bit_length(), 1)
+
+
+def sort_key_bits(tile_count: int) -> int:
+    """Low bits of the sort keys to radix-sort (``end_bit`` of ``wp.utils.radix_sort_pairs``)."""
+    return DEPTH_KEY_BITS + tile_key_bits(tile_count)
+
+
+@wp.func
+def tile_ends_count(tile_ends: wp.array(dtype=wp.int32), i: int) -> int:
+    """Entry ``i`` of the array whose inclusive prefix sum is ``tile_ends``."""
+    if i == 0:
+        return tile_ends[0]
+    return tile_ends[i] - tile_ends[i - 1]
 
 
 @wp.kernel(enable_backward=False)
 def emit_tile_keys_kernel(
     xy_opacity: wp.array(dtype=wp.vec3),
+    conics: wp.array(dtype=wp.vec3),
     depth_bits: wp.array2d(dtype=wp.int32),
     radii: wp.array(dtype=wp.vec2i),
     tile_ends: wp.array(dtype=wp.int32),
+    width: int,
+    height: int,
     tiles_x: int,
     tiles_y: int,
-    capacity: int,
     keys: wp.array(dtype=wp.int64),
     gaussian_ids: wp.array(dtype=wp.int32),
 ):
-    """Write the (tile << 32 | depth bits) key and the Gaussian index of every (Gaussian, tile) pair.
+    """Write the key ``tile << 29 | depth key`` (:data:`DEPTH_KEY_BITS`) and the Gaussian of every pair.
 
-    ``depth_bits`` is the ``color_depth`` buffer viewed as int32 ``[gaussian_count, 4]`` (column 3 is the
-    depth); ``tile_ends`` is the inclusive prefix sum of the tile counts. Pairs at slots from ``capacity`` on
-    are dropped (fixed-capacity buffers; the caller sees the overflow in ``tile_ends[-1]``).
+    A pair is emitted for each tile of the radius box in the rows' :func:`row_tile_span`, the spans that
+    :data:`project_kernel` counted with. ``depth_bits`` is the ``color_depth`` buffer viewed as int32
+    ``[gaussian_count, 4]`` (column 3 is the depth); ``tile_ends`` is the inclusive prefix sum of the tile
+    counts. Should the spans ever hold fewer tiles here than when counting (a compiler contracting the
+    arithmetic differently in the two kernels), the rest of the Gaussian's slots get the tile id
+    ``tiles_x * tiles_y``, which sorts last and :data:`tile_ranges_kernel` ignores; more are never written.
+    Nothing is written past the end of ``keys`` (buffers sized by a capacity below the pair count).
     """
     i = wp.tid()
     radius = radii[i]
     if radius[0] == 0 and radius[1] == 0:
         return
     xyo = xy_opacity[i]
-    box = tile_box(wp.vec2(xyo[0], xyo[1]), radius, tiles_x, tiles_y)
-    depth_key = wp.int64(depth_bits[i, 3])  # positive float: its bits order like the value
-    slot = tile_ends[i] - (box[1] - box[0]) * (box[3] - box[2])
+    center = wp.vec2(xyo[0], xyo[1])
+    conic = conics[i]
+    max_sigma = reach_sigma(xyo[2])
+    box = tile_box(center, radius, tiles_x, tiles_y)
+    depth_key = wp.int64(depth_bits[i, 3]) - DEPTH_KEY_OFFSET  # positive float: its bits order like the value
+    slot = tile_ends[i] - tile_ends_count(tile_ends, i)
+    end = wp.min(tile_ends[i], keys.shape[0])
     for ty in range(box[2], box[3]):
-        for tx in range(box[0], box[1]):
-            if slot < capacity:
-                keys[slot] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | depth_key
+        span = row_tile_span(center, conic, max_sigma, ty, box, width, height)
+        for tx in range(span[0], span[1]):
+            if slot < end:
+                keys[slot] = (wp.int64(ty * tiles_x + tx) << _DEPTH_KEY_SHIFT) | depth_key
                 gaussian_ids[slot] = i
-            slot += 1
+                slot += 1
+    while slot < end:
+        keys[slot] = (wp.int64(tiles_x * tiles_y) << _DEPTH_KEY_SHIFT) | depth_key
+        gaussian_ids[slot] = i
+        slot += 1
 
 
 def launch_emit_tile_keys(xy_opacity, depth_bits, radii, tile_ends, *, width: int, height: int, keys,
-                          gaussian_ids) -> None:
-    """Launch :data:`emit_tile_keys_kernel`; ``keys``/``gaussian_ids`` hold the total pair count, or fewer: pairs
-    past their length are dropped."""
+                          gaussian_ids, conics) -> None:
+    """Launch :data:`emit_tile_keys_kernel`; ``keys``/``gaussian_ids`` should hold the total pair count
+    (``tile_ends[-1]``); pairs beyond their length are dropped, not written out of bounds.
+
+    ``conics`` is :data:`project_kernel`'s output (the exact tile test needs it).
+    """
     gaussian_count = xy_opacity.shape[0]
-    for name, array in (("depth_bits", depth_bits), ("radii", radii), ("tile_ends", tile_ends)):
+    for name, array in (("depth_bits", depth_bits), ("radii", radii), ("tile_ends", tile_ends),
+                        ("conics", conics)):
         if array.shape[0] != gaussian_count:
             raise ValueError(f"{name} has {array.shape[0]} entries, expected {gaussian_count}")
     if keys.shape[0] != gaussian_ids.shape[0]:
@@ -477,7 +596,7 @@ def launch_emit_tile_keys(xy_opacity, depth_bits, radii, tile_ends, *, width: in
     wp.launch(
         emit_tile_keys_kernel,
         dim=gaussian_count,
-        inputs=[xy_opacity, depth_bits, radii, tile_ends, tiles_x, tiles_y, keys.shape[0]],
+        inputs=[xy_opacity, conics, depth_bits, radii, tile_ends, width, height, tiles_x, tiles_y],
         outputs=[keys, gaussian_ids],
         block_dim=launch_block_dim(keys.device),
     )
@@ -487,16 +606,23 @@ def launch_emit_tile_keys(xy_opacity, depth_bits, radii, tile_ends, *, width: in
 def tile_ranges_kernel(sorted_keys: wp.array(dtype=wp.int64), pair_count: int, tile_ranges: wp.array2d(dtype=wp.int32)):
     """Write ``[start, end)`` of every tile present in the sorted keys (``tile_ranges`` starts zeroed)."""
     i = wp.tid()
-    tile = int(sorted_keys[i] >> wp.int64(32))
+    tile_count = tile_ranges.shape[0]
+    tile = int(sorted_keys[i] >> _DEPTH_KEY_SHIFT)
+    if tile >= tile_count:
+        return  # padding of emit_tile_keys_kernel, sorted after every real tile
     if i == 0:
         tile_ranges[tile, 0] = 0
     else:
-        previous = int(sorted_keys[i - 1] >> wp.int64(32))
+        previous = int(sorted_keys[i - 1] >> _DEPTH_KEY_SHIFT)
         if previous != tile:
             tile_ranges[tile, 0] = i
             tile_ranges[previous, 1] = i
     if i == pair_count - 1:
         tile_ranges[tile, 1] = pair_count
+    else:
+        following = int(sorted_keys[i + 1] >> _DEPTH_KEY_SHIFT)
+        if following >= tile_count:
+            tile_ranges[tile, 1] = i + 1
 
 
 def launch_tile_ranges(sorted_keys, pair_count: int, tile_ranges) -> None:
@@ -945,7 +1071,7 @@ def launch_project_backward(
 def padding_key(tile_count: int) -> int:
     """The sort key of an unused slot of a fixed-capacity key buffer: every bit the sort looks at set, so it
     sorts after every real key, and its tile field (``2 ** tile_key_bits - 1``) is never a real tile."""
-    return (1 << (32 + tile_key_bits(tile_count))) - 1
+    return (1 << sort_key_bits(tile_count)) - 1
 
 
 @wp.kernel(enable_backward=False)
@@ -955,12 +1081,12 @@ def tile_ranges_padded_kernel(sorted_keys: wp.array(dtype=wp.int64), key_count: 
     which belong to no tile (``tile_ranges`` starts zeroed)."""
     i = wp.tid()
     tile_count = tile_ranges.shape[0]
-    tile = int(sorted_keys[i] >> wp.int64(32))
+    tile = int(sorted_keys[i] >> _DEPTH_KEY_SHIFT)
     if tile >= tile_count:
         tile = -1
     previous = -1
     if i > 0:
-        previous = int(sorted_keys[i - 1] >> wp.int64(32))
+        previous = int(sorted_keys[i - 1] >> _DEPTH_KEY_SHIFT)
         if previous >= tile_count:
             previous = -1
     if i == 0 or previous != tile:

@@ -12,7 +12,9 @@ import torch
 import warp as wp
 
 from warpavatar import ops
+from warpavatar._src.warp_utils import to_warp
 from warpavatar._torch_impl import splat as reference
+from warpavatar.kernels import splat as kernels
 
 DIFFERENTIABLE = ("means", "quats", "scales", "opacities", "colors", "background")
 
@@ -198,11 +200,11 @@ def test_saturated_piles_need_several_batches(device):
     scene, sizes = make_scene(6, gaussian_count=700, width=40, height=32, device=device, opacity_range=(0.3, 0.99),
                               awkward=False)
     scene["scales"] = scene["scales"].clamp(min=0.12)
-    means2d, _, _, radii = reference.project_gaussians(scene["means"], scene["quats"], scene["scales"], scene["K"],
-                                                       scene["world_to_camera"], 40, 32)
-    boxes = reference._tile_boxes(means2d, radii, 3, 2)
-    tiles_per_gaussian = [(tx, ty) for x0, x1, y0, y1 in boxes.tolist() for ty in range(y0, y1) for tx in range(x0, x1)]
-    assert max(tiles_per_gaussian.count(tile) for tile in set(tiles_per_gaussian)) > 256
+    means2d, conics, _, radii = reference.project_gaussians(scene["means"], scene["quats"], scene["scales"],
+                                                            scene["K"], scene["world_to_camera"], 40, 32,
+                                                            opacities=scene["opacities"])
+    reached = reference.reached_tiles(means2d, conics, scene["opacities"], radii, 40, 32)
+    assert reached.sum(dim=0).max() > 256
     cotangents = random_cotangents(sizes, device, 6)
     outputs, grads, _ = render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents)
     ref_outputs, ref_grads, _ = render_reference(scene, sizes, cotangents)
@@ -269,7 +271,8 @@ def smooth_scene(device, *, width=14, height=12):
     scene["K"][0, 2], scene["K"][1, 2] = (width - 1) / 2, (height - 1) / 2
     # Check the claim: every Gaussian has alpha within (2/255, 0.999) at every pixel.
     means2d, conics, _, radii = reference.project_gaussians(scene["means"], scene["quats"], scene["scales"],
-                                                            scene["K"], scene["world_to_camera"], width, height)
+                                                            scene["K"], scene["world_to_camera"], width, height,
+                                                            opacities=scene["opacities"])
     assert torch.all(radii > 0)
     rows, columns = torch.meshgrid(torch.arange(height, device=device) + 0.5, torch.arange(width, device=device) + 0.5,
                                    indexing="ij")
@@ -416,3 +419,176 @@ def test_matches_gsplat_when_available(device):
     expected = colors[0] + (1.0 - alphas[0]) * scene["background"]
     assert_images_close(image, expected, "image vs gsplat")
     assert_images_close(alpha, alphas[0, ..., 0], "alpha vs gsplat")
+
+
+# ------------------------------------------------------------------------------------------------------------
+# The opacity-aware extent and the exact tile test
+
+
+def kernel_projection(scene, sizes):
+    """Run the Warp projection kernel and the prefix sum on CPU: (xy_opacity, conics, color_depth, radii, ends)."""
+    n = scene["means"].shape[0]
+    f32 = dict(dtype=torch.float32)
+    xy_opacity, conics, color_depth = torch.empty(n, 3, **f32), torch.empty(n, 3, **f32), torch.empty(n, 4, **f32)
+    radii, touched = torch.empty(n, 2, dtype=torch.int32), torch.empty(n, dtype=torch.int32)
+    ends, flags = torch.empty(n, dtype=torch.int32), torch.zeros(1, dtype=torch.int32)
+    degree = -1 if sizes["sh_degree"] is None else sizes["sh_degree"]
+    colors = scene["colors"].reshape(n, -1, 3).contiguous()
+    kernels.launch_project(
+        to_warp(scene["means"], wp.vec3), to_warp(scene["quats"], wp.vec4), to_warp(scene["scales"], wp.vec3),
+        to_warp(scene["opacities"]), to_warp(colors, wp.vec3), to_warp(scene["K"].reshape(1, 3, 3), wp.mat33),
+        to_warp(scene["world_to_camera"].reshape(1, 4, 4), wp.mat44), width=sizes["width"], height=sizes["height"],
+        sh_degree=degree, used_coefficients=1 if degree < 0 else (degree + 1) ** 2,
+        xy_opacity=to_warp(xy_opacity, wp.vec3), conics=to_warp(conics, wp.vec3),
+        color_depth=to_warp(color_depth, wp.vec4), radii=to_warp(radii, wp.vec2i), tiles_touched=to_warp(touched),
+        bad_input_flags=to_warp(flags))
+    wp.utils.array_scan(to_warp(touched), to_warp(ends), inclusive=True)
+    return xy_opacity, conics, color_depth, radii, ends
+
+
+def kernel_emit(projection, sizes, keys, ids):
+    xy_opacity, conics, color_depth, radii, ends = projection
+    kernels.launch_emit_tile_keys(to_warp(xy_opacity, wp.vec3), to_warp(color_depth.view(torch.int32)),
+                                  to_warp(radii, wp.vec2i), to_warp(ends), width=sizes["width"],
+                                  height=sizes["height"], keys=to_warp(keys), gaussian_ids=to_warp(ids),
+                                  conics=to_warp(conics, wp.vec3))
+
+
+def kernel_tile_pairs(scene, sizes):
+    """The (Gaussian, tile) pairs the Warp kernels emit on CPU, as a [N, tiles] bool mask; their count; radii.
+
+    Runs the projection, the prefix sum and the key emission exactly as the op does; asserts that no padding
+    key was needed (the emission accepted as many tiles as the projection counted) and no pair repeats.
+    """
+    tiles_x, tiles_y = math.ceil(sizes["width"] / 16), math.ceil(sizes["height"] / 16)
+    n = scene["means"].shape[0]
+    projection = kernel_projection(scene, sizes)
+    color_depth, radii, ends = projection[2:]
+    pair_count = int(ends[-1])
+    keys, ids = torch.empty(pair_count, dtype=torch.int64), torch.empty(pair_count, dtype=torch.int32)
+    kernel_emit(projection, sizes, keys, ids)
+    tiles = keys >> kernels.DEPTH_KEY_BITS
+    depth_keys = keys & ((1 << kernels.DEPTH_KEY_BITS) - 1)
+    depths = color_depth[ids.long(), 3]
+    assert torch.all(depth_keys == depths.view(torch.int32).long() - 0x3C000000), "depth keys keep the float bits"
+    assert torch.all(tiles < tiles_x * tiles_y), "the emission padded: it accepted fewer tiles than counted"
+    mask = torch.zeros(n, tiles_x * tiles_y, dtype=torch.bool)
+    mask[ids.long(), tiles] = True
+    assert int(mask.sum()) == pair_count, "a (Gaussian, tile) pair was emitted twice"
+    return mask, pair_count, radii
+
+
+def contributing_tiles(scene, sizes):
+    """[N, tiles] bool, brute force in float64: tiles holding a pixel where the Gaussian's alpha >= 1/255.
+
+    Every Gaussian in the depth range is tested at every pixel, with no box and no culling by opacity.
+    """
+    width, height = sizes["width"], sizes["height"]
+    s = {name: value.double() for name, value in scene.items()}
+    means2d, conics, depths, _ = reference.project_gaussians(s["means"], s["quats"], s["scales"], s["K"],
+                                                             s["world_to_camera"], width, height,
+                                                             opacities=torch.ones_like(s["opacities"]))
+    rows, columns = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
+    dx = means2d[:, 0, None] - columns.reshape(1, -1).double()
+    dy = means2d[:, 1, None] - rows.reshape(1, -1).double()
+    sigma = 0.5 * (conics[:, 0:1] * dx**2 + conics[:, 2:3] * dy**2) + conics[:, 1:2] * dx * dy
+    alpha = torch.clamp_max(s["opacities"][:, None] * torch.exp(-sigma), reference.ALPHA_MAX)
+    in_range = ((depths > reference.NEAR_PLANE) & (depths < reference.FAR_PLANE))[:, None]
+    contributes = in_range & (sigma >= 0) & (alpha >= reference.ALPHA_THRESHOLD)  # [N, pixels]
+    tiles_x = math.ceil(width / 16)
+    tile_of_pixel = ((rows.long() // 16) * tiles_x + columns.long() // 16).reshape(-1)
+    mask = torch.zeros(contributes.shape[0], tiles_x * math.ceil(height / 16), dtype=torch.bool)
+    index = tile_of_pixel.expand_as(contributes)
+    return mask.scatter_reduce(1, index, contributes, reduce="amax")
+
+
+def render_without_tiles(scene, sizes):
+    """The float64 reference with every kept Gaussian listed in every tile (the all-pairs render)."""
+    original = reference.reached_tiles
+
+    def every_tile(means2d, conics, opacities, radii, width, height):
+        kept = (radii > 0).any(dim=1, keepdim=True)
+        return kept.expand(-1, math.ceil(width / 16) * math.ceil(height / 16))
+
+    reference.reached_tiles = every_tile
+    try:
+        return render(reference.rasterize_gaussians, {k: v.double() for k, v in scene.items()}, sizes)
+    finally:
+        reference.reached_tiles = original
+
+
+def near_threshold_scene(seed, *, width=72, height=56, count=300):
+    """``make_scene``'s awkward scene with the Gaussians around the border and those after the pinned ones made
+    12x longer and thinner (not the anisotropic group, already needles) up to ~70 %, and opacities straddling
+    1/255 (0.8/255 to 2/255) from ~2/3 on."""
+    scene, sizes = make_scene(seed, gaussian_count=count, width=width, height=height)
+    generator = torch.Generator().manual_seed(seed)
+    group = count // 8
+    elongation = torch.tensor([12.0, 0.08, 0.3])
+    scene["scales"][:group] *= elongation
+    scene["scales"][4 * group + group // 2: 7 * count // 10] *= elongation
+    faint = slice(2 * count // 3, count)
+    scene["opacities"][faint] = (0.8 + 1.2 * torch.rand(count - 2 * count // 3, generator=generator)) / 255
+    return scene, sizes
+
+
+@pytest.mark.parametrize("seed", [20, 21])
+def test_extent_and_tile_test_never_drop_a_contributing_pixel(seed):
+    scene, sizes = near_threshold_scene(seed)
+    needed = contributing_tiles(scene, sizes)
+    emitted, pair_count, radii = kernel_tile_pairs(scene, sizes)
+    assert needed.sum() > 500 and (needed.sum(dim=1) > 4).sum() > 20, "the scene should span many tiles"
+    assert not torch.any(needed & ~emitted), "the kernels dropped a (Gaussian, tile) pair with alpha >= 1/255"
+    faint = scene["opacities"] < 1 / 255
+    assert faint.sum() > 10 and torch.all(radii[faint] == 0), "Gaussians below 1/255 opacity are culled"
+    # The float64 reference lists the same pairs up to float32 rounding at the ellipse's edge, also covers
+    # every needed one, and its image equals the all-pairs render exactly.
+    s64 = {name: value.double() for name, value in scene.items()}
+    means2d, conics, _, ref_radii = reference.project_gaussians(
+        s64["means"], s64["quats"], s64["scales"], s64["K"], s64["world_to_camera"], sizes["width"],
+        sizes["height"], opacities=s64["opacities"])
+    listed = reference.reached_tiles(means2d, conics, s64["opacities"], ref_radii, sizes["width"], sizes["height"])
+    assert not torch.any(needed & ~listed)
+    assert (listed ^ emitted).sum() <= 0.01 * pair_count
+    with_tiles = render(reference.rasterize_gaussians, s64, sizes)
+    for listed_output, all_pairs_output in zip(with_tiles, render_without_tiles(scene, sizes)):
+        assert torch.equal(listed_output, all_pairs_output)
+    for actual, expected, name in zip(render(ops.rasterize_gaussians, scene, sizes), with_tiles,
+                                      ("image", "alpha", "depth")):
+        assert_images_close(actual, expected.float(), name)
+
+
+def test_tile_test_lists_fewer_pairs_on_elongated_gaussians():
+    scene, sizes = make_scene(22, gaussian_count=150, width=128, height=96, awkward=False)
+    scene["scales"] *= torch.tensor([10.0, 0.1, 0.1])  # needles in random orientations
+    emitted, pair_count, radii = kernel_tile_pairs(scene, sizes)
+    s64 = {name: value.double() for name, value in scene.items()}
+    means2d = render(reference.rasterize_gaussians, s64, sizes, return_info=True)[3]["means2d"].double() + 0.5
+    boxes = reference._tile_boxes(means2d, radii, 8, 6)
+    box_count = int(((boxes[:, 1] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 2]))[(radii > 0).any(dim=1)].sum())
+    assert pair_count < 0.6 * box_count, f"{pair_count} pairs listed against {box_count} in the boxes"
+    for listed_output, all_pairs_output in zip(render(reference.rasterize_gaussians, s64, sizes),
+                                               render_without_tiles(scene, sizes)):
+        assert torch.equal(listed_output, all_pairs_output)
+    for actual, expected, name in zip(render(ops.rasterize_gaussians, scene, sizes), render_without_tiles(scene, sizes),
+                                      ("image", "alpha", "depth")):
+        assert_images_close(actual, expected.float(), name)
+
+
+def test_tile_ranges_skip_padding_keys_and_emission_stays_in_its_buffer():
+    # Sorted keys of a 3-tile grid: tile 0 twice, tile 2 three times, then two padding keys (tile id 3).
+    shift = kernels.DEPTH_KEY_BITS
+    keys = torch.tensor([(0 << shift) | 5, (0 << shift) | 9, (2 << shift) | 1, (2 << shift) | 2, (2 << shift) | 7,
+                         (3 << shift) | 4, (3 << shift) | 8], dtype=torch.int64)
+    ranges = torch.zeros(3, 2, dtype=torch.int32)
+    kernels.launch_tile_ranges(to_warp(keys), keys.shape[0], to_warp(ranges))
+    assert ranges.tolist() == [[0, 2], [0, 0], [2, 5]]
+    # A key buffer shorter than the pair count: the emission fills it and writes nothing beyond.
+    scene, sizes = make_scene(23, gaussian_count=40, width=48, height=40)
+    projection = kernel_projection(scene, sizes)
+    pair_count = int(projection[-1][-1])
+    capacity = pair_count // 2
+    keys, ids = torch.full((pair_count,), -1, dtype=torch.int64), torch.full((pair_count,), -1, dtype=torch.int32)
+    kernel_emit(projection, sizes, keys[:capacity], ids[:capacity])
+    assert capacity > 20 and torch.all(keys[:capacity] >= 0) and torch.all(ids[:capacity] >= 0)
+    assert torch.all(keys[capacity:] == -1) and torch.all(ids[capacity:] == -1)

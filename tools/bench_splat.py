@@ -10,7 +10,8 @@ repetitions timed with CUDA events), peak memory of one forward + backward above
 (``bench_common.peak_memory_scope``, torch's allocator), the same for ``gsplat.rasterization`` (default
 options, render_mode "RGB+D" so that it also computes depth) on the same inputs, and the ratios ours / gsplat.
 ``launches`` counts the ``wp.launch`` calls of one forward / one backward, plus the ``warp.utils`` scan and
-sort calls (each a few CUB kernels).
+sort calls (each a few CUB kernels). ``pairs`` is the number of (Gaussian, tile) pairs sorted and walked by the
+compositing (ours: the sum of the projection's tile counts; gsplat: the length of its ``isect_ids``).
 """
 
 from __future__ import annotations
@@ -87,14 +88,20 @@ def _ours(scene: dict, parameters: list):
     return forward
 
 
+def _gsplat_K(scene: dict) -> torch.Tensor:
+    """The intrinsics in gsplat's convention (pixel centres at half-integers)."""
+    K = scene["K"].clone()
+    K[0, 2] += 0.5
+    K[1, 2] += 0.5
+    return K
+
+
 def _gsplat(scene: dict, parameters: list):
     try:
         import gsplat
     except Exception:  # not installed, or its CUDA extension cannot build here
         return None
-    K = scene["K"].clone()
-    K[0, 2] += 0.5
-    K[1, 2] += 0.5
+    K = _gsplat_K(scene)
 
     def forward():
         colors, alphas, _ = gsplat.rasterization(
@@ -120,6 +127,41 @@ def _measure(forward, parameters: list, device: str, warmup: int, repeats: int) 
     with peak_memory_scope(device) as scope:
         torch.autograd.grad(forward(), parameters, cotangents)
     return forward_ms, backward_ms, scope.peak_mib
+
+
+def _pair_count(scene: dict) -> int:
+    """(Gaussian, tile) pairs of our rasterizer on the scene: its projection kernel's tile counts, summed."""
+    from warpavatar._src.warp_utils import to_warp
+    from warpavatar.kernels import splat as kernels
+
+    n, device = scene["means"].shape[0], scene["means"].device
+    xy_opacity, conics = torch.empty(n, 3, device=device), torch.empty(n, 3, device=device)
+    color_depth = torch.empty(n, 4, device=device)
+    radii = torch.empty(n, 2, device=device, dtype=torch.int32)
+    touched, flags = (torch.zeros(size, device=device, dtype=torch.int32) for size in (n, 1))
+    kernels.launch_project(
+        to_warp(scene["means"], wp.vec3), to_warp(scene["quats"], wp.vec4), to_warp(scene["scales"], wp.vec3),
+        to_warp(scene["opacities"]), to_warp(scene["colors"].reshape(n, 1, 3), wp.vec3),
+        to_warp(scene["K"].reshape(1, 3, 3), wp.mat33), to_warp(scene["world_to_camera"].reshape(1, 4, 4), wp.mat44),
+        width=scene["width"], height=scene["height"], sh_degree=-1, used_coefficients=1,
+        xy_opacity=to_warp(xy_opacity, wp.vec3), conics=to_warp(conics, wp.vec3),
+        color_depth=to_warp(color_depth, wp.vec4), radii=to_warp(radii, wp.vec2i), tiles_touched=to_warp(touched),
+        bad_input_flags=to_warp(flags),
+    )
+    wp.synchronize_device(to_warp(touched).device)
+    return int(touched.sum())
+
+
+def _gsplat_pair_count(scene: dict) -> int | None:
+    try:
+        import gsplat
+    except Exception:
+        return None
+    _, _, meta = gsplat.rasterization(
+        scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["colors"],
+        scene["world_to_camera"][None], _gsplat_K(scene)[None], scene["width"], scene["height"], render_mode="RGB+D",
+    )
+    return int(meta["isect_ids"].numel()) if "isect_ids" in meta else None
 
 
 def _ratio(ours, theirs):
@@ -157,6 +199,8 @@ def run(device: str, quick: bool) -> list[dict]:
             "peak MiB": peak,
             "launches fwd/bwd": (f"{forward_calls.get('launch', 0)}+{forward_calls.get('utils', 0)} utils / "
                                  f"{backward_calls.get('launch', 0)}"),
+            "pairs": _pair_count(scene),
+            "gsplat pairs": None,
             "gsplat fwd ms": None,
             "gsplat bwd ms": None,
             "gsplat peak MiB": None,
@@ -169,6 +213,7 @@ def run(device: str, quick: bool) -> list[dict]:
         if theirs is not None:
             g_forward, g_backward, g_peak = _measure(theirs, parameters, device, warmup, repeats)
             row.update({
+                "gsplat pairs": _gsplat_pair_count(scene),
                 "gsplat fwd ms": g_forward,
                 "gsplat bwd ms": g_backward,
                 "gsplat peak MiB": g_peak,

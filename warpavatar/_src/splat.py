@@ -38,7 +38,8 @@ def _tile_grid(width: int, height: int) -> tuple[int, int]:
     return (width + tile - 1) // tile, (height + tile - 1) // tile
 
 
-def _bin(status, capacity, w_xy_opacity, color_depth, w_radii, w_tile_ends, tile_ranges, *, width, height):
+def _bin(status, capacity, w_xy_opacity, w_conics, color_depth, w_radii, w_tile_ends, tile_ranges, *, width,
+         height):
     """Sort the (Gaussian, tile) pairs; returns the sorted Gaussian ids.
 
     Without a ``capacity`` the buffers have the exact size: ``status`` ([pair count, flags]) is read from the
@@ -62,9 +63,9 @@ def _bin(status, capacity, w_xy_opacity, color_depth, w_radii, w_tile_ends, tile
         w_sort_keys, w_sorted_ids = to_warp(sort_keys), to_warp(sorted_ids)
         splat_kernels.launch_emit_tile_keys(
             w_xy_opacity, to_warp(color_depth.view(torch.int32)), w_radii, w_tile_ends, width=width, height=height,
-            keys=w_sort_keys[:count], gaussian_ids=w_sorted_ids[:count])
+            keys=w_sort_keys[:count], gaussian_ids=w_sorted_ids[:count], conics=w_conics)
         wp.utils.radix_sort_pairs(w_sort_keys, w_sorted_ids, count, begin_bit=0,
-                                  end_bit=32 + splat_kernels.tile_key_bits(tiles_x * tiles_y))
+                                  end_bit=splat_kernels.sort_key_bits(tiles_x * tiles_y))
         if capacity is None:
             splat_kernels.launch_tile_ranges(w_sort_keys, count, to_warp(tile_ranges))
         else:
@@ -117,8 +118,8 @@ class _RasterizeGaussians(torch.autograd.Function):
             )
             if gaussian_count:
                 wp.utils.array_scan(w_tiles_touched, w_tile_ends, inclusive=True)
-            sorted_ids = _bin(tile_ends_and_flag[gaussian_count:], intersection_capacity, w_xy_opacity, color_depth,
-                              w_radii, w_tile_ends, tile_ranges, width=width, height=height)
+            sorted_ids = _bin(tile_ends_and_flag[gaussian_count:], intersection_capacity, w_xy_opacity, w_conics,
+                              color_depth, w_radii, w_tile_ends, tile_ranges, width=width, height=height)
             w_sorted_ids = to_warp(sorted_ids)
             w_background = to_warp(background.reshape(1, 3), wp.vec3)
             splat_kernels.launch_composite_forward(

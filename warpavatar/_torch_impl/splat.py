@@ -2,7 +2,8 @@
 
 Dense: every pixel evaluates every Gaussian (sorted by depth), which is only fit for tiny images, but it follows
 the Warp rasterizer's rules exactly: the same projection and culling, the same tile rule (a Gaussian reaches
-only the pixels of the 16x16 tiles its radius box overlaps), the same alpha thresholds and early termination,
+only the pixels of the 16x16 tiles where its ellipse of alpha >= 1/255 meets a pixel centre, see
+:func:`reached_tiles`), the same alpha thresholds and early termination,
 and autograd through torch. It runs in the dtype of its inputs (float64 for finite-difference checks).
 Conventions: ``docs/conventions.md``.
 """
@@ -15,20 +16,29 @@ import torch
 
 from warpavatar.geometry import quat_to_matrix, sh_basis
 
-__all__ = ["rasterize_gaussians", "project_gaussians"]
+__all__ = ["rasterize_gaussians", "project_gaussians", "reached_tiles"]
 
 TILE_SIZE = 16
 NEAR_PLANE = 0.01
 FAR_PLANE = 1e10
 BLUR_EPS2D = 0.3
-RADIUS_SIGMAS = 3.33
 ALPHA_THRESHOLD = 1.0 / 255.0
 ALPHA_MAX = 0.999
 TRANSMITTANCE_MIN = 1e-4
+SIGMA_MARGIN = 0.05  # why this margin suffices: kernels/splat.py, reach_sigma
 
 
-def project_gaussians(means, quats, scales, K, world_to_camera, width: int, height: int):
-    """EWA projection as gsplat computes it.
+def reach_sigma(opacities: torch.Tensor) -> torch.Tensor:
+    """Largest exponent ``d^T conic d / 2`` at which a Gaussian can reach alpha 1/255, plus the margin."""
+    return torch.log(opacities / ALPHA_THRESHOLD) + SIGMA_MARGIN
+
+
+def project_gaussians(means, quats, scales, K, world_to_camera, width: int, height: int, *, opacities):
+    """EWA projection as gsplat computes it, with the opacity-aware extent.
+
+    The radius per axis is ``ceil(sqrt(2 reach_sigma(opacity) Sigma_xx))`` (Sigma blurred): the box of the ellipse
+    where alpha can reach 1/255. Gaussians with opacity below 1/255, outside the depth range, with a singular
+    covariance or a box off the image are culled.
 
     Returns ``(means2d [N, 2] with pixel centres at half-integers, conics [N, 3], depths [N], radii [N, 2] int32)``;
     culled Gaussians have radii (0, 0) and finite (meaningless) other values.
@@ -59,7 +69,7 @@ def project_gaussians(means, quats, scales, K, world_to_camera, width: int, heig
     b = covariance_2d[:, 0, 1]
     c = covariance_2d[:, 1, 1] + BLUR_EPS2D
     det = a * c - b * b
-    valid = in_depth_range & (det > 0)
+    valid = in_depth_range & (det > 0) & (opacities >= ALPHA_THRESHOLD)
     safe_det = torch.where(valid, det, torch.ones_like(det))
     conics = torch.stack([c / safe_det, -b / safe_det, a / safe_det], dim=-1)
     means2d = torch.stack(
@@ -67,8 +77,9 @@ def project_gaussians(means, quats, scales, K, world_to_camera, width: int, heig
     )
 
     with torch.no_grad():
+        max_sigma = reach_sigma(opacities.detach().to(dtype)).clamp(min=0)
         radii = torch.stack(
-            [torch.ceil(RADIUS_SIGMAS * torch.sqrt(a.clamp(min=0))), torch.ceil(RADIUS_SIGMAS * torch.sqrt(c.clamp(min=0)))],
+            [torch.ceil(torch.sqrt(2 * max_sigma * a.clamp(min=0))), torch.ceil(torch.sqrt(2 * max_sigma * c.clamp(min=0)))],
             dim=-1,
         )
         on_screen = (
@@ -92,13 +103,62 @@ def _tile_boxes(means2d: torch.Tensor, radii: torch.Tensor, tiles_x: int, tiles_
     return torch.stack([x0, x1, y0, y1], dim=-1).long()
 
 
+def reached_tiles(means2d, conics, opacities, radii, width: int, height: int) -> torch.Tensor:
+    """[N, tiles_y * tiles_x] bool: the (Gaussian, tile) pairs the rasterizer lists (row-major tile ids).
+
+    A tile is listed when it lies in the Gaussian's radius box and the ellipse ``sigma <= reach_sigma(opacity)``
+    (``sigma = d^T conic d / 2``) contains a pixel centre's position of the tile's rows and columns inside the
+    image: per tile row, the x extent of the ellipse within the row's band of pixel-centre rows (its ends at the
+    ellipse's leftmost / rightmost points clamped to the band), as pixel columns, as tiles (the rule and the
+    derivation of ``kernels/splat.py``'s ``row_tile_span``).
+    """
+    tiles_x, tiles_y = math.ceil(width / TILE_SIZE), math.ceil(height / TILE_SIZE)
+    dtype = conics.dtype
+    boxes = _tile_boxes(means2d, radii, tiles_x, tiles_y)
+    kept = (radii > 0).any(dim=1)
+    max_sigma = reach_sigma(opacities.detach().to(dtype)).clamp(min=0)[:, None]  # [N, 1]
+    mx, my = means2d.detach()[:, 0:1], means2d.detach()[:, 1:2]
+    a, b, c = (conics.detach()[:, k: k + 1] for k in range(3))
+    a, c = torch.where(kept[:, None], a, torch.ones_like(a)), torch.where(kept[:, None], c, torch.ones_like(c))
+    b = torch.where(kept[:, None], b, torch.zeros_like(b))
+    det = a * c - b * b
+    tile_rows = torch.arange(tiles_y, device=conics.device)
+    row_lo = (tile_rows * TILE_SIZE).to(dtype)[None]
+    row_hi = ((tile_rows + 1) * TILE_SIZE).clamp(max=height).to(dtype)[None] - 1
+    reach_y = torch.sqrt(2 * max_sigma * a / det)
+    dy_lo = torch.maximum(row_lo + 0.5 - my, -reach_y)
+    dy_hi = torch.minimum(row_hi + 0.5 - my, reach_y)  # [N, tiles_y]
+    dy_right = -b * torch.sqrt(2 * max_sigma / (c * det))
+
+    def half_width(dy):
+        return torch.sqrt(torch.clamp_min(2 * max_sigma - det / a * dy * dy, 0) / a)
+
+    dy = torch.minimum(torch.maximum(dy_right.expand_as(dy_lo), dy_lo), dy_hi)
+    x_max = mx - b / a * dy + half_width(dy)
+    dy = torch.minimum(torch.maximum((-dy_right).expand_as(dy_lo), dy_lo), dy_hi)
+    x_min = mx - b / a * dy - half_width(dy)
+    column_first = torch.ceil(x_min - 0.5).clamp_min(0)
+    column_last = torch.floor(x_max - 0.5).clamp_max(width - 1)
+    span_ok = (dy_lo <= dy_hi) & (column_first <= column_last)
+    tile_first = torch.div(column_first, TILE_SIZE, rounding_mode="floor").long()
+    tile_last = torch.div(column_last, TILE_SIZE, rounding_mode="floor").long()  # [N, tiles_y]
+
+    tile_y, tile_x = torch.meshgrid(tile_rows, torch.arange(tiles_x, device=conics.device), indexing="ij")
+    tile_x, tile_y = tile_x.reshape(-1), tile_y.reshape(-1)
+    in_box = ((tile_x[None] >= boxes[:, 0:1]) & (tile_x[None] < boxes[:, 1:2])
+              & (tile_y[None] >= boxes[:, 2:3]) & (tile_y[None] < boxes[:, 3:4]))  # fmt: skip
+    in_span = (span_ok[:, tile_y] & (tile_x[None] >= tile_first[:, tile_y]) & (tile_x[None] <= tile_last[:, tile_y]))
+    return kept[:, None] & in_box & in_span
+
+
 def rasterize_gaussians(means, quats, scales, opacities, colors, K, world_to_camera, width: int, height: int, *,
                         background=None, sh_degree: int | None = None, densify_grad_out=None, return_info=False,
                         intersection_capacity: int | None = None):
     """Reference of :func:`warpavatar.ops.rasterize_gaussians` (same arguments, types and outputs; it has no
     sort buffers, so ``intersection_capacity`` changes nothing and ``info["status"]`` only counts the pairs)."""
     device, dtype = means.device, means.dtype
-    means2d, conics, depths, radii = project_gaussians(means, quats, scales, K, world_to_camera, width, height)
+    means2d, conics, depths, radii = project_gaussians(means, quats, scales, K, world_to_camera, width, height,
+                                                       opacities=opacities)
 
     if sh_degree is None:
         rgb = colors
@@ -120,12 +180,8 @@ def rasterize_gaussians(means, quats, scales, opacities, colors, K, world_to_cam
     kept = (radii[:, 0] > 0) | (radii[:, 1] > 0)
     order = torch.argsort(torch.where(kept, depths.detach(), torch.full_like(depths, math.inf)), stable=True)
     order = order[: int(kept.sum())]
-    boxes = _tile_boxes(means2d, radii, tiles_x, tiles_y)[order]  # [M, 4]
-    pixel_tile_x, pixel_tile_y = pixel_x // TILE_SIZE, pixel_y // TILE_SIZE
-    in_box = (
-        (pixel_tile_x[None] >= boxes[:, 0:1]) & (pixel_tile_x[None] < boxes[:, 1:2])
-        & (pixel_tile_y[None] >= boxes[:, 2:3]) & (pixel_tile_y[None] < boxes[:, 3:4])
-    )  # [M, P]  fmt: skip
+    reached = reached_tiles(means2d, conics, opacities, radii, width, height)[order]  # [M, tiles]
+    in_box = reached[:, (pixel_y // TILE_SIZE) * tiles_x + pixel_x // TILE_SIZE]  # [M, P]
 
     sorted_means2d = means2d[order]
     per_pixel_means2d = sorted_means2d[:, None, :].expand(-1, centers.shape[0], -1)  # [M, P, 2]
@@ -164,8 +220,8 @@ def rasterize_gaussians(means, quats, scales, opacities, colors, K, world_to_cam
         depth.reshape(height, width),
     )
     if return_info:
-        box_tiles = (boxes[:, 1] - boxes[:, 0]).clamp_min(0) * (boxes[:, 3] - boxes[:, 2]).clamp_min(0)
-        status = torch.stack([box_tiles.sum(), torch.zeros((), dtype=box_tiles.dtype, device=device)])
+        pair_count = reached.sum()  # the (Gaussian, tile) pairs the rasterizer lists
+        status = torch.stack([pair_count, torch.zeros_like(pair_count)])
         info = {"radii": radii, "means2d": (means2d.detach() - 0.5).float(), "depths": depths.detach(),
                 "status": status.to(torch.int32)}
         return outputs + (info,)
