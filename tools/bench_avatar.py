@@ -230,20 +230,24 @@ def _step_row(trainer, video, device, warmup, repeats) -> dict:
             "ours": milliseconds, "gsplat": None, "ratio": None, "notes": notes + f"; top ops: {counts['top_ops']}"}
 
 
-def _playback_rows(avatar, video, device, repeats, quick) -> list[dict]:
+def _playback_rows(avatar, video, device, repeats, quick, modes=("off",)) -> list[dict]:
     width, height = (160, 90) if quick else (1920, 1080)
     scene = _camera_at(video.cameras[0], width, height, device)
     camera = type("Camera", (), scene)
     bones = torch.as_tensor(video.bone_transforms, dtype=torch.float32, device=device)
     rows = []
-    for mode in ["off"] + (["on"] if device.startswith("cuda") else []):
+    for mode in modes:
         player = Player(avatar, camera, cuda_graph=mode)
         frame = iter(range(10 ** 9))
 
         def draw():
             player.render(bones[next(frame) % bones.shape[0]])
 
-        milliseconds = time_function(draw, device=device, warmup=3, repeats=max(repeats, 3 if quick else 200))
+        try:
+            milliseconds = time_function(draw, device=device, warmup=3, repeats=max(repeats, 3 if quick else 200))
+        except Exception as error:  # noqa: BLE001 (a failed CUDA graph capture is a result to report)
+            rows.append(_failed_row("playback FPS (CUDA graph)", f"{width}x{height}", error))
+            continue
         counts = count_step_work(draw, device=device)
         rows.append({"measure": f"playback FPS ({'CUDA graph' if player.use_graph else 'eager'})",
                      "size": f"{width}x{height}", "ours": 1000.0 / milliseconds, "gsplat": None, "ratio": None,
@@ -261,12 +265,23 @@ def run(device: str, quick: bool, *, avatar: str | None = None, video: str | Non
         eager = _steady_trainer(video_folder, config, fitted, device, folder, cuda_graph="off")
         rows = _raster_rows(eager.avatar, video_folder, device, warmup, repeats, quick)
         rows.append(_step_row(eager, video_folder, device, warmup, repeats))
-    if device.startswith("cuda"):
+    rows += _playback_rows(eager.avatar, video_folder, device, repeats, quick)
+    if device.startswith("cuda"):  # last: a capture that fails must not cost the rows above
         with tempfile.TemporaryDirectory() as folder:
             graphed = _steady_trainer(video_folder, config, fitted, device, folder, cuda_graph="on")
-            rows.append(_step_row(graphed, video_folder, device, warmup, repeats))
-    rows += _playback_rows(eager.avatar, video_folder, device, repeats, quick)
+            try:
+                rows.append(_step_row(graphed, video_folder, device, warmup, repeats))
+            except Exception as error:  # noqa: BLE001
+                rows.append(_failed_row("training step ms (CUDA graph)", "", error))
+        rows += _playback_rows(eager.avatar, video_folder, device, repeats, quick, modes=("on",))
     return rows
+
+
+def _failed_row(measure: str, size: str, error: Exception) -> dict:
+    """A row saying that a measurement failed, and why (first line of the error)."""
+    reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+    return {"measure": measure, "size": size, "ours": None, "gsplat": None, "ratio": None,
+            "notes": f"failed: {type(error).__name__}: {reason[:160]}"}
 
 if __name__ == "__main__":
     from bench_common import markdown_table
