@@ -16,6 +16,9 @@ from warpavatar.model.parts import frame_intervals
 
 # a pelvis (0) with a spine (1) and two legs (2, 3), each leg with a shin (4, 5)
 PARENTS = [-1, 0, 0, 0, 2, 3]
+# their canonical heads: the hips at z = 1, the knees at z = 0.5
+HEADS = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.1, 1.0], [0.0, -0.1, 1.0], [0.0, 0.1, 0.5],
+                      [0.0, -0.1, 0.5]])
 
 
 def _ring(centre_xy, radius, heights, count, generator):
@@ -90,6 +93,29 @@ def test_detection_finds_the_skirt_between_two_legs_and_nothing_on_a_bare_body()
     assert detect_garments(bare, bare_weights, PARENTS, _walk()) == []
     # the same skirt on a body that does not move its legs apart is not told from the body
     assert detect_garments(means, weights, PARENTS, torch.eye(4).repeat(4, 6, 1, 1)) == []
+
+
+def test_detection_keeps_what_hangs_below_its_attachment_and_drops_a_blend_above_it():
+    generator = torch.Generator().manual_seed(1)
+    means, weights = _body(generator, skirt=True)
+    # a patch of the torso (above the hips) that the field blends between the spine and the left leg, as a
+    # forearm brushing the head: it moves apart with the leg like cloth would, but it does not hang
+    patch = _ring((0.0, 0.0), 0.13, (1.1, 1.45), 900, generator)
+    patch_weights = torch.zeros(patch.shape[0], 6)
+    patch_weights[:, 1], patch_weights[:, 2] = 0.55, 0.45
+    means, weights = torch.cat([means, patch]), torch.cat([weights, patch_weights])
+    up = torch.tensor([0.0, 0.0, 1.0])
+    without_rule = detect_garments(means, weights, PARENTS, _walk())
+    above = [r for r in without_rule if float(means[r.gaussian_ids, 2].median()) > 1.0]
+    assert above, "the patch above the hips must score as split without the hanging rule"
+    found = detect_garments(means, weights, PARENTS, _walk(), heads=HEADS, up=up)
+    assert len(found) == 1 and found[0].joint == 0 and set(found[0].split_joints) == {2, 3}
+    assert float(means[found[0].gaussian_ids, 2].median()) < 1.0  # the skirt, below the hips
+    # the rule measures along the given up axis: upside down the skirt is "above" the hips and the patch hangs
+    flipped = detect_garments(means, weights, PARENTS, _walk(), heads=HEADS, up=-up)
+    assert flipped and all(float(means[r.gaussian_ids, 2].median()) > 1.0 for r in flipped)
+    with pytest.raises(ValueError, match="hang_fraction"):
+        detect_garments(means, weights, PARENTS, _walk(), heads=HEADS, up=up, hang_fraction=1.5)
 
 
 # ---------------------------------------------------------------------------------------------- tiny fits

@@ -372,7 +372,10 @@ class GarmentExtension(Extension):
         weights = self._skeleton_weights(fit.skinning.field.weights(means, grid))
         regions = detect_garments(means, weights, skeleton.parents, fit.frames.bone_transforms,
                                   threshold=options.garment_threshold,
-                                  min_fraction=options.garment_min_fraction)
+                                  min_fraction=options.garment_min_fraction,
+                                  # a named attachment overrides the rule that cloth hangs below the found one
+                                  heads=None if options.garment_attach else
+                                  torch.as_tensor(skeleton.heads, dtype=torch.float32), up=skeleton.up)
         self.decided = True
         up = torch.as_tensor(skeleton.up, dtype=torch.float32, device=means.device)
         height = means @ up

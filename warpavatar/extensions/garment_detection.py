@@ -30,6 +30,11 @@ The rule, each threshold a geometric statement rather than a tuned number:
    small patch; a garment covers a sizeable part of the body.
 4. Attachment: the lowest common ancestor of the two heaviest mutually unrelated joints of the component (a
    skirt split between the thighs hangs from their common ancestor, the hips); a user may name the joint.
+5. Cloth hangs: a garment is held at its attachment and falls from it under gravity, so at least
+   ``hang_fraction`` (half) of its Gaussians lie below that joint along the skeleton's up axis in the canonical
+   pose (a skirt below the hips, the tails of a coat below the waist). A blend between chains *above* their
+   common ancestor is not cloth that hangs from it: it is two body parts that pass near each other in the
+   training motion (a forearm brushing the head), which the field has not separated yet.
 
 Robots, animals and tightly dressed people should get weights inside one chain everywhere except at small
 patches, so that no component passes step 3 and the fit runs exactly as without the garment extension. Known
@@ -177,6 +182,9 @@ def detect_garments(
     min_fraction: float = 0.03,
     neighbours: int = 8,
     link: float = 2.0,
+    heads: torch.Tensor | None = None,
+    up: torch.Tensor | None = None,
+    hang_fraction: float = 0.5,
 ) -> list[GarmentRegion]:
     """Find the garments among canonical Gaussians from their skinning weights (see the module docstring).
 
@@ -189,12 +197,18 @@ def detect_garments(
         min_fraction: smallest garment as a fraction of all Gaussians, ``(0, 1)``.
         neighbours: k of the k-NN graph the components are found on.
         link: longest link of that graph, in median distances to the k-th neighbour.
+        heads: canonical joint positions ``[J, 3]`` [world units] and ``up``: the skeleton's up axis ``[3]``; with
+            both, a region counts only when at least ``hang_fraction`` of its Gaussians lie below its attachment
+            joint (rule 5 of the module docstring).
+        hang_fraction: see ``heads``, ``[0, 1]``.
 
     Returns:
         The garments, largest first (empty when there is none).
     """
     if not 0.0 < threshold < 1.0 or not 0.0 < min_fraction < 1.0:
         raise ValueError(f"threshold and min_fraction must be in (0, 1), got {threshold} and {min_fraction}")
+    if not 0.0 <= hang_fraction <= 1.0:
+        raise ValueError(f"hang_fraction must be in [0, 1], got {hang_fraction}")
     count = means.shape[0]
     if count < 2:
         return []
@@ -235,6 +249,14 @@ def detect_garments(
         unrelated = torch.where(related[first].to(mass.device), torch.full_like(mass, -1.0), mass)
         second = int(unrelated.argmax()) if bool((unrelated > 0).any()) else first
         joint = lowest_common_ancestor(parents, first, second)
-        found.append(GarmentRegion(ids, joint if joint >= 0 else first, (first, second)))
+        joint = joint if joint >= 0 else first
+        if heads is not None and up is not None:
+            axis = torch.as_tensor(up, dtype=torch.float32, device=means.device)
+            axis = axis / axis.norm().clamp_min(1e-12)
+            joint_height = torch.as_tensor(heads, dtype=torch.float32, device=means.device)[joint] @ axis
+            below = (means[ids].float() @ axis <= joint_height).float().mean()
+            if float(below) < hang_fraction:
+                continue  # not hanging from its attachment (rule 5)
+        found.append(GarmentRegion(ids, joint, (first, second)))
     found.sort(key=lambda region: -region.gaussian_ids.numel())
     return found
