@@ -15,7 +15,7 @@ from typing import Any, Callable
 import torch
 import warp as wp
 
-from warpavatar._src.warp_utils import init_warp, warp_device
+from warpavatar._src.warp_utils import init_warp, warp_device, warp_stream_of
 
 __all__ = ["CAPTURE_MODE", "cuda_graphs_available", "capture_cuda_graph", "resolve_cuda_graph", "adam_options"]
 
@@ -76,7 +76,7 @@ def capture_cuda_graph(function: Callable[[], Any], *, device, warmup: int = 2, 
             function()
     torch.cuda.current_stream(device).wait_stream(stream)
     graph = torch.cuda.CUDAGraph()
-    warp_stream = wp.stream_from_torch(stream)
+    warp_stream = warp_stream_of(stream)
     # one capture mode on both sides (Warp must be told the mode of the capture torch opened)
     with wp.ScopedDevice(name), wp.ScopedStream(warp_stream, sync_enter=False), \
             torch.cuda.graph(graph, stream=stream, capture_error_mode=CAPTURE_MODE):

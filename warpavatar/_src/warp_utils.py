@@ -25,6 +25,7 @@ __all__ = [
     "warp_device",
     "to_warp",
     "torch_stream_scope",
+    "warp_stream_of",
     "available_devices",
     "check_tensor",
 ]
@@ -63,6 +64,25 @@ def to_warp(tensor: torch.Tensor, dtype=None) -> wp.array:
     return wp.from_torch(tensor, dtype=dtype, requires_grad=False)
 
 
+_WARP_STREAMS: dict[tuple[str, int], wp.Stream] = {}
+
+
+def warp_stream_of(stream: torch.cuda.Stream) -> wp.Stream:
+    """The one Warp wrapper of a torch CUDA stream, made on first use and kept for the process.
+
+    Warp registers an external stream by its handle, without a count, when a wrapper is made, and forgets it when
+    any wrapper of that handle is garbage-collected, together with a CUDA graph capture under way on it (the
+    capture then ends in "unknown capture stream"). One lasting wrapper per handle keeps the registration, and
+    saves making one per launch. Torch's streams come from fixed pools, so the table stays small.
+    """
+    init_warp()
+    key = (str(stream.device), int(stream.cuda_stream))
+    wrapper = _WARP_STREAMS.get(key)
+    if wrapper is None:
+        wrapper = _WARP_STREAMS[key] = wp.stream_from_torch(stream)
+    return wrapper
+
+
 @contextlib.contextmanager
 def torch_stream_scope(device: torch.device | str):
     """Run the Warp launches inside this block on torch's current stream of ``device``.
@@ -73,7 +93,7 @@ def torch_stream_scope(device: torch.device | str):
     device = torch.device(device)
     name = warp_device(device)
     if device.type == "cuda":
-        stream = wp.stream_from_torch(torch.cuda.current_stream(device))
+        stream = warp_stream_of(torch.cuda.current_stream(device))
         with wp.ScopedDevice(name), wp.ScopedStream(stream, sync_enter=False):
             yield name
     else:
