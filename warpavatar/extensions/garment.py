@@ -519,6 +519,11 @@ class GarmentExtension(Extension):
     def optimizers(self, step) -> list[torch.optim.Optimizer]:
         return [] if self.part is None or self.state is None else [self.optimizer]
 
+    def step_capturable(self, step) -> bool:
+        """Without a garment (none found, or detection not reached) this extension has no device work in a step;
+        with one, every step rolls a window that starts at the trained frame's cached state (eager)."""
+        return self.part is None
+
     def on_gaussians_renumbered(self, source_index: torch.Tensor) -> None:
         if self.part is not None:
             self.part.renumber(source_index, self.fit.avatar.gaussians.means)
