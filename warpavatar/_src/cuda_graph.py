@@ -10,6 +10,7 @@ stream first, so that Warp modules are loaded and torch's allocator and Warp's s
 
 from __future__ import annotations
 
+import warnings
 from typing import Any, Callable
 
 import torch
@@ -17,7 +18,8 @@ import warp as wp
 
 from warpavatar._src.warp_utils import init_warp, warp_device, warp_stream_of
 
-__all__ = ["CAPTURE_MODE", "cuda_graphs_available", "capture_cuda_graph", "resolve_cuda_graph", "adam_options"]
+__all__ = ["CAPTURE_MODE", "cuda_graphs_available", "capture_cuda_graph", "capture_or_fall_back", "resolve_cuda_graph",
+           "adam_options"]
 
 CAPTURE_MODE = "thread_local"
 """The CUDA stream-capture mode of both sides (torch's ``capture_error_mode``: ``global``, ``thread_local`` or
@@ -87,3 +89,19 @@ def capture_cuda_graph(function: Callable[[], Any], *, device, warmup: int = 2, 
         finally:
             wp.capture_end(stream=warp_stream)
     return graph, outputs
+
+
+def capture_or_fall_back(function: Callable[[], Any], *, mode: str, what: str, device, **options
+                         ) -> tuple[torch.cuda.CUDAGraph, Any] | None:
+    """:func:`capture_cuda_graph`, or None where the capture fails under ``mode`` ``auto`` (with a warning
+    naming ``what`` goes on eagerly); under ``on`` the failure raises.
+
+    Any exception counts (torch 2.11 raises ``AcceleratorError`` for a failed capture).
+    """
+    try:
+        return capture_cuda_graph(function, device=device, **options)
+    except Exception as error:  # noqa: BLE001 (see above)
+        if mode == "on":
+            raise
+        warnings.warn(f"CUDA graph capture failed, {what} goes on eagerly: {error}", RuntimeWarning)
+        return None

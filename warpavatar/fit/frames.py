@@ -44,6 +44,7 @@ class TrainingFrames:
     def __init__(self, video, *, max_frames: int = 0, target: str = "auto", device="cpu"):
         device = torch.device(device)
         self.video = video
+        self._step_buffers: dict[tuple[int, int], SimpleNamespace] = {}  # see step_buffers
         self.indices = np.arange(video.frame_count)
         if max_frames and max_frames < video.frame_count:
             self.indices = evenly_spaced(video.frame_count, max_frames)
@@ -103,3 +104,26 @@ class TrainingFrames:
         if not self.composite_target:
             return image, mask
         return image * mask[..., None] + self.background * (1 - mask[..., None]), mask
+
+    def step_buffers(self, index: int) -> SimpleNamespace:
+        """Training frame ``index`` in tensors that keep their storage from call to call (one set per image size),
+        refilled by device-to-device copies, so that one captured training step serves every frame of a size:
+        ``bones`` [J,4,4], ``image`` [H,W,3] uint8, ``mask`` [H,W] uint8 or None, ``camera`` (``K``,
+        ``world_to_camera``, ``width``, ``height``)."""
+        camera = self.cameras[index]
+        size = (camera.width, camera.height)
+        buffers = self._step_buffers.get(size)
+        if buffers is None:
+            buffers = self._step_buffers[size] = SimpleNamespace(
+                bones=self.bone_transforms[index].clone(), image=self.images[index].clone(),
+                mask=None if self.masks is None else self.masks[index].clone(),
+                camera=SimpleNamespace(K=camera.K.clone(), world_to_camera=camera.world_to_camera.clone(),
+                                       width=camera.width, height=camera.height))
+            return buffers
+        buffers.bones.copy_(self.bone_transforms[index])
+        buffers.image.copy_(self.images[index])
+        if buffers.mask is not None:
+            buffers.mask.copy_(self.masks[index])
+        buffers.camera.K.copy_(camera.K)
+        buffers.camera.world_to_camera.copy_(camera.world_to_camera)
+        return buffers

@@ -14,15 +14,11 @@ import json
 import math
 import os
 import time
-import warnings
 from pathlib import Path
-from types import SimpleNamespace
 
 import torch
 import tqdm
 
-from warpavatar import ops
-from warpavatar._src.cuda_graph import capture_cuda_graph, resolve_cuda_graph
 from warpavatar.extensions import FitContext, LossTerm, StepContext, get_extension
 from warpavatar.fit.checkpoint import CHECKPOINT_NAME, read_checkpoint, save_checkpoint
 from warpavatar.fit.config import FitConfig, changed_options
@@ -31,8 +27,10 @@ from warpavatar.fit.frames import TrainingFrames
 from warpavatar.fit.init import initial_gaussians
 from warpavatar.fit.outputs import TRAINING_MOTION_NAME, write_canonical_ply, write_previews, write_training_motion
 from warpavatar.fit.skinning import SkinningStage
+from warpavatar.fit.step_graph import StepGraph
 from warpavatar.metrics import image_loss_terms, psnr
 from warpavatar.model import Avatar, GaussianModel, VoxelSkinningField
+from warpavatar.model.capacity import IntersectionCapacity
 
 __all__ = ["Trainer"]
 
@@ -87,22 +85,29 @@ class Trainer:
         self.step = 0
         self.frame_order: list[int] = []
         self._stop_requested = False
-        #: whether steady steps are captured and replayed as a CUDA graph (``cuda_graph``: auto, on, off)
-        self.use_cuda_graph = resolve_cuda_graph(cuda_graph, self.device)
-        self._cuda_graph_mode = cuda_graph
-        #: the rasterizer's sort capacity in (Gaussian, tile) pairs; None until the first step has counted them
-        self.intersection_capacity: int | None = None
-        self._pair_peak = torch.zeros(1, dtype=torch.int32, device=self.device)
-        self._input_flags = torch.zeros(1, dtype=torch.int32, device=self.device)
-        self._buffers: dict[tuple[int, int], SimpleNamespace] = {}
-        self._graph = None  # (key, torch.cuda.CUDAGraph, its outputs, its target and mask)
-        #: steps replayed from a captured CUDA graph so far (this session)
-        self.graph_replays = 0
-        self._capture_stream = torch.cuda.Stream(device=self.device) if self.use_cuda_graph else None
+        #: the steady step captured and replayed as a CUDA graph (``cuda_graph``: auto, on, off)
+        self.step_graph = StepGraph(self.device, cuda_graph)
+        #: the rasterizer's sort capacity in (Gaussian, tile) pairs (``value`` None: the next step counts them)
+        self.capacity = IntersectionCapacity(self.device)
 
     @property
     def gaussians(self) -> GaussianModel:
         return self.avatar.gaussians
+
+    @property
+    def use_cuda_graph(self) -> bool:
+        """Whether steady steps are captured and replayed as a CUDA graph."""
+        return self.step_graph.enabled
+
+    @property
+    def graph_replays(self) -> int:
+        """Steps replayed from a captured CUDA graph so far (this session)."""
+        return self.step_graph.replays
+
+    @property
+    def intersection_capacity(self) -> int | None:
+        """The rasterizer's sort capacity the next step uses (None: exact buffers, counting the pairs)."""
+        return self.capacity.value
 
     def extension(self, name: str):
         """The enabled extension called ``name``, or None."""
@@ -138,28 +143,6 @@ class Trainer:
         return terms
 
     # ------------------------------------------------------------------------------------------------ a step
-    def _frame_buffers(self, index: int) -> SimpleNamespace:
-        """The step's inputs, refilled with training frame ``index`` (device-to-device copies): tensors that keep
-        their storage from step to step, so that one captured step serves every frame of their size."""
-        frames = self.frames
-        camera = frames.cameras[index]
-        size = (camera.width, camera.height)
-        buffers = self._buffers.get(size)
-        if buffers is None:
-            buffers = self._buffers[size] = SimpleNamespace(
-                bones=frames.bone_transforms[index].clone(), image=frames.images[index].clone(),
-                mask=None if frames.masks is None else frames.masks[index].clone(),
-                camera=SimpleNamespace(K=camera.K.clone(), world_to_camera=camera.world_to_camera.clone(),
-                                       width=camera.width, height=camera.height))
-            return buffers
-        buffers.bones.copy_(frames.bone_transforms[index])
-        buffers.image.copy_(frames.images[index])
-        if buffers.mask is not None:
-            buffers.mask.copy_(frames.masks[index])
-        buffers.camera.K.copy_(camera.K)
-        buffers.camera.world_to_camera.copy_(camera.world_to_camera)
-        return buffers
-
     def _step_work(self, step: StepContext, buffers, degree: int, inputs: dict, optimizers: list):
         """The device work of a step, from the frame's buffers to the optimizers' update: no host reads, so it
         runs eagerly or is captured as a CUDA graph. Returns (image, alpha, loss terms incl. ``loss``)."""
@@ -169,7 +152,7 @@ class Trainer:
         step.posed = self.avatar.pose(buffers.bones, grid=step.grid, inputs=inputs, sh_degree=degree)
         step.image, step.alpha, _, info = self.avatar.rasterize(
             step.posed, buffers.camera, background=frames.background, densify_grad_out=grad_out, return_info=True,
-            intersection_capacity=self.intersection_capacity)
+            intersection_capacity=self.capacity.value)
         terms = self._core_losses(step)
         for extension in self.extensions:
             for name, term in extension.losses(step).items():
@@ -187,11 +170,7 @@ class Trainer:
         for extension in self.extensions:
             extension.after_step(step)
         self.density.accumulate(grad_out, info["radii"], buffers.camera)
-        # the rasterizer's status, kept on the device until the next check: the most pairs a step needed, and
-        # any non-finite-input flags
-        status = info["status"]
-        torch.maximum(self._pair_peak, status[:1], out=self._pair_peak)
-        torch.bitwise_or(self._input_flags, status[1:], out=self._input_flags)
+        self.capacity.record(info["status"])  # on the device until the next check
         terms["loss"] = LossTerm(1.0, loss)
         return step.image, step.alpha, terms
 
@@ -202,27 +181,22 @@ class Trainer:
                    for parameter in group["params"]
                    for tensor in (parameter, *(v for v in optimizer.state.get(parameter, {}).values()
                                                if isinstance(v, torch.Tensor)))]
-        return (degree, step.train_field, self.gaussians.count, self.intersection_capacity, id(buffers),
+        return (degree, step.train_field, self.gaussians.count, self.capacity.value, id(buffers),
                 tuple(id(optimizer) for optimizer in optimizers), tuple(storage),
                 self.density.grad_accum.data_ptr(), self.density.visible_count.data_ptr())
 
     def check_rasterizer(self) -> None:
-        """Read the rasterizer's status since the last check (one host read; runs at log steps and after
-        densification, whose next step rasterizes with exact buffers): raise on non-finite inputs, and grow the
-        intersection capacity to twice the most pairs a step needed when that passed the capacity (those steps
-        dropped pairs) or came near it.
+        """Read the rasterizer's status (:meth:`IntersectionCapacity.check`: one host read, at
+        log steps and after densification) and log a capacity that steps exceeded (they dropped pairs).
 
         Raises:
             ValueError: a step rasterized non-finite values.
         """
-        peak, flags = int(self._pair_peak), int(self._input_flags)
-        if flags:
-            ops.rasterizer_status({"status": torch.tensor([peak, flags])})  # raises, naming the inputs
-        if self.intersection_capacity is None or peak > 0.9 * self.intersection_capacity:
-            if self.intersection_capacity is not None and peak > self.intersection_capacity:
-                self._log({"step": self.step, "note": f"intersection capacity {self.intersection_capacity} "
-                           f"exceeded ({peak} pairs): grown to {2 * peak}"})
-            self.intersection_capacity = max(1024, 2 * peak)
+        exceeded = self.capacity.value
+        overflow = self.capacity.check()
+        if overflow is not None:
+            self._log({"step": self.step, "note": f"intersection capacity {exceeded} exceeded ({overflow} pairs): "
+                       f"grown to {self.capacity.value}"})
 
     def train_step(self) -> tuple[StepContext, dict[str, LossTerm]]:
         """One optimizer step on one training frame; returns the step and its loss terms (device tensors).
@@ -242,52 +216,39 @@ class Trainer:
         inputs = {extension.name: value for extension in self.extensions
                   if (value := extension.frame_input(step)) is not None}
         degree = min(config.sh_degree, number // max(1, config.sh_increase_every))
-        buffers = self._frame_buffers(step.index)
+        buffers = self.frames.step_buffers(step.index)
         optimizers = [self.gaussians.optimizer, *self.skinning.optimizers(step)]
         for extension in self.extensions:
             optimizers += extension.optimizers(step)
-        capturable = (self.use_cuda_graph and self.intersection_capacity is not None and not inputs
+        capturable = (self.step_graph.enabled and self.capacity.value is not None and not inputs
                       and all(extension.step_capturable(step) for extension in self.extensions))
-        if not capturable:
+        key = self._graph_key(step, degree, buffers, optimizers) if capturable else None
+        replayed = None if key is None else self.step_graph.replay(key)
+        if replayed is not None:
+            image, alpha, terms, step.posed, step.target, step.mask = replayed
+        elif key is None:
             image, alpha, terms = self._step_work(step, buffers, degree, inputs, optimizers)
-        else:
-            key = self._graph_key(step, degree, buffers, optimizers)
-            if self._graph is not None and self._graph[0] == key:
-                self._graph[1].replay()
-                self.graph_replays += 1
-                image, alpha, terms, posed = self._graph[2]
-                step.posed, step.target, step.mask = posed, *self._graph[3]
-            else:  # this step eagerly (on the capture stream), then capture it for the steps that follow
-                self._graph = None
-                self._capture_stream.wait_stream(torch.cuda.current_stream(self.device))
-                with torch.cuda.stream(self._capture_stream):
-                    image, alpha, terms = self._step_work(step, buffers, degree, inputs, optimizers)
-                torch.cuda.current_stream(self.device).wait_stream(self._capture_stream)
-                self.skinning.forget_step()  # the graph evaluates the grid itself
-                capture = StepContext(step=number, index=step.index, train_field=train_field,
-                                      read_grid=step.read_grid)
-                try:
-                    graph, outputs = capture_cuda_graph(
-                        lambda: self._step_work(capture, buffers, degree, inputs, optimizers), device=self.device,
-                        warmup=0, stream=self._capture_stream)
-                except Exception as error:  # noqa: BLE001 (torch 2.11 raises AcceleratorError) this step already ran eagerly: under auto, go on without graphs
-                    if self._cuda_graph_mode == "on":
-                        raise
-                    self.use_cuda_graph = False
-                    self._log({"step": number, "note": f"CUDA graph capture failed, the fit goes on eagerly: {error}"})
-                    warnings.warn(f"CUDA graph capture failed, the fit goes on eagerly: {error}", RuntimeWarning)
-                else:
-                    # the key after the eager step: it made the optimizers' moments of a first step
-                    key = self._graph_key(step, degree, buffers, optimizers)
-                    self._graph = (key, graph, (*outputs, capture.posed), (capture.target, capture.mask))
+        else:  # this step eagerly on the capture stream, then a capture of its work for the steps that follow
+            capture = StepContext(step=number, index=step.index, train_field=train_field, read_grid=step.read_grid)
+
+            def captured_work():
+                outputs = self._step_work(capture, buffers, degree, inputs, optimizers)
+                return (*outputs, capture.posed, capture.target, capture.mask)
+
+            image, alpha, terms = self.step_graph.run_then_capture(
+                lambda: self._step_work(step, buffers, degree, inputs, optimizers), captured_work,
+                between=self.skinning.forget_step,  # the graph evaluates the grid itself
+                key=lambda: self._graph_key(step, degree, buffers, optimizers))
+            if not self.step_graph.enabled:
+                self._log({"step": number, "note": "CUDA graph capture failed, the fit goes on eagerly"})
         step.image, step.alpha = image, alpha
         count = self.gaussians.count
         self.density.after_step(number, self.gaussians, self.extensions)
-        if self.intersection_capacity is None:
+        if self.capacity.value is None:
             self.check_rasterizer()
         elif self.gaussians.count != count:  # new Gaussians: the next step counts their pairs with exact buffers
             self.check_rasterizer()
-            self.intersection_capacity = None
+            self.capacity.value = None
         self.step += 1
         return step, terms
 

@@ -6,21 +6,19 @@ the parts' explicit inputs), which :meth:`Player.render` refills before drawing,
 intersection capacity (:func:`warpavatar.ops.rasterize_gaussians`), so a frame reads nothing from the device
 and, on CUDA, is captured once as a graph (:mod:`warpavatar._src.cuda_graph`) and replayed per frame. The first
 frame is drawn with exact buffers to learn how many (Gaussian, tile) pairs the avatar makes, and the capacity
-is set to ``capacity_factor`` times that; every ``check_every`` frames the player reads the frame's pair count
-(one synchronization) and, when a pose needs more than the capacity, grows it, captures again and redraws the
-frame.
+is set to ``capacity_factor`` times that; every ``check_every`` frames the player reads the most pairs a frame
+needed so far (one synchronization, :class:`~warpavatar.model.capacity.IntersectionCapacity`)
+and, when a frame needed more than the capacity, grows it, captures again and redraws the frame.
 """
 
 from __future__ import annotations
 
-import math
-import warnings
 from typing import Any, Mapping
 
 import torch
 
-from warpavatar import ops
-from warpavatar._src.cuda_graph import capture_cuda_graph, resolve_cuda_graph
+from warpavatar._src.cuda_graph import capture_or_fall_back, resolve_cuda_graph
+from warpavatar.model.capacity import IntersectionCapacity
 from warpavatar.model.parts import AvatarPart
 
 __all__ = ["Player"]
@@ -63,22 +61,18 @@ class Player:
 
     def __init__(self, avatar, camera, *, background: torch.Tensor | None = None, sh_degree: int | None = None,
                  cuda_graph: str = "off", capacity_factor: float = 2.0, check_every: int = 30):
-        if not capacity_factor >= 1.0:
-            raise ValueError(f"capacity_factor must be >= 1, got {capacity_factor}")
         if check_every < 1:
             raise ValueError(f"check_every must be >= 1, got {check_every}")
         self.avatar = avatar
         self.device = avatar.gaussians.means.device
         self.sh_degree = sh_degree
-        self.capacity_factor = float(capacity_factor)
+        self._capacity = IntersectionCapacity(self.device, factor=capacity_factor)
         self.check_every = int(check_every)
         #: whether parts keep state over a sequence (then frames need their index and run eagerly)
         self.stateful = any(type(part).prepare_sequence is not AvatarPart.prepare_sequence
                             for part in avatar.parts.values())
         self.use_graph = resolve_cuda_graph(cuda_graph, self.device) and not self.stateful
         self._cuda_graph_mode = cuda_graph
-        #: intersection capacity of the rasterizer (None until the first frame)
-        self.capacity: int | None = None
         self._camera = _Camera(camera, self.device)
         self._background = None if background is None else \
             torch.as_tensor(background, dtype=torch.float32, device=self.device).clone()
@@ -91,13 +85,24 @@ class Player:
         self._graph_outputs = None
         self._frames_since_check = 0
 
+    @property
+    def capacity(self) -> int | None:
+        """The rasterizer's intersection capacity (None until the first frame has counted its pairs)."""
+        return self._capacity.value
+
+    @capacity.setter
+    def capacity(self, value: int | None) -> None:
+        self._capacity.value = value
+        self._graph = self._graph_outputs = None  # its buffers have the old size
+
     def _draw(self):
-        """One frame from the player's tensors: (image, alpha, depth, status)."""
+        """One frame from the player's tensors: (image, alpha, depth); its rasterizer status is recorded."""
         posed = self.avatar.pose(self._bones, sh_degree=self.sh_degree, grid=self._grid, inputs=self._inputs,
                                  frame_index=self._frame_index)
         image, alpha, depth, info = self.avatar.rasterize(posed, self._camera, background=self._background,
                                                           return_info=True, intersection_capacity=self.capacity)
-        return image, alpha, depth, info["status"]
+        self._capacity.record(info["status"])
+        return image, alpha, depth
 
     def _load(self, bone_transforms, inputs: Mapping[str, Any] | None, camera, frame_index) -> None:
         self._bones.copy_(torch.as_tensor(bone_transforms, dtype=torch.float32))
@@ -113,10 +118,6 @@ class Player:
         if camera is not None:
             self._camera.load(camera)
         self._frame_index = frame_index if self.stateful else None
-
-    def _grow(self, pair_count: int) -> None:
-        self.capacity = max(1024, math.ceil(self.capacity_factor * pair_count))
-        self._graph = self._graph_outputs = None
 
     @torch.no_grad()
     def render(self, bone_transforms, *, camera=None, inputs: Mapping[str, Any] | None = None,
@@ -136,27 +137,27 @@ class Player:
         """
         self._load(bone_transforms, inputs, camera, frame_index)
         if self.capacity is None:  # the first frame: exact buffers, to learn the pair count
-            image, alpha, depth, status = self._draw()
-            self._grow(ops.rasterizer_status({"status": status}))
+            image, alpha, depth = self._draw()
+            self._capacity.check()
             return image, alpha, depth
         if self.use_graph and self._graph is None:
-            try:
-                self._graph, self._graph_outputs = capture_cuda_graph(self._draw, device=self.device)
-            except Exception as error:  # noqa: BLE001 (torch 2.11 raises AcceleratorError) under auto, play on eagerly
-                if self._cuda_graph_mode == "on":
-                    raise
-                self.use_graph = False
-                warnings.warn(f"CUDA graph capture failed, playback goes on eagerly: {error}", RuntimeWarning)
+            captured = capture_or_fall_back(self._draw, mode=self._cuda_graph_mode, what="playback",
+                                            device=self.device)
+            self.use_graph = captured is not None
+            if captured is not None:
+                self._graph, self._graph_outputs = captured
         if self.use_graph:
             self._graph.replay()
-            image, alpha, depth, status = self._graph_outputs
+            image, alpha, depth = self._graph_outputs
         else:
-            image, alpha, depth, status = self._draw()
+            image, alpha, depth = self._draw()
         self._frames_since_check += 1
         if self._frames_since_check >= self.check_every:
             self._frames_since_check = 0
-            pair_count = ops.rasterizer_status({"status": status})
-            if pair_count > self.capacity:  # this frame dropped pairs: grow and draw it again
-                self._grow(pair_count)
+            before = self.capacity
+            overflow = self._capacity.check()
+            if self.capacity != before:
+                self._graph = self._graph_outputs = None  # its buffers have the old size
+            if overflow is not None:  # a frame since the last check dropped pairs: draw this one again
                 return self.render(bone_transforms, camera=camera, inputs=inputs, frame_index=frame_index)
         return image, alpha, depth

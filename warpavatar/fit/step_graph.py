@@ -1,0 +1,71 @@
+"""A training step's device work captured once as a CUDA graph and replayed while what it depends on holds.
+
+The trainer says what a step depends on beyond its buffers' values (its *key*: shapes, schedules, the storage
+of every tensor it updates). :meth:`StepGraph.replay` reruns the captured step when the key is the one it was
+captured with; otherwise :meth:`StepGraph.run_then_capture` runs the step eagerly on the capture stream and
+captures a second run of its work for the steps that follow.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import torch
+
+from warpavatar._src.cuda_graph import capture_or_fall_back, resolve_cuda_graph
+
+__all__ = ["StepGraph"]
+
+
+class StepGraph:
+    """The captured training step of a fit.
+
+    Args:
+        device: the training device.
+        mode: ``--cuda-graph``: ``auto`` (capture on CUDA; a failed capture turns capturing off), ``on`` (a
+            failed capture raises) or ``off``.
+
+    Attributes:
+        enabled: whether steps are captured (False off CUDA, with ``off``, or after a failed capture).
+        replays: steps replayed so far.
+    """
+
+    def __init__(self, device, mode: str):
+        self.device = torch.device(device)
+        self.mode = mode
+        self.enabled = resolve_cuda_graph(mode, self.device)
+        self.replays = 0
+        self._stream = torch.cuda.Stream(device=self.device) if self.enabled else None
+        self._captured: tuple | None = None  # (key, torch.cuda.CUDAGraph, its outputs)
+
+    def replay(self, key) -> Any | None:
+        """Rerun the captured step and return its outputs (overwritten in place), or None when nothing was
+        captured with this key."""
+        if self._captured is None or self._captured[0] != key:
+            return None
+        self._captured[1].replay()
+        self.replays += 1
+        return self._captured[2]
+
+    def run_then_capture(self, work: Callable[[], Any], capture_work: Callable[[], Any], *,
+                         between: Callable[[], None], key: Callable[[], Any]) -> Any:
+        """Run ``work`` eagerly on the capture stream, call ``between``, then capture ``capture_work`` under the key
+        that ``key()`` gives afterwards (the eager step may have made state, e.g. an optimizer's first moments).
+
+        Returns:
+            What ``work`` returned.
+        """
+        self._captured = None
+        current = torch.cuda.current_stream(self.device)
+        self._stream.wait_stream(current)
+        with torch.cuda.stream(self._stream):
+            result = work()
+        current.wait_stream(self._stream)
+        between()
+        captured = capture_or_fall_back(capture_work, mode=self.mode, what="the fit", device=self.device, warmup=0,
+                                        stream=self._stream)
+        if captured is None:
+            self.enabled = False
+        else:
+            self._captured = (key(), *captured)
+        return result
