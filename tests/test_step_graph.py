@@ -11,13 +11,6 @@ from warpavatar import _torch_impl as reference
 from warpavatar import ops
 from tests.test_splat import make_scene, random_cotangents, render_and_grad
 
-# Known failure, kept visible: on the H100 (Warp 1.19, torch 2.11) every capture ends in Warp's "unknown capture
-# stream" (BENCHMARKS.md, session 10), which is why --cuda-graph is off by default. strict: a capture that starts
-# to work makes these tests XPASS and fail, so the default can be turned back on with the evidence.
-CAPTURE_FAILS_ON_GPU = pytest.mark.xfail(reason="CUDA graph capture fails on the GPU (Warp: unknown capture stream)",
-                                         raises=Exception, strict=True)
-
-
 def _rasterize_with(capacity):
     def rasterize(*args, **kwargs):
         return ops.rasterize_gaussians(*args, intersection_capacity=capacity, **kwargs)
@@ -127,7 +120,6 @@ def test_player_grows_a_capacity_that_overflowed(demo_video):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
-@CAPTURE_FAILS_ON_GPU
 def test_player_graph_replays_match_eager_frames(demo_video):
     from warpavatar.model.playback import Player
 
@@ -206,24 +198,28 @@ def test_sync_free_steps_fit_what_exact_steps_fit(small_video, tmp_path, monkeyp
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
-@CAPTURE_FAILS_ON_GPU
 def test_captured_steps_match_eager_steps(small_video, tmp_path):
+    """16 steps replayed from CUDA graphs (captured again after densification) end where eager steps end, as
+    closely as two eager runs end near each other (the compositing's atomic additions run in no fixed order, and
+    Adam turns their rounding into differences of up to its learning rate on parameters with tiny gradients)."""
     results = []
-    for mode in ("on", "off"):
-        trainer = _tiny_trainer(small_video, tmp_path / mode, device="cuda:0", cuda_graph=mode)
+    for run, mode in enumerate(("on", "off", "off")):
+        trainer = _tiny_trainer(small_video, tmp_path / f"{mode}{run}", device="cuda:0", cuda_graph=mode)
         losses = []
         for _ in range(16):  # the field from 4, densification at 6 and 12: captures, replays, captures again
             _, terms = trainer.train_step()
             losses.append(float(terms["loss"].value))
         assert (trainer.graph_replays > 5) == (mode == "on")
+        assert trainer.step_graph.enabled == (mode == "on")  # no capture fell back to eager steps
         results.append((losses, trainer.gaussians.count,
                         {name: p.detach().clone() for name, p in trainer.avatar.named_parameters()}))
-    (graph_losses, graph_count, graph_parameters), (eager_losses, eager_count, eager_parameters) = results
-    assert graph_count == eager_count and graph_parameters.keys() == eager_parameters.keys()
-    # the same kernels in the same order; only the order of atomic additions may differ
+    (graph_losses, graph_count, graph), (eager_losses, eager_count, eager), (_, again_count, again) = results
+    assert graph_count == eager_count == again_count and graph.keys() == eager.keys()
     torch.testing.assert_close(torch.tensor(graph_losses), torch.tensor(eager_losses), rtol=1e-3, atol=1e-5)
-    for name in graph_parameters:
-        torch.testing.assert_close(graph_parameters[name], eager_parameters[name], rtol=1e-3, atol=1e-4)
+    for name in graph:
+        spread = float((again[name] - eager[name]).abs().max())
+        difference = float((graph[name] - eager[name]).abs().max())
+        assert difference <= 4.0 * spread + 1e-4, (name, difference, spread)
 
 
 def test_bench_kernels_avatar_quick_runs(capsys):

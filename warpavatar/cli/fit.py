@@ -70,11 +70,11 @@ def add_fit_options(parser: argparse.ArgumentParser, *, device_help: str | None 
     parser.add_argument("--device", default=None if device_help else default_device(),
                         help=device_help or "torch device: cpu or cuda (default: %(default)s)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-    parser.add_argument("--cuda-graph", choices=("auto", "on", "off"), default="off",
+    parser.add_argument("--cuda-graph", choices=("auto", "on", "off"), default="auto",
                         help="capture the steady training step (between densification rounds) as a CUDA graph and "
-                             "replay it: 'auto' on CUDA devices, 'on' (CUDA required), 'off'; the fit is the same, "
-                             "only faster; not yet verified on a GPU: captures failed on the H100 in session 10, hence "
-                             "off by default (default: %(default)s)")
+                             "replay it: 'auto' on CUDA devices (a capture that fails turns it off with a warning), "
+                             "'on' (CUDA required, a failed capture is an error), 'off'; the fit is the same up to "
+                             "the rounding of atomic additions, only faster (default: %(default)s)")
     add_config_arguments(parser)
 
 

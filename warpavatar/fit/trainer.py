@@ -45,12 +45,12 @@ class Trainer:
         device: torch device to train on.
         cuda_graph: ``auto`` (on CUDA: capture the steady training step as a CUDA graph and replay it; should a
             capture fail, the fit logs it and goes on eagerly), ``on`` (the same, CUDA required, a failed capture
-            raises) or ``off`` (every step eager, the default: captures have not yet worked on a GPU, see BENCHMARKS.md,
-            session 10). The results are the same either way.
+            raises) or ``off`` (every step eager). The results are the same either way, up to the rounding of
+            atomic additions, which differs from run to run anyway.
     """
 
     def __init__(self, video, config: FitConfig, output_dir: str | os.PathLike, *, device="cpu",
-                 cuda_graph: str = "off"):
+                 cuda_graph: str = "auto"):
         self.config = config
         self.output_dir = Path(output_dir)
         self.device = torch.device(device)
@@ -171,7 +171,14 @@ class Trainer:
             extension.after_step(step)
         self.density.accumulate(grad_out, info["radii"], buffers.camera)
         self.capacity.record(info["status"])  # on the device until the next check
-        terms["loss"] = LossTerm(1.0, loss)
+        # Nothing the step returns keeps its autograd graph alive: a graph that outlives the step keeps the
+        # parameters' AccumulateGrad nodes, bound to the stream they were made on, and a later step captured on
+        # another stream would then synchronize with that one, which invalidates the capture.
+        terms = {name: LossTerm(term.weight, term.value.detach()) for name, term in terms.items()}
+        terms["loss"] = LossTerm(1.0, loss.detach())
+        step.posed = type(step.posed)({name: value.detach() if isinstance(value, torch.Tensor) else value
+                                       for name, value in step.posed.items()})
+        step.image, step.alpha = step.image.detach(), step.alpha.detach()
         return step.image, step.alpha, terms
 
     def _graph_key(self, step: StepContext, degree: int, buffers, optimizers: list) -> tuple:

@@ -49,8 +49,7 @@ class Player:
             bring other matrices, not another size.
         background: [3] RGB in 0..1 (default black).
         sh_degree: SH degree to render with (default: all the avatar has).
-        cuda_graph: ``auto`` (a graph on CUDA), ``on`` (a graph, CUDA required) or ``off`` (eager, the default until
-            captures are verified on a GPU). Avatars with
+        cuda_graph: ``auto`` (a graph on CUDA), ``on`` (a graph, CUDA required) or ``off`` (eager). Avatars with
             parts that keep state over a sequence (they need the frame's index, a host number) always run eagerly.
         capacity_factor: intersection capacity as a multiple of the largest pair count seen (>= 1).
         check_every: read the pair count every this many frames (the only host read of playback).
@@ -60,7 +59,7 @@ class Player:
     """
 
     def __init__(self, avatar, camera, *, background: torch.Tensor | None = None, sh_degree: int | None = None,
-                 cuda_graph: str = "off", capacity_factor: float = 2.0, check_every: int = 30):
+                 cuda_graph: str = "auto", capacity_factor: float = 2.0, check_every: int = 30):
         if check_every < 1:
             raise ValueError(f"check_every must be >= 1, got {check_every}")
         self.avatar = avatar
