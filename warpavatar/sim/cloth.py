@@ -392,6 +392,10 @@ class ClothModel(torch.nn.Module):
                 x = pushed
         return ClothState(x, v)
 
+    frame_cuda_graph = False
+    """On CUDA, replay each fused frame's launches as one CUDA graph captured on first use (per frame length,
+    capsule count and parameter values); a failed capture warns and goes on without."""
+
     def __getstate__(self):
         # (the fused frame's cache holds Warp views of this module's tensors: a copy makes its own)
         state = super().__getstate__().copy()
@@ -434,7 +438,7 @@ class ClothModel(torch.nn.Module):
         positions, velocities = frame.run(state.positions, state.velocities, attachment_targets, float(frame_interval),
                                           substeps, capsules=_capsule_tensors(capsules),
                                           previous_capsules=_capsule_tensors(previous_capsules),
-                                          constant_force=force)
+                                          constant_force=force, cuda_graph=self.frame_cuda_graph)
         return ClothState(positions, velocities)
 
     @torch.no_grad()
