@@ -51,9 +51,12 @@ out of the body's capsules (:func:`warpavatar.ops.push_out_of_capsules`) and the
 the same move over ``h``, so position and velocity stay consistent (a node that hits the body keeps no
 velocity into it). Capsules may move during the frame (linear between the previous frame's and this one's).
 
-Everything is torch autograd through ``cloth_edge_terms``, ``spring_step`` and the collision op (truncating
-the window is the caller's business), with no host synchronization per substep: the number of substeps is
-computed from the Python number ``frame_interval``.
+With gradients, everything is torch autograd through ``cloth_edge_terms``, ``spring_step`` and the collision
+op (truncating the window is the caller's business), with no host synchronization per substep: the number of
+substeps is computed from the Python number ``frame_interval``. Without gradients (settling, rollouts,
+every consumer of a fitted garment) a float32 frame runs fused instead (:mod:`warpavatar.kernels.cloth_frame`):
+one kernel launch per substep, one thread per node over the receiver-sorted edges, the same maths within
+float32 rounding; its coefficients are cached per model until a parameter or buffer changes.
 """
 
 from __future__ import annotations
