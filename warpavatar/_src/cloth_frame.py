@@ -13,7 +13,7 @@ import torch
 import warp as wp
 
 from warpavatar._src.cuda_graph import capture_or_fall_back
-from warpavatar._src.warp_utils import to_warp, torch_stream_scope
+from warpavatar._src.warp_utils import check_tensor, to_warp, torch_stream_scope
 from warpavatar.kernels.cloth_frame import record_cloth_substep
 
 __all__ = ["ClothFrame", "csr_rows"]
@@ -58,11 +58,15 @@ class ClothFrame:
             "constant_force": constant_force.detach().float().contiguous(),
             "attached_slot": slot,
         }
+        for name in ("neighbour", "stiffness", "rest_length", "edge_damping"):  # (no edge: one never read)
+            if edges.shape[0] == 0:
+                self._tensors[name] = self._tensors[name].new_zeros(1)
         self._arrays = {name: to_warp(tensor, wp.vec3 if tensor.dim() == 2 else None)
                         for name, tensor in self._tensors.items()}
         # the frame's inputs are copied into these (so the launches never change), the substeps ping-pong
         # between the two scratch states
         self._start = torch.empty(2, node_count, 3, device=device)
+        self._attached_count = attached.shape[0]
         self._targets = torch.zeros(max(1, attached.shape[0]), 3, device=device)
         self._scratch = [torch.empty(2, node_count, 3, device=device) for _ in range(2)]
         self._capsules: list[torch.Tensor] = []
@@ -77,8 +81,11 @@ class ClothFrame:
             return
         self._launch_key, self._graph = None, None
         device = self.device
-        # segment start, end and radius at the frame's start, then at its end
-        self._capsules = [torch.zeros((capsule_count, 3)[: 1 + (k % 3 < 2)], device=device) for k in range(6)]
+        # segment start, end and radius at the frame's start, then at its end; without capsules one that holds
+        # nothing (radius -1: Warp rejects some empty tensors)
+        rows = max(1, capsule_count)
+        self._capsules = [torch.zeros(rows, 3, device=device) if k % 3 < 2 else torch.full((rows,), -1.0, device=device)
+                          for k in range(6)]
         self._force = torch.empty(self.node_count, 3, device=device) if constant_force else None
         vectors = lambda pair: (to_warp(pair[0], wp.vec3), to_warp(pair[1], wp.vec3))  # noqa: E731
         capsules = [to_warp(t, wp.vec3 if t.dim() == 2 else None) for t in self._capsules]
@@ -123,7 +130,19 @@ class ClothFrame:
         node_count = self.node_count
         if node_count == 0:
             return positions.detach().clone(), velocities.detach().clone()
+        device = self.device
+        check_tensor("positions", positions, (node_count, 3), device=device)
+        check_tensor("velocities", velocities, (node_count, 3), device=device)
+        check_tensor("attachment_targets", attachment_targets, (self._attached_count, 3), device=device)
+        if constant_force is not None:
+            check_tensor("constant_force", constant_force, (node_count, 3), device=device)
         capsule_count = 0 if capsules is None else capsules[2].shape[0]
+        for prefix, shapes in (("", capsules), ("previous ", previous_capsules)):
+            for name, tensor, shape in zip(("segment_start", "segment_end", "radius"), shapes or (),
+                                           ((capsule_count, 3), (capsule_count, 3), (capsule_count,))):
+                check_tensor(f"{prefix}capsules' {name}", tensor, shape, device=device)
+        if capsules is None:  # (as op by op: no capsules, no collision)
+            previous_capsules = None
         self._prepare(float(frame_interval), int(substeps), capsule_count, constant_force is not None)
         with torch.no_grad():
             self._start[0].copy_(positions)
