@@ -113,6 +113,11 @@ def test_step_chooses_the_fused_frame_without_gradients(device):
         automatic = model.step(state, targets[0], FRAME, capsules=after, previous_capsules=before)
         fused = model.step(state, targets[0], FRAME, capsules=after, previous_capsules=before, fused=True)
     assert not automatic.positions.requires_grad
+    with torch.inference_mode():  # (its buffers are made in inference mode here and filled outside it next)
+        inferred = model.step(state, targets[1], FRAME, capsules=after, previous_capsules=before, extra_drag=0.1)
+    with torch.no_grad():
+        again = model.step(state, targets[1], FRAME, capsules=after, previous_capsules=before, extra_drag=0.1)
+    assert torch.equal(inferred.positions, again.positions)
     assert torch.equal(automatic.positions, fused.positions) and torch.equal(automatic.velocities, fused.velocities)
     assert_close([automatic], [trained])
     # settling runs fused and gives what op-by-op settling frames give

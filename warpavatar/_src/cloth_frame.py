@@ -37,6 +37,7 @@ class ClothFrame:
         attached: ids of the attached nodes, integer ``[A]`` (distinct).
     """
 
+    @torch.inference_mode(False)  # (buffers filled in place later, whatever the caller's mode then)
     def __init__(self, edges: torch.Tensor, stiffness: torch.Tensor, rest_length: torch.Tensor,
                  edge_damping: torch.Tensor, drag: torch.Tensor, mass: torch.Tensor, constant_force: torch.Tensor,
                  attached: torch.Tensor):
@@ -74,6 +75,7 @@ class ClothFrame:
         self._launch_key = None
         self._graph = None
 
+    @torch.inference_mode(False)
     def _prepare(self, frame_interval: float, substeps: int, capsule_count: int, constant_force: bool) -> None:
         """Record the frame's launches for these settings (kept while they hold)."""
         key = (frame_interval, substeps, capsule_count, constant_force)
