@@ -158,3 +158,13 @@ def test_cuda_graph_replays_read_each_frames_inputs(device):
     for a, b in zip(replayed, eager):
         assert torch.equal(a.positions, b.positions) and torch.equal(a.velocities, b.velocities)
     assert not torch.equal(replayed[0].positions, replayed[1].positions)
+
+
+def test_the_cloth_benchmark_times_the_fused_frame():
+    # tools/bench_kernels.py cloth --quick, on CPU: every size has its op-by-op and fused rows, with times
+    from conftest import load_tool
+
+    rows = load_tool("bench_cloth").run(device="cpu", quick=True)
+    for nodes in {row["nodes"] for row in rows}:
+        times = {row["op"].split(" (")[0]: row["ms"] for row in rows if row["nodes"] == nodes}
+        assert times["cloth frame forward"] > 0 and times["cloth frame fused"] > 0, times
