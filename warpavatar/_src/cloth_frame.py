@@ -31,6 +31,7 @@ class ClothFrame:
 
     Args:
         edges: directed edges (receiver, sender), integer ``[E, 2]``, sorted by receiver.
+        row_start: :func:`csr_rows` of the receivers, int32 ``[M+1]``.
         stiffness, rest_length, edge_damping: float32 ``[E]`` per directed edge [N / world unit, world units,
             N s / world unit].
         drag, mass: float32 ``[M]`` [N s / world unit, kg]; constant_force: float32 ``[M, 3]`` [N].
@@ -38,7 +39,7 @@ class ClothFrame:
     """
 
     @torch.inference_mode(False)  # (buffers filled in place later, whatever the caller's mode then)
-    def __init__(self, edges: torch.Tensor, stiffness: torch.Tensor, rest_length: torch.Tensor,
+    def __init__(self, edges: torch.Tensor, row_start: torch.Tensor, stiffness: torch.Tensor, rest_length: torch.Tensor,
                  edge_damping: torch.Tensor, drag: torch.Tensor, mass: torch.Tensor, constant_force: torch.Tensor,
                  attached: torch.Tensor):
         node_count = mass.shape[0]
@@ -49,7 +50,7 @@ class ClothFrame:
         slot[attached.long()] = torch.arange(attached.shape[0], dtype=torch.int32, device=device)
         # the tensors stay referenced here: the Warp views below do not own their memory
         self._tensors = {
-            "row_start": csr_rows(edges[:, 0].long(), node_count),
+            "row_start": row_start.to(torch.int32).contiguous(),
             "neighbour": edges[:, 1].to(torch.int32).contiguous(),
             "stiffness": stiffness.detach().float().contiguous(),
             "rest_length": rest_length.detach().float().contiguous(),

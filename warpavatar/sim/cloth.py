@@ -67,7 +67,7 @@ from dataclasses import dataclass
 import torch
 
 from warpavatar import ops
-from warpavatar._src.cloth_frame import ClothFrame
+from warpavatar._src.cloth_frame import ClothFrame, csr_rows
 
 __all__ = ["ClothGraph", "cloth_graph", "ClothState", "Capsules", "ClothModel"]
 
@@ -240,6 +240,8 @@ class ClothModel(torch.nn.Module):
         order = torch.argsort(directed[:, 0] * max(node_count, 1) + directed[:, 1])
         self.register_buffer("pairs", pairs)
         self.register_buffer("edges", directed[order].to(torch.int32).contiguous())
+        # node i receives edges row_start[i]:row_start[i+1] (the fused frame's CSR; not saved: made from the edges)
+        self.register_buffer("edge_row_start", csr_rows(directed[order][:, 0], node_count), persistent=False)
         self.register_buffer("pair_of_edge", pair_of_directed[order].contiguous())
         self.register_buffer("attached", attached.to(torch.int64))
         self.register_buffer("base_mass", mass)
@@ -424,7 +426,7 @@ class ClothModel(torch.nn.Module):
                 mass = self.masses()
                 drag = self.drag() + float(extra_drag) * self.drag_bound if extra_drag else self.drag()
                 frame = self._frames[extra_drag] = ClothFrame(
-                    self.edges, self.stiffness().index_select(0, self.pair_of_edge),
+                    self.edges, self.edge_row_start, self.stiffness().index_select(0, self.pair_of_edge),
                     self.rest_lengths().index_select(0, self.pair_of_edge),
                     self.edge_damping().index_select(0, self.pair_of_edge), drag, mass,
                     mass[:, None] * self.gravity, self.attached)
