@@ -413,11 +413,12 @@ class ClothModel(torch.nn.Module):
             return False
         tensors = [state.positions, state.velocities, attachment_targets, external_acceleration,
                    *(_capsule_tensors(capsules) or ()), *(_capsule_tensors(previous_capsules) or ())]
-        return any(t is not None and t.requires_grad for t in [*tensors, *self.parameters()])
+        return any(t is not None and t.requires_grad for t in [*tensors, *self._parameters.values()])
 
     def _frame_kernel_inputs(self, extra_drag: float) -> ClothFrame:
         """The fused frame's per-model inputs, made again only when a parameter or buffer changed."""
-        key = tuple((t.data_ptr(), t._version) for t in (*self.parameters(), *self.buffers()))
+        # (a ClothModel has no submodules: its own tensors are all of them; read directly, as this runs per frame)
+        key = tuple((t.data_ptr(), t._version) for t in (*self._parameters.values(), *self._buffers.values()))
         if getattr(self, "_frame_key", None) != key:
             self._frame_key, self._frames = key, {}
         frame = self._frames.get(extra_drag)
