@@ -98,7 +98,8 @@ def cloth_substep(
 
 
 def _check(x, v, frame_start, row_start, neighbour, stiffness, rest_length, edge_damping, drag, mass,
-           constant_force, attached_slot, attachment_targets, capsules_before, capsules_after, x_out, v_out) -> None:
+           constant_force, attached_slot, capsules_before, capsules_after, x_out, v_out) -> None:
+    # (attachment_targets is indexed through attached_slot: its rows are the caller's business)
     node_count = x.shape[0]
     for array in (v, frame_start, drag, mass, constant_force, attached_slot, x_out, v_out):
         if array.shape[0] != node_count:
@@ -112,7 +113,6 @@ def _check(x, v, frame_start, row_start, neighbour, stiffness, rest_length, edge
     for array in (*capsules_before, *capsules_after):
         if array.shape[0] != capsule_count:
             raise ValueError(f"capsule arrays must have {capsule_count} rows, got {array.shape[0]}")
-    del attachment_targets  # (indexed through attached_slot; its length is the caller's business)
 
 
 def record_cloth_substep(
@@ -158,7 +158,7 @@ def record_cloth_substep(
         x_out, v_out: vec3 ``[M]`` outputs, every row written; distinct from ``x``, ``v`` and ``frame_start``.
     """
     _check(x, v, frame_start, row_start, neighbour, stiffness, rest_length, edge_damping, drag, mass,
-           constant_force, attached_slot, attachment_targets, capsules_before, capsules_after, x_out, v_out)
+           constant_force, attached_slot, capsules_before, capsules_after, x_out, v_out)
     if x.shape[0] == 0:
         return None
     return wp.launch(

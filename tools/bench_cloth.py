@@ -1,11 +1,12 @@
 """Cloth benchmark: ``python tools/bench_kernels.py cloth [--device cuda:0] [--quick]``.
 
 Garment: M = 300 (the cesium skirt's size), 1k, 10k, 100k nodes (``--quick``: 300, 1k) on a tube of radius
-0.17 m and height 0.6 m (a shirt around the torso), in grid order (as voxel downsampling leaves neighbours with nearby ids), its top ring
-attached; :func:`warpavatar.sim.cloth_graph` with 8 neighbours and 6 second-ring edges per node. Body: 20
-capsules (a torso capsule inside the tube and 19 limb capsules around it), so every node tests every capsule.
-One frame is 1/30 s at the default ``max_substep`` 1/240 s: 8 substeps, each a rest-offset and damping pass in
-torch, one ``spring_step``, the attachment and one ``push_out_of_capsules``, with the velocity correction.
+0.17 m and height 0.6 m (a shirt around the torso), in grid order (as voxel downsampling leaves neighbours with
+nearby ids), its top ring attached; :func:`warpavatar.sim.cloth_graph` with 8 neighbours and 6 second-ring
+edges per node. Body: 20 capsules (a torso capsule inside the tube and 19 limb capsules around it), so every
+node tests every capsule. One frame is 1/30 s at the default ``max_substep`` 1/240 s: 8 substeps, each (op by
+op) a rest-offset and damping pass, one ``spring_step``, the attachment and one ``push_out_of_capsules``, with
+the velocity correction; fused, one kernel launch.
 
 Rows time, per call (median):
 

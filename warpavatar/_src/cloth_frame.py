@@ -1,10 +1,12 @@
 """Torch side of the fused cloth frame (:mod:`warpavatar.kernels.cloth_frame`): no gradients, little host work.
 
 :class:`ClothFrame` holds what stays the same from frame to frame while a cloth's parameters do not change
-(the CSR adjacency, the per-edge and per-node coefficients, their Warp views, two scratch states) and runs a
-frame as ``substeps`` launches of one recorded kernel launch, swapping its state arguments between
-substeps. Per frame the host only wraps the frame's inputs (state, targets, capsules) and two new output
-tensors (new ones, so that a caller may keep the states it is given).
+(the CSR adjacency, the per-edge and per-node coefficients and their Warp views) and the buffers a frame runs
+in: the frame's inputs (state, attachment targets, capsules) are copied into fixed tensors, the substeps
+ping-pong between two scratch states, so the ``substeps`` kernel launches of a frame are recorded once (per
+frame length, substep count and capsule count) and relaunched as they are, or replayed as one CUDA graph. Per
+frame the host checks and copies the inputs, relaunches, and returns copies of the final state (new tensors,
+so that a caller may keep every state it is given).
 """
 
 from __future__ import annotations
