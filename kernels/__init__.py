@@ -9,6 +9,9 @@ Families:
     knn: exact k-nearest-neighbour graph on a hash grid.
     springs: explicit-Euler mass-spring-damper step and its regularizers.
     skinning: trilinear sampling of a voxel field and linear blend skinning.
+    collision: particles pushed out of capsules.
+    cloth: a cloth substep's edge terms (length-spring rest offsets, edge damping).
+    cloth_frame: a whole cloth substep fused in one kernel (rollouts without gradients).
 
 :mod:`~warpavatar.kernels.quaternion` holds the quaternion ``@wp.func`` helpers the families share.
 """

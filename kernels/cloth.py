@@ -26,6 +26,15 @@ SHORT_EDGE = wp.constant(1e-12)
 """Edge length [world units] at or below which an edge has no direction (its rest offset is 0)."""
 
 
+@wp.func
+def length_spring_offset(delta: wp.vec3, rest_length: float):
+    """``min(L, 2 |d|) d / |d|`` of an edge ``d = x_i - x_j`` with rest length ``L`` (0 for ``|d| <= 1e-12``)."""
+    length = wp.length(delta)
+    if length > SHORT_EDGE:
+        return (wp.min(rest_length, 2.0 * length) / length) * delta
+    return wp.vec3(0.0)
+
+
 @wp.kernel(enable_backward=False)
 def cloth_edge_terms(
     x: wp.array(dtype=wp.vec3),
@@ -43,12 +52,7 @@ def cloth_edge_terms(
     if not edge_is_valid(receiver, sender, x.shape[0]):
         rest_offset[e] = wp.vec3(0.0)
         return
-    delta = x[receiver] - x[sender]
-    length = wp.length(delta)
-    offset = wp.vec3(0.0)
-    if length > SHORT_EDGE:
-        offset = (wp.min(rest_length[e], 2.0 * length) / length) * delta
-    rest_offset[e] = offset
+    rest_offset[e] = length_spring_offset(x[receiver] - x[sender], rest_length[e])
     wp.atomic_sub(damping_force, receiver, edge_damping[e] * (v[receiver] - v[sender]))
 
 

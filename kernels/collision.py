@@ -65,6 +65,29 @@ def segment_parameter(x: wp.vec3, a: wp.vec3, d: wp.vec3):
     return wp.dot(x - a, d) / length_sq
 
 
+@wp.func
+def capsule_push(position: wp.vec3, a: wp.vec3, b: wp.vec3, capsule_radius: float):
+    """The move of ``position`` out of the capsule ``(a, b, capsule_radius)`` onto its surface (0 if outside).
+
+    A point inside lies within the segment's bounding box grown by the radius on every axis: points outside
+    that box grown a little more (0.1 % of the radius and 1e-5, far above float32 rounding) are skipped early,
+    with the same result."""
+    margin = capsule_radius * 1.001 + 1.0e-5
+    low = wp.min(a, b) - wp.vec3(margin)
+    high = wp.max(a, b) + wp.vec3(margin)
+    for k in range(3):
+        if position[k] < low[k] or position[k] > high[k]:
+            return wp.vec3(0.0)
+    d = b - a
+    t = wp.clamp(segment_parameter(position, a, d), 0.0, 1.0)
+    closest = a + t * d
+    r = position - closest
+    distance = wp.length(r)
+    if distance < capsule_radius:
+        return closest + capsule_radius * outward_normal(r, distance, d) - position
+    return wp.vec3(0.0)
+
+
 @wp.kernel(enable_backward=False)
 def capsule_push_out(
     x: wp.array(dtype=wp.vec3),
@@ -77,14 +100,7 @@ def capsule_push_out(
     position = x[i]
     total = wp.vec3(0.0)
     for c in range(segment_start.shape[0]):
-        a = segment_start[c]
-        d = segment_end[c] - a
-        t = wp.clamp(segment_parameter(position, a, d), 0.0, 1.0)
-        closest = a + t * d
-        r = position - closest
-        distance = wp.length(r)
-        if distance < radius[c]:
-            total = total + (closest + radius[c] * outward_normal(r, distance, d) - position)
+        total = total + capsule_push(position, segment_start[c], segment_end[c], radius[c])
     x_out[i] = position + total
 
 

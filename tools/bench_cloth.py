@@ -1,18 +1,22 @@
 """Cloth benchmark: ``python tools/bench_kernels.py cloth [--device cuda:0] [--quick]``.
 
-Garment: M = 1k, 10k, 100k nodes (``--quick``: 1k, 10k) on a tube of radius 0.17 m and height 0.6 m (a shirt
-around the torso), in grid order (as voxel downsampling leaves neighbours with nearby ids), its top ring
-attached; :func:`warpavatar.sim.cloth_graph` with 8 neighbours and 6 second-ring edges per node. Body: 20
-capsules (a torso capsule inside the tube and 19 limb capsules around it), so every node tests every capsule.
-One frame is 1/30 s at the default ``max_substep`` 1/240 s: 8 substeps, each a rest-offset and damping pass in
-torch, one ``spring_step``, the attachment and one ``push_out_of_capsules``, with the velocity correction.
+Garment: M = 300 (the cesium skirt's size), 1k, 10k, 100k nodes (``--quick``: 300, 1k) on a tube of radius
+0.17 m and height 0.6 m (a shirt around the torso), in grid order (as voxel downsampling leaves neighbours with
+nearby ids), its top ring attached; :func:`warpavatar.sim.cloth_graph` with 8 neighbours and 6 second-ring
+edges per node. Body: 20 capsules (a torso capsule inside the tube and 19 limb capsules around it), so every
+node tests every capsule. One frame is 1/30 s at the default ``max_substep`` 1/240 s: 8 substeps, each (op by
+op) a rest-offset and damping pass, one ``spring_step``, the attachment and one ``push_out_of_capsules``, with
+the velocity correction; fused, one kernel launch.
 
 Rows time, per call (median):
 
-* ``cloth frame forward``: :meth:`ClothModel.step` under ``torch.no_grad`` (the cost of playing the cloth);
+* ``cloth frame forward``: :meth:`ClothModel.step` under ``torch.no_grad``, op by op (``fused=False``);
+* ``cloth frame fused``: the same frame fused, one kernel launch per substep (``fused=True``, what every
+  rollout without gradients runs: playing the cloth), and on CUDA ``cloth frame fused, CUDA graph``, its
+  launches replayed as one CUDA graph (``ClothModel.frame_cuda_graph``);
 * ``cloth frame forward+backward``: the step with autograd, then the gradient of a loss of the final state
   with respect to every parameter and the initial state (the cost of one frame of training);
-* ``cloth frame forward, CUDA graph`` (CUDA only): the same frame captured once into a CUDA graph and
+* ``cloth frame forward, CUDA graph`` (CUDA only): the op-by-op frame captured once into a CUDA graph and
   replayed. The step has static shapes and no host synchronization, so a whole frame (8 substeps, about 30
   small kernels each) replays as one launch: what playing the cloth costs once launch overhead is gone. If
   capture fails the row says so instead of a time;
@@ -83,11 +87,11 @@ def _graph_row(model, rest, targets, capsules, device, warmup, repeats, node_cou
             side.wait_stream(torch.cuda.current_stream(device))
             with torch.cuda.stream(side):  # warm-up off the capture: kernels loaded, allocator primed
                 for _ in range(3):
-                    model.step(state, targets, FRAME_INTERVAL, capsules=capsules)
+                    model.step(state, targets, FRAME_INTERVAL, capsules=capsules, fused=False)
             torch.cuda.current_stream(device).wait_stream(side)
             graph = torch.cuda.CUDAGraph()
             with torch.cuda.graph(graph):
-                model.step(state, targets, FRAME_INTERVAL, capsules=capsules)
+                model.step(state, targets, FRAME_INTERVAL, capsules=capsules, fused=False)
         ms = time_function(graph.replay, device=device, warmup=warmup, repeats=repeats)
     except Exception as error:  # noqa: BLE001 - the row reports why capture failed
         return _row(node_count, edge_count, f"{label}: capture failed ({type(error).__name__}: {error})"[:160], None,
@@ -98,7 +102,7 @@ def _graph_row(model, rest, targets, capsules, device, warmup, repeats, node_cou
 def run(device: str, quick: bool) -> list[dict]:
     """Benchmark rows (see the module docstring)."""
     on_cuda = device.startswith("cuda")
-    sizes = (1_000, 10_000) if quick else (1_000, 10_000, 100_000)
+    sizes = (300, 1_000) if quick else (300, 1_000, 10_000, 100_000)
     warmup, repeats = (1, 3) if quick else ((5, 30) if on_cuda else (2, 5))
     rows = []
     for node_count in sizes:
@@ -109,12 +113,19 @@ def run(device: str, quick: bool) -> list[dict]:
         targets = rest[model.attached] + torch.tensor([0.01, 0.0, 0.0], device=device)
         state = model.rest_state(rest)
 
-        def frame(state=state, targets=targets):
-            return model.step(state, targets, FRAME_INTERVAL, capsules=capsules)
+        def frame(state=state, targets=targets, fused=False):
+            return model.step(state, targets, FRAME_INTERVAL, capsules=capsules, fused=fused)
 
         with torch.no_grad():
             forward_ms = time_function(frame, device=device, warmup=warmup, repeats=repeats)
         rows.append(_row(node_count, edge_count, f"cloth frame forward ({substeps} substeps)", forward_ms, substeps))
+        for cuda_graph in (False, True) if on_cuda else (False,):
+            model.frame_cuda_graph = cuda_graph
+            with torch.no_grad():
+                fused_ms = time_function(lambda: frame(fused=True), device=device, warmup=warmup, repeats=repeats)
+            label = "cloth frame fused" + (", CUDA graph" if cuda_graph else "")
+            rows.append(_row(node_count, edge_count, f"{label} ({substeps} substeps)", fused_ms, substeps))
+        model.frame_cuda_graph = False
 
         if on_cuda:
             rows.append(_graph_row(model, rest, targets, capsules, device, warmup, repeats, node_count, edge_count,

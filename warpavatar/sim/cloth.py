@@ -51,9 +51,12 @@ out of the body's capsules (:func:`warpavatar.ops.push_out_of_capsules`) and the
 the same move over ``h``, so position and velocity stay consistent (a node that hits the body keeps no
 velocity into it). Capsules may move during the frame (linear between the previous frame's and this one's).
 
-Everything is torch autograd through ``cloth_edge_terms``, ``spring_step`` and the collision op (truncating
-the window is the caller's business), with no host synchronization per substep: the number of substeps is
-computed from the Python number ``frame_interval``.
+With gradients, everything is torch autograd through ``cloth_edge_terms``, ``spring_step`` and the collision
+op (truncating the window is the caller's business), with no host synchronization per substep: the number of
+substeps is computed from the Python number ``frame_interval``. Without gradients (settling, rollouts,
+every consumer of a fitted garment) a float32 frame runs fused instead (:mod:`warpavatar.kernels.cloth_frame`):
+one kernel launch per substep, one thread per node over the receiver-sorted edges, the same maths within
+float32 rounding; its coefficients are cached per model until a parameter or buffer changes.
 """
 
 from __future__ import annotations
@@ -64,6 +67,7 @@ from dataclasses import dataclass
 import torch
 
 from warpavatar import ops
+from warpavatar._src.cloth_frame import ClothFrame, csr_rows
 
 __all__ = ["ClothGraph", "cloth_graph", "ClothState", "Capsules", "ClothModel"]
 
@@ -236,6 +240,8 @@ class ClothModel(torch.nn.Module):
         order = torch.argsort(directed[:, 0] * max(node_count, 1) + directed[:, 1])
         self.register_buffer("pairs", pairs)
         self.register_buffer("edges", directed[order].to(torch.int32).contiguous())
+        # node i receives edges row_start[i]:row_start[i+1] (the fused frame's CSR; not saved: made from the edges)
+        self.register_buffer("edge_row_start", csr_rows(directed[order][:, 0], node_count), persistent=False)
         self.register_buffer("pair_of_edge", pair_of_directed[order].contiguous())
         self.register_buffer("attached", attached.to(torch.int64))
         self.register_buffer("base_mass", mass)
@@ -321,8 +327,14 @@ class ClothModel(torch.nn.Module):
         previous_capsules: Capsules | None = None,
         external_acceleration: torch.Tensor | None = None,
         extra_drag: float = 0.0,
+        fused: bool | None = None,
     ) -> ClothState:
         """Advance the cloth by one frame.
+
+        Without gradients (``torch.is_grad_enabled()`` False, or neither the parameters nor any input requires
+        one) a float32 frame runs fused: one Warp kernel launch per substep (:mod:`warpavatar.kernels.cloth_frame`),
+        same results within float32 rounding (sums in another order). With gradients it runs op by op through
+        torch autograd.
 
         Args:
             state: the state at the end of the previous frame (attached nodes at their previous targets).
@@ -334,6 +346,8 @@ class ClothModel(torch.nn.Module):
                 bounded by ``max_external_acceleration``.
             extra_drag: added drag as a fraction of the drag's bound, ``[0, 1]`` (settling uses it; the
                 total stays within the stability bound).
+            fused: True: the fused frame (no gradients flow through it); False: op by op; None (default):
+                fused exactly when no gradient is needed.
 
         Returns:
             The state at the end of the frame.
@@ -346,6 +360,12 @@ class ClothModel(torch.nn.Module):
             raise ValueError(f"attachment_targets must have shape [{self.attached.shape[0]}, 3], "
                              f"got {list(attachment_targets.shape)}")
         substeps = self.substeps(frame_interval)
+        if fused is None:  # (the fused kernel is float32: float64 rollouts, such as references, go op by op)
+            fused = state.positions.dtype == self.base_mass.dtype == torch.float32 and not self._needs_gradient(
+                state, attachment_targets, capsules, previous_capsules, external_acceleration)
+        if fused:
+            return self._fused_frame(state, attachment_targets, frame_interval, substeps, capsules, previous_capsules,
+                                     external_acceleration, extra_drag)
         h = float(frame_interval) / substeps
         x, v = state.positions, state.velocities
         mass = self.masses()
@@ -376,6 +396,56 @@ class ClothModel(torch.nn.Module):
                 v = v + (pushed - x) / h
                 x = pushed
         return ClothState(x, v)
+
+    frame_cuda_graph = False
+    """On CUDA, replay each fused frame's launches as one CUDA graph captured on first use (per frame length,
+    capsule count and parameter values); a failed capture warns and goes on without."""
+
+    def __getstate__(self):
+        # (the fused frame's cache holds Warp views of this module's tensors: a copy makes its own)
+        state = super().__getstate__().copy()
+        state.pop("_frame_key", None)
+        state.pop("_frames", None)
+        return state
+
+    def _needs_gradient(self, state, attachment_targets, capsules, previous_capsules, external_acceleration) -> bool:
+        if not torch.is_grad_enabled():
+            return False
+        tensors = [state.positions, state.velocities, attachment_targets, external_acceleration,
+                   *(_capsule_tensors(capsules) or ()), *(_capsule_tensors(previous_capsules) or ())]
+        return any(t is not None and t.requires_grad for t in [*tensors, *self._parameters.values()])
+
+    def _frame_kernel_inputs(self, extra_drag: float) -> ClothFrame:
+        """The fused frame's per-model inputs, made again only when a parameter or buffer changed."""
+        # (a ClothModel has no submodules: its own tensors are all of them; read directly, as this runs per frame)
+        key = tuple((t.data_ptr(), t._version) for t in (*self._parameters.values(), *self._buffers.values()))
+        if getattr(self, "_frame_key", None) != key:
+            self._frame_key, self._frames = key, {}
+        frame = self._frames.get(extra_drag)
+        if frame is None:
+            with torch.no_grad():
+                mass = self.masses()
+                drag = self.drag() + float(extra_drag) * self.drag_bound if extra_drag else self.drag()
+                frame = self._frames[extra_drag] = ClothFrame(
+                    self.edges, self.edge_row_start, self.stiffness().index_select(0, self.pair_of_edge),
+                    self.rest_lengths().index_select(0, self.pair_of_edge),
+                    self.edge_damping().index_select(0, self.pair_of_edge), drag, mass,
+                    mass[:, None] * self.gravity, self.attached)
+        return frame
+
+    def _fused_frame(self, state, attachment_targets, frame_interval, substeps, capsules, previous_capsules,
+                     external_acceleration, extra_drag) -> ClothState:
+        frame = self._frame_kernel_inputs(float(extra_drag))
+        force = None
+        if external_acceleration is not None:
+            with torch.no_grad():
+                mass = self.masses()[:, None]
+                force = mass * self.gravity + mass * self.bounded_acceleration(external_acceleration)
+        positions, velocities = frame.run(state.positions, state.velocities, attachment_targets, float(frame_interval),
+                                          substeps, capsules=_capsule_tensors(capsules),
+                                          previous_capsules=_capsule_tensors(previous_capsules),
+                                          constant_force=force, cuda_graph=self.frame_cuda_graph)
+        return ClothState(positions, velocities)
 
     @torch.no_grad()
     def settle(
@@ -424,6 +494,10 @@ class ClothModel(torch.nn.Module):
         spring = 0.5 * (self.stiffness() * (length - self.rest_lengths()) ** 2).sum()
         potential = -(mass[:, None] * x * self.gravity).sum()
         return kinetic + spring + potential
+
+
+def _capsule_tensors(capsules: Capsules | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    return None if capsules is None else (capsules.segment_start, capsules.segment_end, capsules.radius)
 
 
 def _interpolate(before: Capsules, after: Capsules, fraction: float) -> Capsules:
