@@ -64,6 +64,13 @@ class SkinningStage:
         self._current = (step, grid)
         return grid
 
+    def release_graph(self) -> None:
+        """Keep this step's grid values but drop its autograd graph (after the backward pass): a graph that
+        outlives its step keeps the field parameters' AccumulateGrad nodes, bound to the stream that made them,
+        and a step captured on another stream would synchronize with that one (an invalid capture)."""
+        if self._current is not None and self._current[1].requires_grad:
+            self._current = (self._current[0], self._current[1].detach())
+
     def forget_step(self) -> None:
         """Evaluate the grid anew at the next :meth:`grid` call, even for the same step (capturing a step that
         just ran eagerly)."""

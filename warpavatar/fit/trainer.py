@@ -174,6 +174,7 @@ class Trainer:
         # Nothing the step returns keeps its autograd graph alive: a graph that outlives the step keeps the
         # parameters' AccumulateGrad nodes, bound to the stream they were made on, and a later step captured on
         # another stream would then synchronize with that one, which invalidates the capture.
+        self.skinning.release_graph()
         terms = {name: LossTerm(term.weight, term.value.detach()) for name, term in terms.items()}
         terms["loss"] = LossTerm(1.0, loss.detach())
         step.posed = type(step.posed)({name: value.detach() if isinstance(value, torch.Tensor) else value

@@ -92,11 +92,25 @@ def _rotation_step(rotation: torch.Tensor, covariance: torch.Tensor, identity: t
     # positive definite by Sylvester's criterion, with a margin relative to the neighbourhood's size
     margin = 1e-6 * trace.abs()
     minor2 = hessian[:, 0, 0] * hessian[:, 1, 1] - hessian[:, 0, 1] * hessian[:, 1, 0]
-    definite = (hessian[:, 0, 0] > margin) & (minor2 > margin**2) & (torch.linalg.det(hessian) > margin**3)
-    safe = torch.where(definite[:, None, None], hessian, identity.expand_as(hessian))
-    newton = torch.linalg.solve(safe, gradient)
+    adjugate, determinant = _adjugate_and_determinant(hessian)
+    definite = (hessian[:, 0, 0] > margin) & (minor2 > margin**2) & (determinant > margin**3)
+    # H^-1 g = adj(H) g / det(H), in closed form: torch.linalg.solve checks its input on the host (a device
+    # synchronization per call on CUDA) and would need the identity substituted where H is not definite
+    safe_determinant = torch.where(definite, determinant, torch.ones_like(determinant))
+    newton = (adjugate @ gradient[:, :, None])[:, :, 0] / safe_determinant[:, None]
     fixed_point = gradient / (trace.abs()[:, None] + 1e-9)
     return torch.where(definite[:, None], newton, fixed_point)
+
+
+def _adjugate_and_determinant(matrix: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Adjugate ``[M, 3, 3]`` and determinant ``[M]`` of 3x3 matrices ``[M, 3, 3]``, element-wise (no host
+    synchronization, differentiable): ``matrix @ adjugate = determinant * I``."""
+    rows = matrix.unbind(dim=1)
+    # the adjugate's columns are the cross products of the matrix's rows (row 1 x row 2, row 2 x row 0, ...)
+    columns = [torch.cross(rows[(k + 1) % 3], rows[(k + 2) % 3], dim=1) for k in range(3)]
+    adjugate = torch.stack(columns, dim=2)
+    determinant = (rows[0] * columns[0]).sum(dim=1)
+    return adjugate, determinant
 
 
 def nearest_nodes(points: torch.Tensor, nodes: torch.Tensor, *, chunk: int = 4096) -> torch.Tensor:
