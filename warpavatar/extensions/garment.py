@@ -208,7 +208,17 @@ class GarmentPart(AvatarPart):
 
     @torch.no_grad()
     def _table(self, bones: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
-        return torch.stack([self.node_quats(p, b) for p, b in zip(positions, bones)])
+        """Node rotations [T,M,4] of every frame of a sequence (``bones`` [T,J+E,4,4], ``positions`` [T,M,3]):
+        the frames' neighbourhoods solved as one graph of ``T`` disjoint copies, in one call."""
+        frames, count = positions.shape[0], self.node_count
+        if frames == 0:
+            return positions.new_zeros(0, count, 4)
+        initial = torch.cat([self.skinned_nodes(b)[1] for b in bones])
+        edges = self.cloth.edges
+        copies = (torch.arange(frames, device=edges.device) * count)[:, None, None]
+        quats = node_rotations(self.nodes.repeat(frames, 1), positions.reshape(-1, 3),
+                               (edges[None] + copies).reshape(-1, 2), initial=initial, iterations=4)
+        return quats.reshape(frames, count, 4)
 
     @torch.no_grad()
     def set_training_rollout(self, poses: torch.Tensor, bones: torch.Tensor, positions: torch.Tensor) -> None:
