@@ -28,6 +28,7 @@ class StepGraph:
     Attributes:
         enabled: whether steps are captured (False off CUDA, with ``off``, or after a failed capture).
         replays: steps replayed so far.
+        captures: graphs captured so far (one per change of the step's key, e.g. each densification).
     """
 
     def __init__(self, device, mode: str):
@@ -35,6 +36,7 @@ class StepGraph:
         self.mode = mode
         self.enabled = resolve_cuda_graph(mode, self.device)
         self.replays = 0
+        self.captures = 0
         self._stream = torch.cuda.Stream(device=self.device) if self.enabled else None
         self._captured: tuple | None = None  # (key, torch.cuda.CUDAGraph, its outputs)
 
@@ -68,4 +70,5 @@ class StepGraph:
             self.enabled = False
         else:
             self._captured = (key(), *captured)
+            self.captures += 1
         return result
