@@ -174,6 +174,20 @@ def test_steady_training_step_reads_nothing_from_the_device(small_video, tmp_pat
     assert sum(counter.ops.values()) > 300
 
 
+def test_no_autograd_graph_outlives_its_step(small_video, tmp_path):
+    """What a step returns and what the trainer keeps after it hold no autograd graph: a kept graph keeps the
+    parameters' AccumulateGrad nodes bound to the stream that made them, which invalidates the next capture."""
+    trainer = _tiny_trainer(small_video, tmp_path)
+    trainer.step = 20  # the field trains: its grid has a graph during the step
+    for _ in range(2):
+        step, terms = trainer.train_step()
+    kept = [term.value for term in terms.values()] + [step.image, step.alpha]
+    kept += [value for value in step.posed.values() if isinstance(value, torch.Tensor)]
+    kept.append(trainer.skinning.grid(step.step, train_field=True))  # the step's cached grid
+    assert len(kept) > 10
+    assert not any(tensor.requires_grad or tensor.grad_fn is not None for tensor in kept)
+
+
 def test_sync_free_steps_fit_what_exact_steps_fit(small_video, tmp_path, monkeypatch):
     """With the fixed-capacity rasterizer and static buffers, a fit through densification, an opacity reset and
     the start of the field's training ends bit for bit where the exact, synchronizing rasterizer ends."""
