@@ -118,6 +118,66 @@ def test_detection_keeps_what_hangs_below_its_attachment_and_drops_a_blend_above
         detect_garments(means, weights, PARENTS, _walk(), heads=HEADS, up=up, hang_fraction=1.5)
 
 
+# the bones' ends: the pelvis is a point at the hips, the spine reaches z = 1.5, the legs the knees, the shins z = 0
+TAILS = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.5], [0.0, 0.1, 0.5], [0.0, -0.1, 0.5], [0.0, 0.1, 0.0],
+                      [0.0, -0.1, 0.0]])
+UP = torch.tensor([0.0, 0.0, 1.0])
+
+
+def _panelled_skirt(generator):
+    """A bare body in a skirt whose weights blend the legs only in the strips between them (front and back); the
+    panels over each leg's side carry that leg's weights alone, as a fitted field gives them. Returns the means,
+    the weights and the masks of the skirt's blended strips and of its one-leg panels."""
+    means, weights = _body(generator, skirt=False)
+    cone = _ring((0.0, 0.0), lambda z: 0.14 + 0.15 * (1.0 - z), (0.45, 1.0), 1600, generator)
+    side = cone[:, 1] / (0.14 + 0.15 * (1.0 - cone[:, 2]))  # -1 (right leg's side) .. 1 (left leg's side)
+    strip = side.abs() < 0.5
+    left = torch.where(strip, 0.45 + 0.45 * side, torch.where(side > 0, 0.9, 0.0))
+    cone_weights = torch.zeros(cone.shape[0], 6)
+    cone_weights[:, 2], cone_weights[:, 3], cone_weights[:, 0] = left, 0.9 - left, 0.1
+    body = torch.zeros(means.shape[0], dtype=torch.bool)
+    return (torch.cat([means, cone]), torch.cat([weights, cone_weights]), torch.cat([body, strip]),
+            torch.cat([body, ~strip]))
+
+
+def test_detection_grows_the_blended_strips_into_the_whole_skirt_and_stops_at_the_hem():
+    means, weights, strip, panel = _panelled_skirt(torch.Generator().manual_seed(2))
+    seeds_only = detect_garments(means, weights, PARENTS, _walk())
+    assert seeds_only  # the front and the back strip, apart
+    chosen = torch.zeros(means.shape[0], dtype=torch.bool)
+    chosen[torch.cat([region.gaussian_ids for region in seeds_only])] = True
+    assert (chosen & panel).sum() < 0.5 * panel.sum(), "the one-leg panels must not be seeds by themselves"
+    found = detect_garments(means, weights, PARENTS, _walk(), heads=HEADS, tails=TAILS, up=UP)
+    assert len(found) == 1 and found[0].joint == 0 and set(found[0].split_joints) == {2, 3}
+    chosen = torch.zeros(means.shape[0], dtype=torch.bool)
+    chosen[found[0].gaussian_ids] = True
+    assert (chosen & panel).sum() > 0.95 * panel.sum() and (chosen & strip).sum() > 0.95 * strip.sum()
+    hem = float(means[strip, 2].min())
+    assert float(means[chosen, 2].min()) >= hem - 1e-6  # the shins below the hem stay body
+    assert not bool((chosen & (means[:, 2] > 1.0)).any())  # and so does the torso above the hips
+    # a bare body grows nothing
+    bare, bare_weights = _body(torch.Generator().manual_seed(2), skirt=False)
+    assert detect_garments(bare, bare_weights, PARENTS, _walk(), heads=HEADS, tails=TAILS, up=UP) == []
+
+
+def test_detection_rejects_blends_with_a_far_bone_or_a_trace_of_weight():
+    generator = torch.Generator().manual_seed(3)
+    means, weights = _body(generator, skirt=False)
+    shin = (weights[:, 5] > 0.5) & (means[:, 2] < 0.4)  # the right shin, below the skirt's usual hem
+    blended = weights.clone()
+    blended[shin, 5], blended[shin, 1] = 0.85, 0.15  # a trace of the spine, half a body away
+    up_to_rule_1 = detect_garments(means, blended, PARENTS, _walk(), heads=HEADS, up=UP)
+    assert up_to_rule_1 and set(up_to_rule_1[0].split_joints) == {5, 1}, "scores as cloth without nearness"
+    assert detect_garments(means, blended, PARENTS, _walk(), heads=HEADS, tails=TAILS, up=UP) == []
+    # a trace of a near, unrelated bone: the other shin, at 5 % of the weight
+    traced = weights.clone()
+    traced[shin, 5], traced[shin, 4] = 0.95, 0.05
+    assert detect_garments(means, traced, PARENTS, _walk(), min_weight=0.0, threshold=0.001)
+    assert detect_garments(means, traced, PARENTS, _walk(), threshold=0.001) == []
+    with pytest.raises(ValueError, match="min_weight"):
+        detect_garments(means, traced, PARENTS, _walk(), min_weight=1.0)
+
+
 # ---------------------------------------------------------------------------------------------- tiny fits
 def _tiny(**overrides):
     values = dict(iterations=24, image_scale=0.5, max_train_frames=6, init_points_per_bone=20,

@@ -32,6 +32,7 @@ parameters through those substeps. Nothing is learned per training frame: novel 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -373,6 +374,12 @@ class GarmentExtension(Extension):
         groups = self.fit.avatar.skinning_groups()
         return weights if groups is None else weights @ groups
 
+    def _field_voxel(self) -> float:
+        """The skinning field's largest voxel side [world units]: the finest detail its weights can hold."""
+        field = self.fit.skinning.field
+        cells = torch.tensor(field.grid_shape[::-1], dtype=torch.float32) - 1.0  # (x, y, z) intervals
+        return float(((field.bbox_max - field.bbox_min).float().cpu() / cells.clamp_min(1.0)).max())
+
     @torch.no_grad()
     def detect(self, grid: torch.Tensor) -> None:
         """Find the garment and build its part (or decide there is none)."""
@@ -383,9 +390,13 @@ class GarmentExtension(Extension):
         regions = detect_garments(means, weights, skeleton.parents, fit.frames.bone_transforms,
                                   threshold=options.garment_threshold,
                                   min_fraction=options.garment_min_fraction,
-                                  # a named attachment overrides the rule that cloth hangs below the found one
-                                  heads=None if options.garment_attach else
-                                  torch.as_tensor(skeleton.heads, dtype=torch.float32), up=skeleton.up)
+                                  # a named attachment overrides the rules that cloth hangs below the found
+                                  # one and lies between the bones it blends, with a weight of each (the user
+                                  # says there is a garment)
+                                  **(dict(min_weight=0.0) if options.garment_attach else dict(
+                                      heads=torch.as_tensor(skeleton.heads, dtype=torch.float32),
+                                      tails=torch.as_tensor(skeleton.tails, dtype=torch.float32), up=skeleton.up,
+                                      resolution=self._field_voxel())))
         self.decided = True
         up = torch.as_tensor(skeleton.up, dtype=torch.float32, device=means.device)
         height = means @ up
@@ -420,7 +431,8 @@ class GarmentExtension(Extension):
         skeleton_weights = self._skeleton_weights(node_weights)
         garment = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
         garment[ids] = True
-        attached = self._attached(means, weights, garment, nodes, skeleton_weights, skeleton.parents, joint, voxel)
+        attached = self._attached(means, weights, garment, nodes, skeleton_weights, skeleton.parents, joint, voxel,
+                                  up=torch.as_tensor(skeleton.up, dtype=torch.float32, device=means.device))
         device = means.device
         heads = torch.as_tensor(skeleton.heads, dtype=torch.float32, device=device)
         tails = torch.as_tensor(skeleton.tails, dtype=torch.float32, device=device)
@@ -439,12 +451,15 @@ class GarmentExtension(Extension):
         return part
 
     @staticmethod
-    def _attached(means, weights, garment, nodes, node_weights, parents, joint: int, voxel: float) -> torch.Tensor:
+    def _attached(means, weights, garment, nodes, node_weights, parents, joint: int, voxel: float, *,
+                  up: torch.Tensor | None = None) -> torch.Tensor:
         """The nodes the body holds: those within 1.5 node spacings of the body Gaussians that move with the
         attachment joint's side of the skeleton. That side is the joint, its ancestors, and the branches below
         it that carry less than a quarter of the garment's skinning weight (a skirt is held by the hips and the
         torso above them, not by the legs it hangs between). A node touching that body hangs from it; the band
-        is 1.5 spacings wide so that it is a closed ring of nodes rather than isolated points."""
+        is 1.5 spacings wide so that it is a closed ring of nodes rather than isolated points. With ``up``, only
+        nodes within 3 spacings of the garment's top are held: cloth hangs from its upper edge (a skirt from its
+        waistband), and the hips it covers below that (body Gaussians under the skirt) hold nothing."""
         related = related_joints(parents).to(means.device)
         joint_count = weights.shape[1]
         chains = [[j] for j in range(joint_count)]
@@ -472,6 +487,9 @@ class GarmentExtension(Extension):
             distance = torch.zeros(nodes.shape[0], device=nodes.device)  # nothing else: the nearest half below
         else:
             distance = torch.cat([torch.cdist(chunk, body).min(dim=1).values for chunk in torch.split(nodes, 4096)])
+        if up is not None:
+            height = nodes @ (up / up.norm().clamp_min(1e-12))
+            distance = torch.where(height >= height.max() - 3.0 * voxel, distance, torch.full_like(distance, math.inf))
         attached = torch.nonzero(distance <= distance.min() + 1.5 * voxel).reshape(-1)
         if attached.numel() > nodes.shape[0] // 2:  # keep the cloth mostly free: hold the nearest half at most
             attached = distance.argsort()[: max(1, nodes.shape[0] // 2)].sort().values
