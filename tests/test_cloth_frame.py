@@ -31,7 +31,7 @@ def random_cloth(device, *, seed, node_count=120, attached_count=12, capsule_cou
     move during the frame (a few hold nodes at the start)."""
     generator = torch.Generator().manual_seed(seed)
     rest = torch.rand(node_count, 3, generator=generator)
-    graph = cloth_graph(rest, neighbours=6, bend_per_node=4)
+    graph = cloth_graph(rest.to(device), neighbours=6, bend_per_node=4)  # on the device: no CPU compiler needed on a GPU machine
     attached = torch.randperm(node_count, generator=generator)[:attached_count]
     mass = 0.005 + 0.01 * torch.rand(node_count, generator=generator)
     model = ClothModel(rest.to(device), graph, attached.to(device), node_mass=mass.to(device))

@@ -230,10 +230,12 @@ def test_captured_steps_match_eager_steps(small_video, tmp_path):
     (graph_losses, graph_count, graph), (eager_losses, eager_count, eager), (_, again_count, again) = results
     assert graph_count == eager_count == again_count and graph.keys() == eager.keys()
     torch.testing.assert_close(torch.tensor(graph_losses), torch.tensor(eager_losses), rtol=1e-3, atol=1e-5)
+    # A few elements jump by up to a learning rate between any two runs; a captured step that read a stale input
+    # (a learning rate, a frame, a grid) would move most of them: compare the share of elements that moved.
     for name in graph:
-        spread = float((again[name] - eager[name]).abs().max())
-        difference = float((graph[name] - eager[name]).abs().max())
-        assert difference <= 4.0 * spread + 1e-4, (name, difference, spread)
+        moved = float(((graph[name] - eager[name]).abs() > 1e-4).float().mean())
+        spread = float(((again[name] - eager[name]).abs() > 1e-4).float().mean())
+        assert moved <= 2.0 * spread + 0.01, (name, moved, spread)
 
 
 def test_bench_kernels_avatar_quick_runs(capsys):

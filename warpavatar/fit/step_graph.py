@@ -49,6 +49,20 @@ class StepGraph:
         self.replays += 1
         return self._captured[2]
 
+    def run_eager(self, work: Callable[[], Any]) -> Any:
+        """Run a step that is not captured: on the capture stream while capturing is on, so that the autograd
+        nodes it creates (a parameter's AccumulateGrad node lives as long as any graph holds it) belong to the
+        stream that later captures use; a node bound to another stream makes a capture synchronize with that
+        stream, which invalidates it."""
+        if not self.enabled:
+            return work()
+        current = torch.cuda.current_stream(self.device)
+        self._stream.wait_stream(current)
+        with torch.cuda.stream(self._stream):
+            result = work()
+        current.wait_stream(self._stream)
+        return result
+
     def run_then_capture(self, work: Callable[[], Any], capture_work: Callable[[], Any], *,
                          between: Callable[[], None], key: Callable[[], Any]) -> Any:
         """Run ``work`` eagerly on the capture stream, call ``between``, then capture ``capture_work`` under the key

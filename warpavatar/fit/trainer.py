@@ -235,7 +235,8 @@ class Trainer:
         if replayed is not None:
             image, alpha, terms, step.posed, step.target, step.mask = replayed
         elif key is None:
-            image, alpha, terms = self._step_work(step, buffers, degree, inputs, optimizers)
+            image, alpha, terms = self.step_graph.run_eager(
+                lambda: self._step_work(step, buffers, degree, inputs, optimizers))
         else:  # this step eagerly on the capture stream, then a capture of its work for the steps that follow
             capture = StepContext(step=number, index=step.index, train_field=train_field, read_grid=step.read_grid)
 
