@@ -164,6 +164,22 @@ def test_detection_grows_the_blended_strips_into_the_whole_skirt_and_stops_at_th
     assert detect_garments(bare, bare_weights, PARENTS, _walk(), heads=HEADS, tails=TAILS, up=UP) == []
 
 
+def test_detection_sees_past_clones():
+    """Density control leaves clones of a Gaussian almost on top of each other: the k-NN graph must still link
+    the surface, or the garment falls apart into patches smaller than a garment."""
+    means, weights, strip, panel = _panelled_skirt(torch.Generator().manual_seed(6))
+    clones = 6
+    generator = torch.Generator().manual_seed(7)
+    cloned = means.repeat(clones, 1) + 0.002 * torch.randn(means.shape[0] * clones, 3, generator=generator)
+    found = detect_garments(cloned, weights.repeat(clones, 1), PARENTS, _walk(), heads=HEADS, tails=TAILS, up=UP)
+    assert len(found) == 1
+    skirt = (strip | panel).repeat(clones)
+    assert skirt[found[0].gaussian_ids].sum() > 0.95 * skirt.sum()
+    # with 8 neighbours (links up to twice the distance to the 8th) the clones cut the surface apart
+    assert detect_garments(cloned, weights.repeat(clones, 1), PARENTS, _walk(), heads=HEADS, tails=TAILS, up=UP,
+                           neighbours=8, link=2.0) == []
+
+
 def test_the_whole_skirt_is_held_by_a_waistband_ring():
     generator = torch.Generator().manual_seed(4)
     means, weights, strip, panel = _panelled_skirt(generator)
