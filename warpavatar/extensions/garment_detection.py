@@ -60,9 +60,9 @@ The rule, each threshold a geometric statement rather than a tuned number:
 
 Robots, animals and tightly dressed people should get weights inside one chain everywhere except at small
 patches, so that no region passes rules 3 and 5 and the fit runs exactly as without the garment extension.
-Measured on CPU fits of the supplied subjects (quick preset, detection at step 1200): the skirt is found whole (about 40 % of the
-Gaussians, from its hem to the waist), the robot gets none. ``--garment`` stays off by default until fits on a
-GPU confirm this.
+Measured on CPU fits of the supplied subjects (quick preset, detection at step 1200): the skirt is found whole
+(about 40 % of the Gaussians, from its hem to the waist), the robot gets none. ``--garment`` stays off by
+default until fits on a GPU confirm this (``tools/garment_report.py`` runs the detection on a saved avatar).
 """
 
 from __future__ import annotations
@@ -130,7 +130,8 @@ def split_weight(weights: torch.Tensor, related: torch.Tensor) -> torch.Tensor:
 
 def _segment_distance(points: torch.Tensor, heads: torch.Tensor, tails: torch.Tensor, joints: torch.Tensor
                       ) -> torch.Tensor:
-    """Distance of each point to the bone segments of the given joints: ``points [N,3]``, ``joints [N,P]`` -> ``[N,P]``."""
+    """Distance of each point to the bone segments of the given joints [world units]: ``points [N,3]`` and
+    ``joints [N,P]`` -> ``[N,P]``."""
     start, end = heads[joints], tails[joints]  # [N,P,3]
     along = end - start
     t = (((points[:, None] - start) * along).sum(-1) / (along * along).sum(-1).clamp_min(1e-12)).clamp(0.0, 1.0)
