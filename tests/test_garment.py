@@ -1,18 +1,22 @@
 """The garment extension: detection, the simulated part, fitting through the simulation, files and consumers."""
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 
 from warpavatar import data
-from warpavatar.extensions.garment import GarmentPart
+from warpavatar.extensions.garment import GarmentExtension, GarmentPart
 from warpavatar.extensions.garment_detection import (detect_garments, lowest_common_ancestor, related_joints,
                                                      split_motion, split_weight)
+from warpavatar.extensions.graph import voxel_downsample
 from warpavatar.fit import Trainer, preset
 from warpavatar.model import Avatar
 from warpavatar.model.parts import frame_intervals
+
+from conftest import load_tool
 
 # a pelvis (0) with a spine (1) and two legs (2, 3), each leg with a shin (4, 5)
 PARENTS = [-1, 0, 0, 0, 2, 3]
@@ -158,6 +162,72 @@ def test_detection_grows_the_blended_strips_into_the_whole_skirt_and_stops_at_th
     # a bare body grows nothing
     bare, bare_weights = _body(torch.Generator().manual_seed(2), skirt=False)
     assert detect_garments(bare, bare_weights, PARENTS, _walk(), heads=HEADS, tails=TAILS, up=UP) == []
+
+
+def test_detection_sees_past_clones():
+    """Density control leaves clones of a Gaussian almost on top of each other: the k-NN graph must still link
+    the surface, or the garment falls apart into patches smaller than a garment."""
+    means, weights, strip, panel = _panelled_skirt(torch.Generator().manual_seed(6))
+    clones = 6
+    generator = torch.Generator().manual_seed(7)
+    cloned = means.repeat(clones, 1) + 0.002 * torch.randn(means.shape[0] * clones, 3, generator=generator)
+    found = detect_garments(cloned, weights.repeat(clones, 1), PARENTS, _walk(), heads=HEADS, tails=TAILS, up=UP)
+    assert len(found) == 1
+    skirt = (strip | panel).repeat(clones)
+    assert skirt[found[0].gaussian_ids].sum() > 0.95 * skirt.sum()
+    # with 8 neighbours (links up to twice the distance to the 8th) the clones cut the surface apart
+    assert detect_garments(cloned, weights.repeat(clones, 1), PARENTS, _walk(), heads=HEADS, tails=TAILS, up=UP,
+                           neighbours=8, link=2.0) == []
+
+
+def test_the_whole_skirt_is_held_by_a_waistband_ring():
+    generator = torch.Generator().manual_seed(4)
+    means, weights, strip, panel = _panelled_skirt(generator)
+    # the hips under the skirt, skinned to the pelvis: body that holds, but the cloth hangs from the waist only
+    hips = _ring((0.0, 0.0), 0.1, (0.7, 1.0), 400, generator)
+    means = torch.cat([means, hips])
+    weights = torch.cat([weights, torch.nn.functional.one_hot(torch.zeros(400, dtype=torch.long), 6).float()])
+    garment = torch.cat([strip | panel, torch.zeros(400, dtype=torch.bool)])
+    voxel = 0.05
+    nodes = voxel_downsample(means[garment], voxel)
+    node_weights = torch.zeros(nodes.shape[0], 6)
+    node_weights[:, 0], node_weights[:, 2], node_weights[:, 3] = 0.1, 0.45, 0.45
+    anywhere = GarmentExtension._attached(means, weights, garment, nodes, node_weights, PARENTS, 0, voxel)
+    assert float(nodes[anywhere, 2].min()) < 0.8  # without up, the hips hold the skirt down to their bottom
+    held = GarmentExtension._attached(means, weights, garment, nodes, node_weights, PARENTS, 0, voxel, up=UP)
+    top = float(nodes[:, 2].max())
+    assert 0 < held.numel() < nodes.shape[0] // 4
+    assert float(nodes[held, 2].min()) >= top - 3.0 * voxel - 1e-6  # the top edge, not the hips below it
+    sectors = ((torch.atan2(nodes[held, 1], nodes[held, 0]) + math.pi) / (2 * math.pi) * 8).long().clamp(0, 7)
+    assert torch.unique(sectors).numel() == 8  # a closed ring round the waist
+
+
+class _NearestWeights:
+    """A skinning field that gives any point the weights of the nearest of some points (a fitted field's stand-in
+    for tools/garment_report.py), on a grid of 2 cm voxels."""
+
+    def __init__(self, means, weights):
+        self.means, self.table = means, weights
+        self.bbox_min, self.bbox_max = means.min(0).values - 0.1, means.max(0).values + 0.1
+        self.grid_shape = tuple(int(c) for c in ((self.bbox_max - self.bbox_min) / 0.02).ceil().flip(0) + 1)
+
+    def weights(self, points, grid=None):
+        return self.table[torch.cdist(points, self.means).argmin(dim=1)]
+
+
+def test_garment_report_tool_finds_the_skirt_its_band_and_its_waistband():
+    means, weights, strip, panel = _panelled_skirt(torch.Generator().manual_seed(5))
+    avatar = SimpleNamespace(gaussians=SimpleNamespace(means=means), field=_NearestWeights(means, weights),
+                             skinning_groups=lambda: None)
+    skeleton = data.Skeleton(["pelvis", "spine", "thigh_l", "thigh_r", "shin_l", "shin_r"], np.array(PARENTS),
+                             HEADS.numpy(), TAILS.numpy())
+    video = SimpleNamespace(skeleton=skeleton, bone_transforms=_walk().numpy())
+    report = load_tool("garment_report").garment_report(avatar, video, band=(0.32, 0.65))  # z 0.48 .. 0.98
+    assert report["gaussians"] == means.shape[0] and len(report["garments"]) == 1
+    garment = report["garments"][0]
+    assert garment["joint"] == "pelvis" and set(garment["split"]) == {"thigh_l", "thigh_r"}
+    assert garment["gaussians"] >= int((strip | panel).sum()) * 0.95 and garment["band_held"] > 0.9
+    assert garment["attached_sectors_of_12"] == 12 and garment["attached_heights"][0] > 0.55  # above z 0.83
 
 
 def test_detection_rejects_blends_with_a_far_bone_or_a_trace_of_weight():

@@ -47,7 +47,7 @@ from warpavatar.sim import (Capsules, ClothGraph, ClothModel, ClothState, capsul
                             fit_body_capsules, nearest_nodes, node_rotations, pose_capsules, ride_on_nodes)
 from warpavatar.sim.capsules import select
 
-__all__ = ["GarmentPart", "GarmentOptions", "GarmentExtension"]
+__all__ = ["GarmentPart", "GarmentOptions", "GarmentExtension", "body_detection_options"]
 
 _IDENTITY_QUAT = (1.0, 0.0, 0.0, 0.0)
 
@@ -302,6 +302,17 @@ class GarmentPart(AvatarPart):
         return part
 
 
+def body_detection_options(skeleton, field) -> dict:
+    """The arguments of :func:`detect_garments` that come from the body: the skeleton's bones and up axis (rules
+    1, 5 and 6 of :mod:`.garment_detection`) and the skinning field's largest voxel side [world units], the
+    finest detail its weights can hold."""
+    cells = torch.tensor(field.grid_shape[::-1], dtype=torch.float32) - 1.0  # (x, y, z) intervals
+    voxel = float(((field.bbox_max - field.bbox_min).float().cpu() / cells.clamp_min(1.0)).max())
+    return dict(heads=torch.as_tensor(skeleton.heads, dtype=torch.float32),
+                tails=torch.as_tensor(skeleton.tails, dtype=torch.float32),
+                up=torch.as_tensor(skeleton.up, dtype=torch.float32), resolution=voxel)
+
+
 @dataclass
 class GarmentOptions:
     """Options of the garment extension."""
@@ -374,12 +385,6 @@ class GarmentExtension(Extension):
         groups = self.fit.avatar.skinning_groups()
         return weights if groups is None else weights @ groups
 
-    def _field_voxel(self) -> float:
-        """The skinning field's largest voxel side [world units]: the finest detail its weights can hold."""
-        field = self.fit.skinning.field
-        cells = torch.tensor(field.grid_shape[::-1], dtype=torch.float32) - 1.0  # (x, y, z) intervals
-        return float(((field.bbox_max - field.bbox_min).float().cpu() / cells.clamp_min(1.0)).max())
-
     @torch.no_grad()
     def detect(self, grid: torch.Tensor) -> None:
         """Find the garment and build its part (or decide there is none)."""
@@ -393,10 +398,8 @@ class GarmentExtension(Extension):
                                   # a named attachment overrides the rules that cloth hangs below the found
                                   # one and lies between the bones it blends, with a weight of each (the user
                                   # says there is a garment)
-                                  **(dict(min_weight=0.0) if options.garment_attach else dict(
-                                      heads=torch.as_tensor(skeleton.heads, dtype=torch.float32),
-                                      tails=torch.as_tensor(skeleton.tails, dtype=torch.float32), up=skeleton.up,
-                                      resolution=self._field_voxel())))
+                                  **(dict(min_weight=0.0) if options.garment_attach else
+                                     body_detection_options(skeleton, fit.skinning.field)))
         self.decided = True
         up = torch.as_tensor(skeleton.up, dtype=torch.float32, device=means.device)
         height = means @ up

@@ -60,9 +60,9 @@ The rule, each threshold a geometric statement rather than a tuned number:
 
 Robots, animals and tightly dressed people should get weights inside one chain everywhere except at small
 patches, so that no region passes rules 3 and 5 and the fit runs exactly as without the garment extension.
-Measured on CPU fits of the supplied subjects (quick preset, detection at step 1200): the skirt is found whole (about 40 % of the
-Gaussians, from its hem to the waist), the robot gets none. ``--garment`` stays off by default until fits on a
-GPU confirm this.
+Measured on CPU fits of the supplied subjects (quick preset, detection at step 1200): the skirt is found whole
+(about 40 % of the Gaussians, from its hem to the waist), the robot gets none. ``--garment`` stays off by
+default until fits on a GPU confirm this (``tools/garment_report.py`` runs the detection on a saved avatar).
 """
 
 from __future__ import annotations
@@ -130,7 +130,8 @@ def split_weight(weights: torch.Tensor, related: torch.Tensor) -> torch.Tensor:
 
 def _segment_distance(points: torch.Tensor, heads: torch.Tensor, tails: torch.Tensor, joints: torch.Tensor
                       ) -> torch.Tensor:
-    """Distance of each point to the bone segments of the given joints: ``points [N,3]``, ``joints [N,P]`` -> ``[N,P]``."""
+    """Distance of each point to the bone segments of the given joints [world units]: ``points [N,3]`` and
+    ``joints [N,P]`` -> ``[N,P]``."""
     start, end = heads[joints], tails[joints]  # [N,P,3]
     along = end - start
     t = (((points[:, None] - start) * along).sum(-1) / (along * along).sum(-1).clamp_min(1e-12)).clamp(0.0, 1.0)
@@ -277,8 +278,9 @@ def detect_garments(
     min_weight: float = 0.1,
     near: float = 0.2,
     resolution: float = 0.0,
-    neighbours: int = 8,
-    link: float = 2.0,
+    neighbours: int = 32,
+    smoothing: int = 8,
+    link: float = 1.0,
     heads: torch.Tensor | None = None,
     tails: torch.Tensor | None = None,
     up: torch.Tensor | None = None,
@@ -301,8 +303,13 @@ def detect_garments(
             the body's height along ``up`` (or of its longest side without ``up``), ``> 0`` (rule 1).
         resolution: with ``heads`` and ``tails``, the skinning field's voxel size [world units]: a blend of two
             bones closer together than this is the field's interpolation and makes no seed (rule 1).
-        neighbours: k of the k-NN graph the components are found on.
-        link: longest link of that graph, in median distances to the k-th neighbour.
+        neighbours: k of the k-NN graph the components are found on: enough to reach past a Gaussian's clones
+            (density control leaves several almost on top of each other; with 8, six clones of each Gaussian broke
+            a fitted avatar's graph into over a thousand components and the skirt was not found).
+        smoothing: how many of those neighbours (the nearest) each point's score is averaged over (rule 1).
+        link: longest link of that graph, in median distances to the k-th neighbour (1: on a surface sampled
+            evenly, about twice the distance to the 8th; longer links jump between body parts, as from a robot's
+            arm to its legs in a fit whose field was not trained yet).
         heads: canonical joint positions (bone starts) ``[J, 3]`` [world units]; ``tails``: the bones' ends
             ``[J, 3]``; ``up``: the skeleton's up axis ``[3]``. With ``heads`` and ``tails``, blends count only
             between bones near the point (rule 1); with ``heads`` and ``up``, a region counts only when at least
@@ -353,8 +360,9 @@ def detect_garments(
     # a garment is a surface region, not scattered points: score each point by the mean over itself and its
     # linked neighbours (a fitted field blends cloth patch by patch, with single Gaussians in between that
     # one leg explains)
-    linked = index >= 0
-    gathered = torch.where(linked, split[index.clamp_min(0)], torch.zeros_like(distance))
+    near_index = index[:, :smoothing]  # nearest first
+    linked = near_index >= 0
+    gathered = torch.where(linked, split[near_index.clamp_min(0)], torch.zeros_like(split)[:, None])
     split = (split + gathered.sum(dim=1)) / (1.0 + linked.sum(dim=1))
     region = _flood(split >= threshold, split >= 0.25 * threshold, index)  # hysteresis (rule 2)
     labels = connected_components(region, index)
