@@ -236,7 +236,7 @@ def test_detection_rejects_blends_with_a_far_bone_or_a_trace_of_weight():
     shin = (weights[:, 5] > 0.5) & (means[:, 2] < 0.4)  # the right shin, below the skirt's usual hem
     blended = weights.clone()
     blended[shin, 5], blended[shin, 1] = 0.85, 0.15  # a trace of the spine, half a body away
-    up_to_rule_1 = detect_garments(means, blended, PARENTS, _walk(), heads=HEADS, up=UP)
+    up_to_rule_1 = detect_garments(means, blended, PARENTS, _walk(), heads=HEADS, up=UP, reach=0.99)
     assert up_to_rule_1 and set(up_to_rule_1[0].split_joints) == {5, 1}, "scores as cloth without nearness"
     assert detect_garments(means, blended, PARENTS, _walk(), heads=HEADS, tails=TAILS, up=UP) == []
     # a trace of a near, unrelated bone: the other shin, at 5 % of the weight
@@ -434,3 +434,29 @@ def test_rollouts_run_the_fused_frame_and_match_the_op_by_op_one(forced, video, 
     assert (fused - reference).abs().max() < 5e-5
     assert (fused_velocities - reference_velocities).abs().max() < 2e-4
     assert (fused[-1] - fused[0]).abs().max() > 1e-3  # the motion moved the cloth
+
+
+def test_detection_rejects_a_blend_between_the_shins_that_does_not_reach_the_hips():
+    """A fitted robot's field blended its two shins at shin height, far below the root it would hang from: cloth
+    hangs from its attachment, so a garment reaches up to it (rule 7); the skirt, which does, is still found."""
+    generator = torch.Generator().manual_seed(8)
+    means, weights = _body(generator, skirt=False)
+    # a robot's legs: the shins' shells end well below the knees (a gap, as between a robot's plates)
+    keep = ~(((weights[:, 4] > 0.5) | (weights[:, 5] > 0.5)) & (means[:, 2] > 0.3))
+    means, weights = means[keep], weights[keep]
+    # a patch between the shins (y = +-0.1, radius 0.05), blended half and half, joined to nothing above it
+    patch = torch.stack([0.04 * torch.randn(600, generator=generator),
+                         0.02 * torch.randn(600, generator=generator),
+                         0.05 + 0.2 * torch.rand(600, generator=generator)], dim=1)
+    patch_weights = torch.zeros(patch.shape[0], 6)
+    patch_weights[:, 4], patch_weights[:, 5] = 0.5, 0.5
+    means, weights = torch.cat([means, patch]), torch.cat([weights, patch_weights])
+    shin_blend = detect_garments(means, weights, PARENTS, _walk(), heads=HEADS, tails=TAILS, up=UP, reach=0.99)
+    assert shin_blend and all(float(means[r.gaussian_ids, 2].max()) < 0.6 for r in shin_blend), \
+        "without rule 7 the shin blend must be found, hanging from the pelvis"
+    assert detect_garments(means, weights, PARENTS, _walk(), heads=HEADS, tails=TAILS, up=UP) == []
+    skirt, skirt_weights, strip, panel = _panelled_skirt(torch.Generator().manual_seed(8))
+    found = detect_garments(skirt, skirt_weights, PARENTS, _walk(), heads=HEADS, tails=TAILS, up=UP)
+    assert len(found) == 1 and found[0].joint == 0
+    with pytest.raises(ValueError, match="reach"):
+        detect_garments(means, weights, PARENTS, _walk(), heads=HEADS, tails=TAILS, up=UP, reach=1.5)

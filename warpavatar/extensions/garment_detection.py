@@ -57,6 +57,10 @@ The rule, each threshold a geometric statement rather than a tuned number:
    arms), and (b) lie between the hem and the top of the attachment joint's bone (a skirt hangs from the
    waist; the lower legs below its hem stay body). Two seed regions that grow into each other (a skirt's
    front and back) are one garment.
+7. Cloth hangs *from* its attachment: the garment reaches up to it, its top (but for the highest 2 %) within
+   ``reach`` (10 %) of the body's height below the joint, as a skirt's waistband is at the hips. A blend of the
+   two shins that nothing joins to the hips (a fitted robot's legs, seen on the H100) is two limbs the field has
+   not separated yet, however far below the hips it hangs.
 
 Robots, animals and tightly dressed people should get weights inside one chain everywhere except at small
 patches, so that no region passes rules 3 and 5 and the fit runs exactly as without the garment extension.
@@ -286,6 +290,7 @@ def detect_garments(
     up: torch.Tensor | None = None,
     hang_fraction: float = 0.5,
     min_length: float = 0.15,
+    reach: float = 0.1,
 ) -> list[GarmentRegion]:
     """Find the garments among canonical Gaussians from their skinning weights (see the module docstring).
 
@@ -318,6 +323,8 @@ def detect_garments(
         hang_fraction: see ``heads``, ``[0, 1]``.
         min_length: with ``heads`` and ``up``, how far at least a garment's seeds reach below its attachment joint,
             as a fraction of the body's height, ``[0, 1)`` (rule 5).
+        reach: with ``heads`` and ``up``, how far at most a garment's top may lie below its attachment joint, as a
+            fraction of the body's height, ``[0, 1)`` (rule 7).
 
     Returns:
         The garments, largest first (empty when there is none).
@@ -327,6 +334,8 @@ def detect_garments(
             raise ValueError(f"{name} must be in (0, 1), got {value}")
     if not 0.0 <= hang_fraction <= 1.0:
         raise ValueError(f"hang_fraction must be in [0, 1], got {hang_fraction}")
+    if not 0.0 <= reach < 1.0:
+        raise ValueError(f"reach must be in [0, 1), got {reach}")
     if not 0.0 <= min_weight < 1.0 or not 0.0 <= min_length < 1.0 or not near > 0.0:
         raise ValueError(f"min_weight and min_length must be in [0, 1) and near > 0, got {min_weight}, {min_length} "
                          f"and {near}")
@@ -395,6 +404,13 @@ def detect_garments(
                 branch[_branch_joints(parents, joint, (first, second)).to(means.device)] = True
                 allowed = branch[dominant] & (height >= hem) & (height <= top)
                 garment = _flood(seeds, allowed, index) & (height >= hem) & (height <= top)
+            # rule 7: cloth hangs *from* its attachment, so the garment reaches up to it (its top, but for the
+            # highest 2 %, within `reach` of the body's height below the joint): a blend between the shins that
+            # nothing joins to the hips is two legs the field has not separated yet
+            garment_heights = height[garment]
+            garment_top = float(garment_heights.kthvalue(max(1, int(0.98 * garment_heights.numel()))).values)
+            if garment_top < joint_height - reach * body_height:
+                continue
         for other in [other for other in grown if bool((other[0] & garment).any())]:
             grown.remove(other)  # two seed regions of one garment (its front and back) grew into each other
             if int(other[0].sum()) > int(garment.sum()):
