@@ -115,3 +115,11 @@ def test_bad_inputs_are_named(change, message):
     inputs = change(make_inputs(60, 1, "cpu", count=10))
     with pytest.raises((ValueError, TypeError), match=message):
         ops.view_colors(*inputs.values())
+
+
+def test_bench_kernels_shading_quick_runs(capsys):
+    from conftest import load_tool
+
+    assert load_tool("bench_kernels").main(["shading", "--quick", "--device", "cpu"]) == 0
+    table = capsys.readouterr().out
+    assert table.count("| warp fused |") == 2 and table.count("| torch op-by-op |") == 2
