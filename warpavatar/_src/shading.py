@@ -52,8 +52,9 @@ class _ViewColorsFunction(torch.autograd.Function):
                 to_warp(grad_coefficients, dtype=wp.vec3), degree=ctx.degree,
             )
         # the direction is mean - origin, so the origin's gradient is minus the sum of the means'
-        grad_origin = -grad_means.sum(dim=0).reshape(origin.shape) if ctx.needs_input_grad[4] else None
-        needs = ctx.needs_input_grad
+        # at degree 0 the direction is unused: its inputs get no gradient (None, so autograd adds no zeros)
+        needs = [need and (ctx.degree > 0 or index == 3) for index, need in enumerate(ctx.needs_input_grad)]
+        grad_origin = -grad_means.sum(dim=0).reshape(origin.shape) if needs[4] else None
         return (grad_means if needs[0] else None, grad_quats if needs[1] else None,
                 grad_canonical_quats if needs[2] else None, grad_coefficients if needs[3] else None, grad_origin,
                 None)
