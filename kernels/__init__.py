@@ -11,6 +11,7 @@ Families:
     skinning: trilinear sampling of a voxel field and linear blend skinning.
     collision: particles pushed out of capsules.
     cloth: a cloth substep's edge terms (length-spring rest offsets, edge damping).
+    shading: view-dependent colour from spherical harmonics in each Gaussian's canonical frame.
     cloth_frame: a whole cloth substep fused in one kernel (rollouts without gradients).
 
 :mod:`~warpavatar.kernels.quaternion` holds the quaternion ``@wp.func`` helpers the families share.

@@ -1,7 +1,7 @@
 """Kernel micro-benchmarks of warpavatar: ``python tools/bench_kernels.py MODE [options]``.
 
 Modes: ``splat`` (rasterizer, against gsplat when importable), ``knn``, ``springs``, ``skinning``
-(sample_grid and lbs), ``usd`` (USD animation writing, CPU), ``dynamics`` (SMAD's learned dynamics: rollout
+(sample_grid and lbs), ``shading`` (view-dependent SH colour, fused kernel against op-by-op torch), ``usd`` (USD animation writing, CPU), ``dynamics`` (SMAD's learned dynamics: rollout
 and training window), ``cloth`` (one frame of the simulated garment, substeps included, and the capsule
 collision), ``avatar`` (a fitted avatar: rasterizer against gsplat on its posed Gaussians at the training size and
 1080p, the training step eager and captured with its launches and host reads, playback FPS; ``--avatar``,
@@ -25,7 +25,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from bench_common import markdown_table  # noqa: E402
 
-MODES = ("splat", "knn", "springs", "skinning", "usd", "dynamics", "cloth", "avatar")
+MODES = ("splat", "knn", "springs", "skinning", "shading", "usd", "dynamics", "cloth", "avatar")
 
 
 def main(argv=None) -> int:

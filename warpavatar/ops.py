@@ -11,6 +11,7 @@ Conventions: quaternions are (w, x, y, z); cameras follow OpenCV (x right, y dow
 from warpavatar._src.cloth import cloth_edge_terms
 from warpavatar._src.collision import push_out_of_capsules
 from warpavatar._src.knn import knn_graph
+from warpavatar._src.shading import view_colors
 from warpavatar._src.skinning import inverse_lbs, lbs, sample_grid
 from warpavatar._src.splat import rasterize_gaussians, rasterizer_status
 from warpavatar._src.springs import damping_loss, isometry_loss, spring_step
@@ -27,4 +28,5 @@ __all__ = [
     "inverse_lbs",
     "push_out_of_capsules",
     "cloth_edge_terms",
+    "view_colors",
 ]

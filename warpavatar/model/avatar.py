@@ -26,7 +26,7 @@ from typing import Any, Mapping
 import torch
 
 from warpavatar import ops
-from warpavatar.geometry import SH_C0, camera_centre, quat_rotate, sh_basis
+from warpavatar.geometry import camera_centre
 from warpavatar.model.gaussians import GaussianModel
 from warpavatar.model.parts import (AvatarPart, CanonicalGaussians, PoseFrame, frame_intervals, part_class_path,
                                     part_from_file_state)
@@ -253,17 +253,12 @@ class Avatar(torch.nn.Module):
         rotated back by the Gaussian's skinning rotation, so colour stays attached to the body as it turns (a
         world-frame evaluation would tie colours to where the subject faced during training).
         """
-        coefficients = posed["colors"]
-        if posed["sh_degree"] == 0:
-            return torch.clamp_min(coefficients[:, 0] * SH_C0 + 0.5, 0.0)
+        means = posed["means"]
         if origin is None:
             origin = camera_centre(world_to_camera)
-        directions = posed["means"] - origin.to(posed["means"])
-        directions = directions / directions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        # skinning rotation R_i = R(q_posed) R(q_canonical)^T, so R_i^T d = R(q_canonical) R(q_posed)^T d
-        directions = quat_rotate(posed["canonical_quats"], quat_rotate(posed["quats"], directions, inverse=True))
-        basis = sh_basis(posed["sh_degree"], directions)  # [N,(d+1)^2]
-        return torch.clamp_min((basis[:, :, None] * coefficients).sum(dim=1) + 0.5, 0.0)
+        # one fused Warp kernel forward and one backward (the op-by-op torch code is _torch_impl.view_colors)
+        return ops.view_colors(means, posed["quats"], posed["canonical_quats"], posed["colors"], origin.to(means),
+                               sh_degree=posed["sh_degree"])
 
     # ------------------------------------------------------------------------------------------------ files
     def state_for_file(self, config: dict | None = None) -> dict:
