@@ -368,16 +368,8 @@ class ClothModel(torch.nn.Module):
                                      external_acceleration, extra_drag)
         h = float(frame_interval) / substeps
         x, v = state.positions, state.velocities
-        mass = self.masses()
-        stiffness = self.stiffness().index_select(0, self.pair_of_edge)
-        rest_length = self.rest_lengths().index_select(0, self.pair_of_edge)
-        edge_damping = self.edge_damping().index_select(0, self.pair_of_edge)
-        drag = self.drag()
-        if extra_drag:
-            drag = drag + float(extra_drag) * self.drag_bound
-        constant_force = mass[:, None] * self.gravity
-        if external_acceleration is not None:
-            constant_force = constant_force + mass[:, None] * self.bounded_acceleration(external_acceleration)
+        mass, stiffness, rest_length, edge_damping, drag = self._coefficients(extra_drag)
+        constant_force = self._constant_force(mass, external_acceleration)
         start = x.index_select(0, self.attached)
         attached_velocity = (attachment_targets - start) / float(frame_interval)
         for substep in range(1, substeps + 1):
@@ -415,6 +407,23 @@ class ClothModel(torch.nn.Module):
                    *(_capsule_tensors(capsules) or ()), *(_capsule_tensors(previous_capsules) or ())]
         return any(t is not None and t.requires_grad for t in [*tensors, *self._parameters.values()])
 
+    def _coefficients(self, extra_drag: float):
+        """Node masses ``[M]``; per directed edge stiffness, rest length and damping ``[E]``; node drag ``[M]``."""
+        mass = self.masses()
+        drag = self.drag()
+        if extra_drag:
+            drag = drag + float(extra_drag) * self.drag_bound
+        return (mass, self.stiffness().index_select(0, self.pair_of_edge),
+                self.rest_lengths().index_select(0, self.pair_of_edge),
+                self.edge_damping().index_select(0, self.pair_of_edge), drag)
+
+    def _constant_force(self, mass: torch.Tensor, external_acceleration: torch.Tensor | None) -> torch.Tensor:
+        """Gravity plus the bounded external acceleration, times the mass [N], ``[M, 3]``."""
+        force = mass[:, None] * self.gravity
+        if external_acceleration is not None:
+            force = force + mass[:, None] * self.bounded_acceleration(external_acceleration)
+        return force
+
     def _frame_kernel_inputs(self, extra_drag: float) -> ClothFrame:
         """The fused frame's per-model inputs, made again only when a parameter or buffer changed."""
         # (a ClothModel has no submodules: its own tensors are all of them; read directly, as this runs per frame)
@@ -424,13 +433,10 @@ class ClothModel(torch.nn.Module):
         frame = self._frames.get(extra_drag)
         if frame is None:
             with torch.no_grad():
-                mass = self.masses()
-                drag = self.drag() + float(extra_drag) * self.drag_bound if extra_drag else self.drag()
+                mass, stiffness, rest_length, edge_damping, drag = self._coefficients(extra_drag)
                 frame = self._frames[extra_drag] = ClothFrame(
-                    self.edges, self.edge_row_start, self.stiffness().index_select(0, self.pair_of_edge),
-                    self.rest_lengths().index_select(0, self.pair_of_edge),
-                    self.edge_damping().index_select(0, self.pair_of_edge), drag, mass,
-                    mass[:, None] * self.gravity, self.attached)
+                    self.edges, self.edge_row_start, stiffness, rest_length, edge_damping, drag, mass,
+                    self._constant_force(mass, None), self.attached)
         return frame
 
     def _fused_frame(self, state, attachment_targets, frame_interval, substeps, capsules, previous_capsules,
@@ -439,8 +445,7 @@ class ClothModel(torch.nn.Module):
         force = None
         if external_acceleration is not None:
             with torch.no_grad():
-                mass = self.masses()[:, None]
-                force = mass * self.gravity + mass * self.bounded_acceleration(external_acceleration)
+                force = self._constant_force(self.masses(), external_acceleration)
         positions, velocities = frame.run(state.positions, state.velocities, attachment_targets, float(frame_interval),
                                           substeps, capsules=_capsule_tensors(capsules),
                                           previous_capsules=_capsule_tensors(previous_capsules),
