@@ -83,17 +83,13 @@ def view_colors(means: torch.Tensor, quats: torch.Tensor, canonical_quats: torch
     Returns:
         float32 ``[N, 3]`` colours (>= 0).
     """
-    check_tensor("means", means, (None, 3))
+    check_tensor("means", means, (None, 3), dtype_kind="float32")
     device = means.device
     count = means.shape[0]
-    check_tensor("quats", quats, (count, 4), device=device)
-    check_tensor("canonical_quats", canonical_quats, (count, 4), device=device)
-    check_tensor("sh_coefficients", sh_coefficients, (count, None, 3), device=device)
-    check_tensor("origin", origin, (3,), device=device)
-    for name, tensor in (("means", means), ("quats", quats), ("canonical_quats", canonical_quats),
-                         ("sh_coefficients", sh_coefficients), ("origin", origin)):
-        if tensor.dtype != torch.float32:
-            raise TypeError(f"{name} must be float32 (the Warp kernels are single precision), got {tensor.dtype}")
+    check_tensor("quats", quats, (count, 4), dtype_kind="float32", device=device)
+    check_tensor("canonical_quats", canonical_quats, (count, 4), dtype_kind="float32", device=device)
+    check_tensor("sh_coefficients", sh_coefficients, (count, None, 3), dtype_kind="float32", device=device)
+    check_tensor("origin", origin, (3,), dtype_kind="float32", device=device)
     coefficient_count = sh_coefficients.shape[1]
     if sh_degree is None:
         sh_degree = round(coefficient_count ** 0.5) - 1

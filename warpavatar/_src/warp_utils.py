@@ -118,7 +118,8 @@ def check_tensor(name: str, tensor, shape: tuple, *, dtype_kind: str = "float", 
         name: argument name shown in the message.
         tensor: the value to check.
         shape: expected shape; ``None`` entries accept any size, ``-1`` is also a wildcard.
-        dtype_kind: ``"float"`` (float32 expected) or ``"int"`` (an integer dtype expected).
+        dtype_kind: ``"float"`` (a floating-point dtype), ``"float32"`` (exactly float32: inputs Warp reads in
+            place, without a copy) or ``"int"`` (an integer dtype).
         device: when given, the device the tensor must be on.
     """
     if not isinstance(tensor, torch.Tensor):
@@ -130,6 +131,8 @@ def check_tensor(name: str, tensor, shape: tuple, *, dtype_kind: str = "float", 
         raise ValueError(f"{name} must have shape {pretty}, got {list(tensor.shape)}")
     if dtype_kind == "float" and not tensor.is_floating_point():
         raise TypeError(f"{name} must be a floating-point tensor, got {tensor.dtype}")
+    if dtype_kind == "float32" and tensor.dtype != torch.float32:
+        raise TypeError(f"{name} must be float32 (the Warp kernels are single precision), got {tensor.dtype}")
     if dtype_kind == "int" and (tensor.is_floating_point() or tensor.is_complex()):
         raise TypeError(f"{name} must be an integer tensor, got {tensor.dtype}")
     if device is not None and tensor.device != torch.device(device):
