@@ -40,6 +40,20 @@ class StepGraph:
         self._stream = torch.cuda.Stream(device=self.device) if self.enabled else None
         self._captured: tuple | None = None  # (key, torch.cuda.CUDAGraph, its outputs)
 
+    @staticmethod
+    def optimizer_storage(optimizers) -> tuple:
+        """What a captured step's optimizers update, for its key: each optimizer's identity and the storage of every
+        parameter and state tensor (moments, step counts); a new one means capturing again."""
+        return (tuple(id(optimizer) for optimizer in optimizers),
+                tuple(tensor.data_ptr() for optimizer in optimizers for group in optimizer.param_groups
+                      for parameter in group["params"]
+                      for tensor in (parameter, *(value for value in optimizer.state.get(parameter, {}).values()
+                                                  if isinstance(value, torch.Tensor)))))
+
+    def log_values(self) -> dict[str, int]:
+        """Captures and replays so far, for the fit's log (nothing while capturing is off)."""
+        return {"graph_captures": self.captures, "graph_replays": self.replays} if self.enabled else {}
+
     def replay(self, key) -> Any | None:
         """Rerun the captured step and return its outputs (overwritten in place), or None when nothing was
         captured with this key."""
@@ -48,6 +62,22 @@ class StepGraph:
         self._captured[1].replay()
         self.replays += 1
         return self._captured[2]
+
+    def run(self, key, work: Callable[[], Any], capture_work: Callable[[], Any], *, between: Callable[[], None],
+            rekey: Callable[[], Any]) -> Any:
+        """One step: replayed when a graph was captured under ``key``; otherwise ``work`` runs eagerly, and, when
+        ``key`` is not None (the step may be captured), ``capture_work`` is then captured under ``rekey()`` for the
+        steps that follow (:meth:`run_then_capture`). ``work`` and ``capture_work`` return the same structure.
+
+        Returns:
+            The step's outputs (a replay's are the captured tensors, overwritten in place).
+        """
+        if key is None:
+            return self.run_eager(work)
+        replayed = self.replay(key)
+        if replayed is not None:
+            return replayed
+        return self.run_then_capture(work, capture_work, between=between, key=rekey)
 
     def run_eager(self, work: Callable[[], Any]) -> Any:
         """Run a step that is not captured: on the capture stream while capturing is on, so that the autograd

@@ -185,13 +185,9 @@ class Trainer:
     def _graph_key(self, step: StepContext, degree: int, buffers, optimizers: list) -> tuple:
         """What a captured step depends on beyond its buffers' values: shapes, schedules and the storage of every
         tensor it updates (a new parameter, moment or statistic means capturing again)."""
-        storage = [tensor.data_ptr() for optimizer in optimizers for group in optimizer.param_groups
-                   for parameter in group["params"]
-                   for tensor in (parameter, *(v for v in optimizer.state.get(parameter, {}).values()
-                                               if isinstance(v, torch.Tensor)))]
         return (degree, step.train_field, self.gaussians.count, self.capacity.value, id(buffers),
-                tuple(id(optimizer) for optimizer in optimizers), tuple(storage),
-                self.density.grad_accum.data_ptr(), self.density.visible_count.data_ptr())
+                StepGraph.optimizer_storage(optimizers), self.density.grad_accum.data_ptr(),
+                self.density.visible_count.data_ptr())
 
     def check_rasterizer(self) -> None:
         """Read the rasterizer's status (:meth:`IntersectionCapacity.check`: one host read, at
@@ -231,25 +227,19 @@ class Trainer:
         capturable = (self.step_graph.enabled and self.capacity.value is not None and not inputs
                       and all(extension.step_capturable(step) for extension in self.extensions))
         key = self._graph_key(step, degree, buffers, optimizers) if capturable else None
-        replayed = None if key is None else self.step_graph.replay(key)
-        if replayed is not None:
-            image, alpha, terms, step.posed, step.target, step.mask = replayed
-        elif key is None:
-            image, alpha, terms = self.step_graph.run_eager(
-                lambda: self._step_work(step, buffers, degree, inputs, optimizers))
-        else:  # this step eagerly on the capture stream, then a capture of its work for the steps that follow
-            capture = StepContext(step=number, index=step.index, train_field=train_field, read_grid=step.read_grid)
 
-            def captured_work():
-                outputs = self._step_work(capture, buffers, degree, inputs, optimizers)
-                return (*outputs, capture.posed, capture.target, capture.mask)
+        def work(context: StepContext):
+            image, alpha, terms = self._step_work(context, buffers, degree, inputs, optimizers)
+            return image, alpha, terms, context.posed, context.target, context.mask
 
-            image, alpha, terms = self.step_graph.run_then_capture(
-                lambda: self._step_work(step, buffers, degree, inputs, optimizers), captured_work,
-                between=self.skinning.forget_step,  # the graph evaluates the grid itself
-                key=lambda: self._graph_key(step, degree, buffers, optimizers))
-            if not self.step_graph.enabled:
-                self._log({"step": number, "note": "CUDA graph capture failed, the fit goes on eagerly"})
+        # a capture runs the step's work a second time, in a context of its own (its outputs are the graph's)
+        capture = StepContext(step=number, index=step.index, train_field=train_field, read_grid=step.read_grid)
+        image, alpha, terms, step.posed, step.target, step.mask = self.step_graph.run(
+            key, lambda: work(step), lambda: work(capture),
+            between=self.skinning.forget_step,  # the graph evaluates the grid itself
+            rekey=lambda: self._graph_key(step, degree, buffers, optimizers))
+        if key is not None and not self.step_graph.enabled:
+            self._log({"step": number, "note": "CUDA graph capture failed, the fit goes on eagerly"})
         step.image, step.alpha = image, alpha
         count = self.gaussians.count
         self.density.after_step(number, self.gaussians, self.extensions)
@@ -343,8 +333,7 @@ class Trainer:
             if self.step % config.log_every == 0 or self.step == config.iterations:
                 self.check_rasterizer()
                 record = self._log_record(step, terms)  # the only host reads of a step, every log_every steps
-                if self.step_graph.enabled:
-                    record.update(graph_captures=self.step_graph.captures, graph_replays=self.graph_replays)
+                record.update(self.step_graph.log_values())
                 self._log({**record, "step": self.step, "seconds": round(time.time() - start_time, 2)})
                 bar.set_postfix(loss=f"{record['loss']:.4f}", psnr=f"{record['psnr']:.2f}", n=record["gaussians"])
             if self.step % config.checkpoint_every == 0 and self.step < config.iterations:
