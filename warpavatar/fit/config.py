@@ -65,6 +65,16 @@ class FitConfig:
         "larger ones blend neighbouring bones (loose garments)", group="skinning field")
     field_warmup_steps: int = _core(600, "warm-up steps that distil a rigid bone-distance prior into the field",
                                     group="skinning field")
+    field_cells: str = _core(
+        "active", "grid points at which a training step evaluates the skinning-field MLP: 'active' (those that "
+        "the Gaussians and the bone samples read, one cell around, chosen anew every --field-cells-every steps, "
+        "when the Gaussians are densified and at checkpoints; the others keep their values from then, which no "
+        "step reads; the loss and its gradient are those of 'all') or 'all' (every grid point, every step)",
+        group="skinning field", choices=("active", "all"))
+    field_cells_every: int = _core(100, "steps between choices of the active grid points (--field-cells active)",
+                                   group="skinning field")
+    field_warmup_batch: int = _core(32768, "grid points per warm-up step, drawn at random (0 = every grid point)",
+                                    group="skinning field")
     gaussian_only_steps: int = _core(1500, "steps after warm-up where only the Gaussians train (field frozen)",
                                      group="skinning field")
     field_lr: float = _core(1e-3, "Adam learning rate of the skinning-field MLP (and of the networks that train "
@@ -121,10 +131,11 @@ class FitConfig:
 
     def __post_init__(self):
         _check_ranges(self)
-        if self.shading not in ("world", "view"):
-            raise ValueError(f"shading must be 'world' or 'view', got {self.shading!r}")
-        if self.target not in ("auto", "frame", "masked"):
-            raise ValueError(f"target must be 'auto', 'frame' or 'masked', got {self.target!r}")
+        for option in fields(self):
+            choices = option.metadata.get("choices")
+            if choices and getattr(self, option.name) not in choices:
+                words = " or ".join([", ".join(repr(c) for c in choices[:-1]), repr(choices[-1])])
+                raise ValueError(f"{option.name} must be {words}, got {getattr(self, option.name)!r}")
         if not self.skinning_prior_temperature > 0.0:
             raise ValueError(f"skinning_prior_temperature must be positive, got {self.skinning_prior_temperature}")
         # the registry's order, whatever order they were given in
@@ -221,6 +232,8 @@ RANGES: dict[str, tuple[float, float, bool]] = {
     "field_frequencies": (0, 32, False),
     "field_warmup_steps": (0, 10_000_000, False),
     "gaussian_only_steps": (0, _UNBOUNDED, False),
+    "field_cells_every": (1, _UNBOUNDED, False),
+    "field_warmup_batch": (0, _UNBOUNDED, False),
     "field_lr": (0.0, 1.0, True),
     "lambda_bone": (0.0, _UNBOUNDED, False),
     "lambda_ssim": (0.0, 1.0, False),

@@ -37,24 +37,109 @@ class SkinningStage:
         self.optimizer = torch.optim.Adam(field.parameters(), lr=config.field_lr, **adam_options(device))
         self._frozen: torch.Tensor | None = None  # the grid while the field is frozen
         self._current: tuple[int, torch.Tensor] | None = None  # (step, its grid)
+        # --field-cells active: the grid of the last choice with a padding row [D*H*W+1, J], the chosen grid
+        # points padded to a capacity (padding: row 0 to encode, the padding row to scatter into), and when
+        self._base: torch.Tensor | None = None
+        self._encode_cells: torch.Tensor | None = None
+        self._scatter_cells: torch.Tensor | None = None
+        self._cells_chosen = (-1, -1)  # (step, Gaussian count) of the last choice
+        self.active_cells = 0
 
     def warmup(self, steps: int) -> float:
-        """Distil the rigid bone-distance prior into the field for ``steps`` steps; the last loss."""
+        """Distil the rigid bone-distance prior into the field for ``steps`` steps (each on
+        ``field_warmup_batch`` grid points drawn at random, or on all); the last loss."""
         loss = torch.zeros(())
+        cells = self.field.cell_count
+        batch = self.config.field_warmup_batch
+        generator = torch.Generator().manual_seed(self.config.seed)
         for _ in range(steps):
             self.optimizer.zero_grad(set_to_none=True)
-            loss = self.field.distillation_loss(self.prior)
+            if 0 < batch < cells:
+                chosen = torch.randint(cells, (batch,), generator=generator).to(self.prior.device)
+                logits = self.field.mlp(self.field.grid_encoding.index_select(0, chosen))
+                loss = -(self.prior.index_select(0, chosen) * torch.log_softmax(logits, dim=-1)).sum(-1).mean()
+            else:
+                loss = self.field.distillation_loss(self.prior)
             loss.backward()
             self.optimizer.step()
         self._frozen = self._current = None
         return float(loss.detach())
+
+    def begin_step(self, step: int, canonical_means: torch.Tensor, *, train_field: bool) -> None:
+        """Before a step's device work (outside a captured graph): with ``--field-cells active``, choose the grid
+        points the step evaluates the MLP at, when the field starts training, every ``field_cells_every`` steps,
+        when the number of Gaussians changed, and after :meth:`forget_cells`. A choice evaluates the whole grid
+        once (no gradients) and reads the device once."""
+        if self.config.field_cells != "active" or not train_field:
+            return
+        last_step, last_count = self._cells_chosen
+        if (self._base is not None and step - last_step < self.config.field_cells_every
+                and canonical_means.shape[0] == last_count):
+            return
+        field = self.field
+        with torch.no_grad():
+            grid = field.grid_weights().reshape(field.cell_count, field.joint_count)
+            cells = field.cells_read_by(torch.cat([canonical_means.detach(), self.bone_samples]), dilation=1)
+            count, capacity = cells.shape[0], 0 if self._encode_cells is None else self._encode_cells.shape[0]
+            if self._base is None or self._base.shape != (field.cell_count + 1, field.joint_count):
+                self._base = grid.new_zeros(field.cell_count + 1, field.joint_count)
+            if count > capacity:  # grows by a quarter more than needed, so most choices keep the buffers
+                capacity = max(count + count // 4, 1)
+                self._encode_cells = cells.new_zeros(capacity)
+                self._scatter_cells = cells.new_full((capacity,), field.cell_count)
+            self._base[:-1].copy_(grid)
+            self._encode_cells.zero_()[:count] = cells
+            self._scatter_cells.fill_(field.cell_count)[:count] = cells
+        self._cells_chosen = (step, canonical_means.shape[0])
+        self.active_cells = count
+        self._current = None
+
+    def forget_cells(self) -> None:
+        """Choose the active grid points anew at the next step."""
+        self._cells_chosen = (-1, -1)
+
+    def _cells_state(self) -> dict | None:
+        if self._cells_chosen[0] < 0 or self._encode_cells is None:
+            return None
+        return {"chosen": list(self._cells_chosen), "count": self.active_cells,
+                "cells": self._encode_cells.to(torch.int32).cpu()}
+
+    @torch.no_grad()
+    def _load_cells_state(self, state: dict | None) -> None:
+        """Restore a choice of active grid points (same points, same padding: the resumed steps evaluate the MLP
+        on the same rows); the grid points that no step reads are evaluated anew."""
+        self.forget_cells()
+        if state is None or self.config.field_cells != "active":
+            return
+        field = self.field
+        device = field.bbox_min.device
+        self._encode_cells = state["cells"].to(device=device, dtype=torch.long)
+        count = int(state["count"])
+        self._scatter_cells = self._encode_cells.clone()
+        self._scatter_cells[count:] = field.cell_count
+        self._base = torch.zeros(field.cell_count + 1, field.joint_count, device=device)
+        self._base[:-1].copy_(field.grid_weights().reshape(field.cell_count, field.joint_count))
+        self._cells_chosen = tuple(int(v) for v in state["chosen"])
+        self.active_cells = count
+
+    def graph_key(self) -> tuple:
+        """What a captured step reads of this stage beyond values: the active grid points' buffers."""
+        if self._encode_cells is None or self.config.field_cells != "active":
+            return ()
+        return (self._encode_cells.data_ptr(), self._encode_cells.shape[0], self._base.data_ptr())
 
     def grid(self, step: int, *, train_field: bool) -> torch.Tensor:
         """The skinning grid of step ``step``, evaluated once per step (with gradients when the field trains;
         while it is frozen, once for all those steps)."""
         if self._current is not None and self._current[0] == step:
             return self._current[1]
-        if train_field:
+        if train_field and self.config.field_cells == "active" and self._cells_chosen[0] >= 0:
+            # the chosen grid points from the MLP (with gradients), the others as evaluated at the last choice
+            # (after joints were added, until the next choice: every grid point)
+            values = self.field.cell_weights(self._encode_cells)
+            grid = self._base.index_put((self._scatter_cells,), values)[:-1]
+            grid = grid.reshape(*self.field.grid_shape, self.field.joint_count)
+        elif train_field:
             grid = self.field.grid_weights()
         else:
             if self._frozen is None:
@@ -100,11 +185,14 @@ class SkinningStage:
                 optimizer.state[parameter] = self.optimizer.state[parameter]
         self.optimizer = optimizer
         self._frozen = self._current = None
+        self.forget_cells()
 
     def state_dict(self) -> dict:
-        return {"field": self.field.state_dict(), "optimizer": self.optimizer.state_dict()}
+        return {"field": self.field.state_dict(), "optimizer": self.optimizer.state_dict(),
+                "active_cells": self._cells_state()}
 
     def load_state_dict(self, state: dict) -> None:
         self.field.load_state_dict(state["field"])
         self.optimizer.load_state_dict(state["optimizer"])
         self._frozen = self._current = None
+        self._load_cells_state(state.get("active_cells"))

@@ -187,7 +187,7 @@ class Trainer:
         tensor it updates (a new parameter, moment or statistic means capturing again)."""
         return (degree, step.train_field, self.gaussians.count, self.capacity.value, id(buffers),
                 StepGraph.optimizer_storage(optimizers), self.density.grad_accum.data_ptr(),
-                self.density.visible_count.data_ptr())
+                self.density.visible_count.data_ptr(), self.skinning.graph_key())
 
     def check_rasterizer(self) -> None:
         """Read the rasterizer's status (:meth:`IntersectionCapacity.check`: one host read, at
@@ -212,6 +212,7 @@ class Trainer:
         config = self.config
         number = self.step
         train_field = number >= config.gaussian_only_steps
+        self.skinning.begin_step(number, self.gaussians.means, train_field=train_field)
         step = StepContext(step=number, index=self._next_frame(), train_field=train_field,
                            read_grid=lambda: self.skinning.grid(number, train_field=train_field))
         for extension in self.extensions:
@@ -334,6 +335,8 @@ class Trainer:
                 self.check_rasterizer()
                 record = self._log_record(step, terms)  # the only host reads of a step, every log_every steps
                 record.update(self.step_graph.log_values())
+                if self.skinning.active_cells:
+                    record["field_cells"] = self.skinning.active_cells
                 self._log({**record, "step": self.step, "seconds": round(time.time() - start_time, 2)})
                 bar.set_postfix(loss=f"{record['loss']:.4f}", psnr=f"{record['psnr']:.2f}", n=record["gaussians"])
             if self.step % config.checkpoint_every == 0 and self.step < config.iterations:

@@ -119,6 +119,36 @@ class VoxelSkinningField(torch.nn.Module):
         logits = self.mlp(self.grid_encoding)
         return torch.softmax(logits, dim=-1).reshape(*self.grid_shape, self.joint_count)
 
+    @property
+    def cell_count(self) -> int:
+        """Number of grid points D*H*W (the rows of a flattened grid)."""
+        depth, height, width = self.grid_shape
+        return depth * height * width
+
+    def cell_weights(self, cells: torch.Tensor) -> torch.Tensor:
+        """Skinning weights [A,J] of some grid points (``cells``: [A] flat indices into the [D*H*W] grid): the
+        rows of :meth:`grid_weights` for those points, computed by the MLP at those points only."""
+        return torch.softmax(self.mlp(self.grid_encoding.index_select(0, cells)), dim=-1)
+
+    @torch.no_grad()
+    def cells_read_by(self, points: torch.Tensor, *, dilation: int = 1) -> torch.Tensor:
+        """Flat indices [A] (sorted) of the grid points that trilinear interpolation at ``points`` [N,3] reads
+        (the 8 corners of each point's cell, with border clamping as :meth:`weights`), grown by ``dilation``
+        cells along each axis (points that move by less than that still read only these). One host read."""
+        if points.shape[0] == 0:
+            return torch.zeros(0, dtype=torch.long, device=points.device)
+        sizes = torch.tensor(self.grid_shape[::-1], device=points.device)  # (W, H, D): x, y, z
+        unit = (points.detach().float() - self.bbox_min) / (self.bbox_max - self.bbox_min)
+        lower = torch.floor(unit * (sizes - 1).float()).long()
+        lower = torch.minimum(torch.clamp(lower, min=0), torch.clamp(sizes - 2, min=0))
+        marked = torch.zeros(self.grid_shape, device=points.device)
+        marked[lower[:, 2], lower[:, 1], lower[:, 0]] = 1.0
+        # A grid point c is read by a point whose lower corner lies in [c - 1 - dilation, c + dilation] per axis:
+        # a max filter of width 2 + 2 * dilation over the marked lower corners, padded 1 + dilation before.
+        padded = torch.nn.functional.pad(marked[None, None], (1 + dilation, dilation) * 3)
+        read = torch.nn.functional.max_pool3d(padded, kernel_size=2 + 2 * dilation, stride=1)[0, 0]
+        return torch.nonzero(read.reshape(-1) > 0).squeeze(1)
+
     def weights(self, points: torch.Tensor, grid: torch.Tensor | None = None) -> torch.Tensor:
         """Skinning weights [N,J] of canonical points [N,3] by trilinear interpolation of the grid.
 
