@@ -311,7 +311,7 @@ def test_a_forced_garment_trains_its_cloth(forced):
     assert part.anchor.shape == part.gaussian_ids.shape
     assert int(part.gaussian_ids.max()) < trainer.gaussians.count
     changed = [name for name, value in part.cloth.named_parameters() if not torch.equal(value.detach(), before[name])]
-    assert "stiffness_logit" in changed and "rest_length_logit" in changed
+    assert "stiffness_logit" in changed and "rest_length_logit" in changed and "rest_offset_logit" in changed
     for value in part.cloth.parameters():
         assert torch.isfinite(value).all()
     log = [line for line in (trainer.log_path.read_text().splitlines()) if "garment_stiffness" in line]
