@@ -316,6 +316,10 @@ def test_a_forced_garment_trains_its_cloth(forced):
         assert torch.isfinite(value).all()
     log = [line for line in (trainer.log_path.read_text().splitlines()) if "garment_stiffness" in line]
     assert log, "the cloth's values are logged"
+    assert all("garment_rest_offset" in line and "garment_rest_smooth" in line for line in log)
+    moved = (part.cloth.rest_positions().detach() - part.nodes).norm(dim=1)
+    assert float(moved.max()) > 0.0 and float(moved.max()) < part.hyper["rest_bound"]
+    assert float(moved[part.attached].max()) == 0.0
 
 
 def test_resume_gives_the_same_avatar_bit_for_bit(forced, video, tmp_path):

@@ -396,12 +396,13 @@ class GarmentOptions:
     garment_rest_bound: float = option(0.3, "how far the cloth's learned rest shape may move a free node from where "
                                        "detection put it, as a fraction of the garment's longest canonical side "
                                        "(0: the rest shape stays as detected)")
-    lr_garment_rest: float = option(0.02, "Adam learning rate of the rest shape's offsets (unitless: a step moves "
+    lr_garment_rest: float = option(0.005, "Adam learning rate of the rest shape's offsets (unitless: a step moves "
                                     "a node by at most about this times the bound)")
-    lambda_garment_rest_smooth: float = option(1.0, "weight of the rest shape's roughness: mean squared graph "
-                                               "Laplacian of the nodes' offsets, in units of the node spacing "
-                                               "(dimensionless)")
-    lambda_garment_rest_collapse: float = option(10.0, "weight of the penalty on rest-shape edges shorter than "
+    lambda_garment_rest_smooth: float = option(0.01, "weight of the rest shape's roughness: mean over nodes of "
+                                               "|offset - mean of its neighbours' offsets|^2 / node spacing^2 "
+                                               "(dimensionless; a smooth flare of a ring scores too, so keep it "
+                                               "small: it mostly decides where the images say little)")
+    lambda_garment_rest_collapse: float = option(1.0, "weight of the penalty on rest-shape edges shorter than "
                                                  "half their detected length: mean of max(0, 0.5 - ratio)^2 "
                                                  "(dimensionless)")
 
