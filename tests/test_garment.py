@@ -320,6 +320,8 @@ def test_a_forced_garment_trains_its_cloth(forced):
     moved = (part.cloth.rest_positions().detach() - part.nodes).norm(dim=1)
     assert float(moved.max()) > 0.0 and float(moved.max()) < part.hyper["rest_bound"]
     assert float(moved[part.attached].max()) == 0.0
+    summary = trainer.extension("garment").summary_lines()
+    assert any(line.startswith("garment rest shape: nodes moved") for line in summary)
 
 
 def test_resume_gives_the_same_avatar_bit_for_bit(forced, video, tmp_path):

@@ -657,10 +657,16 @@ class GarmentExtension(Extension):
         report = self.report
         if self.part is None:
             return [f"garment: none detected among {report['gaussians']} Gaussians"]
-        return [f"garment: {report['garment_gaussians']} of {report['gaussians']} Gaussians (heights "
-                f"{report['height_range'][0]:.2f}-{report['height_range'][1]:.2f} of the body), split between "
-                f"{' and '.join(report['split'])}, hung from {report['joint']}: {report['nodes']} cloth nodes, "
-                f"{report['attached']} attached, {report['capsules']} body capsules"]
+        lines = [f"garment: {report['garment_gaussians']} of {report['gaussians']} Gaussians (heights "
+                 f"{report['height_range'][0]:.2f}-{report['height_range'][1]:.2f} of the body), split between "
+                 f"{' and '.join(report['split'])}, hung from {report['joint']}: {report['nodes']} cloth nodes, "
+                 f"{report['attached']} attached, {report['capsules']} body capsules"]
+        cloth = self.part.cloth
+        if cloth.rest_offset_logit is not None:
+            moved = (cloth.rest_positions() - cloth.initial_rest_positions).detach().norm(dim=1)
+            lines.append(f"garment rest shape: nodes moved {float(moved.mean()):.3g} on average, at most "
+                         f"{float(moved.max()):.3g} (bound {cloth.rest_offset_bound:.3g}, world units)")
+        return lines
 
     def state_dict(self) -> dict:
         state = {"decided": self.decided, "report": dict(self.report), "refreshed": self.refreshed}
