@@ -162,6 +162,11 @@ class GarmentPart(AvatarPart):
         return ops.lbs(self.cloth.rest_positions(), self.node_weights, self._bones(bones).contiguous(),
                        quats=identity)
 
+    def skinned_rest(self, bones: torch.Tensor) -> torch.Tensor:
+        """Node positions [M,3] of the rest shape skinned into a pose (``bones`` [J+E,4,4]), differentiable with
+        respect to the rest shape (:meth:`skinned_nodes` without the rotations)."""
+        return ops.lbs(self.cloth.rest_positions(), self.node_weights, self._bones(bones).contiguous())[0]
+
     def attachment_targets(self, bones: torch.Tensor) -> torch.Tensor:
         """Where the attached nodes are in a pose [A,3]: their rest positions skinned by the body (the rest
         shape never moves them)."""
@@ -197,7 +202,7 @@ class GarmentPart(AvatarPart):
     def displacements(self, bones: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
         """Node positions ``[T,M,3]`` of the frames with skinning transforms ``bones`` [T,J+E,4,4] as displacements
         from the skinned rest shape, ``x_t - skinned_t(P)`` (what :meth:`window` starts from)."""
-        return torch.stack([x - self.skinned_nodes(b)[0] for b, x in zip(bones, positions)])
+        return torch.stack([x - self.skinned_rest(b) for b, x in zip(bones, positions)])
 
     def window(self, cache: tuple[torch.Tensor, torch.Tensor], bones: torch.Tensor, seconds: list[float], index: int,
                frames: int) -> ClothState:
@@ -221,11 +226,11 @@ class GarmentPart(AvatarPart):
         """
         displacements, velocities = cache
         start = max(0, index - frames)
-        state = ClothState(self.skinned_nodes(bones[start])[0] + displacements[start], velocities[start].clone())
+        state = ClothState(self.skinned_rest(bones[start]) + displacements[start], velocities[start].clone())
         for frame in range(start + 1, index + 1):
             state = self.step(state, bones[frame - 1], bones[frame], seconds[frame])
             with torch.no_grad():
-                displacements[frame] = state.positions - self.skinned_nodes(bones[frame])[0]
+                displacements[frame] = state.positions - self.skinned_rest(bones[frame])
                 velocities[frame] = state.velocities
         return state
 
