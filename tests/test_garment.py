@@ -311,11 +311,17 @@ def test_a_forced_garment_trains_its_cloth(forced):
     assert part.anchor.shape == part.gaussian_ids.shape
     assert int(part.gaussian_ids.max()) < trainer.gaussians.count
     changed = [name for name, value in part.cloth.named_parameters() if not torch.equal(value.detach(), before[name])]
-    assert "stiffness_logit" in changed and "rest_length_logit" in changed
+    assert "stiffness_logit" in changed and "rest_length_logit" in changed and "rest_offset_logit" in changed
     for value in part.cloth.parameters():
         assert torch.isfinite(value).all()
     log = [line for line in (trainer.log_path.read_text().splitlines()) if "garment_stiffness" in line]
     assert log, "the cloth's values are logged"
+    assert all("garment_rest_offset" in line and "garment_rest_smooth" in line for line in log)
+    moved = (part.cloth.rest_positions().detach() - part.nodes).norm(dim=1)
+    assert float(moved.max()) > 0.0 and float(moved.max()) < part.hyper["rest_bound"]
+    assert float(moved[part.attached].max()) == 0.0
+    summary = trainer.extension("garment").summary_lines()
+    assert any(line.startswith("garment rest shape: nodes moved") for line in summary)
 
 
 def test_resume_gives_the_same_avatar_bit_for_bit(forced, video, tmp_path):

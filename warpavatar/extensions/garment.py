@@ -27,7 +27,11 @@ the part, and from then on trains it by truncated backpropagation through time, 
 dynamics extension: a no-grad rollout of the whole training sequence (refreshed every
 ``--garment-refresh-every`` steps) caches every frame's state; a step simulates the ``--garment-window`` frames
 before its training frame from the cached state, with gradients, so the image loss reaches the cloth's
-parameters through those substeps. Nothing is learned per training frame: novel poses use the same physics.
+parameters through those substeps. The cloth's rest shape is learned too (``--garment-rest-bound``): the cache
+holds each frame's displacement from the skinned rest shape, so a window starts at ``skinned(P) + d`` and the
+image loss of every step reaches the rest positions ``P`` (and, through the simulated frames, the rest lengths
+they define); each refresh rolls the motion out again from the settled new rest shape. Nothing is learned per
+training frame: novel poses use the same physics and rest shape.
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ from dataclasses import dataclass
 import torch
 
 from warpavatar import ops
-from warpavatar.extensions.base import Extension, option
+from warpavatar.extensions.base import Extension, LossTerm, option
 from warpavatar.extensions.garment_detection import detect_garments, related_joints
 from warpavatar.extensions.graph import voxel_downsample
 from warpavatar.geometry import match_pose
@@ -70,6 +74,14 @@ class GarmentPart(AvatarPart):
         joint_count: joints J of the skeleton (the leading transforms that name a pose); default ``J+E``.
         graph: the cloth's edges (None: :func:`~warpavatar.sim.cloth_graph` of ``nodes``).
         settle_frames: at most this many frames of settling before a sequence or a lone pose.
+        rest_bound: how far the learned rest shape may move a free node from ``nodes`` [world units]; 0: the
+            rest shape stays ``nodes`` (see :class:`~warpavatar.sim.ClothModel`).
+
+    The rest shape (``cloth.rest_positions()``) is what posing starts from: a pose's skinned cloth, the settled
+    start of every rollout, and the frame states of the training rollout, cached as displacements from the
+    skinned rest shape (:meth:`window`). ``nodes`` stay the frame the Gaussians are bound in: a Gaussian's
+    offset from its node and the nodes' rotations are measured from them, so the Gaussians move with the rest
+    shape.
     """
 
     name = "garment"
@@ -77,7 +89,8 @@ class GarmentPart(AvatarPart):
     def __init__(self, gaussian_ids: torch.Tensor, nodes: torch.Tensor, node_weights: torch.Tensor,
                  attached: torch.Tensor, *, joint: int, capsules: Capsules, capsule_ids: torch.Tensor,
                  voxel_size: float, max_substep: float = 1.0 / 240.0, up=(0.0, 0.0, 1.0),
-                 joint_count: int | None = None, graph: ClothGraph | None = None, settle_frames: int = 300):
+                 joint_count: int | None = None, graph: ClothGraph | None = None, settle_frames: int = 300,
+                 rest_bound: float = 0.0):
         super().__init__()
         nodes = nodes.detach().float().contiguous()
         device = nodes.device
@@ -87,7 +100,8 @@ class GarmentPart(AvatarPart):
             graph = cloth_graph(nodes, neighbours=min(8, nodes.shape[0] - 1))
         joint_count = int(node_weights.shape[1] if joint_count is None else joint_count)
         self.hyper = dict(joint=int(joint), joint_count=joint_count, voxel_size=float(voxel_size), max_substep=float(max_substep),
-                          up=tuple(float(u) for u in up), settle_frames=int(settle_frames))
+                          up=tuple(float(u) for u in up), settle_frames=int(settle_frames),
+                          rest_bound=float(rest_bound))
         self.register_buffer("gaussian_ids", torch.as_tensor(gaussian_ids, device=device).long().clone())
         self.register_buffer("nodes", nodes.clone())
         self.register_buffer("node_weights", node_weights.detach().float().to(device).clone())
@@ -99,7 +113,7 @@ class GarmentPart(AvatarPart):
         self.register_buffer("capsule_ids", torch.as_tensor(capsule_ids, device=device).long().clone())
         self.register_buffer("anchor", torch.zeros(0, dtype=torch.int64, device=device))
         self.cloth = ClothModel(nodes, graph, torch.as_tensor(attached, device=device).long(), max_substep=max_substep,
-                                up=self.hyper["up"])
+                                up=self.hyper["up"], rest_offset_bound=self.hyper["rest_bound"])
         # the table of the training rollout: poses [T,J,4,4], node positions [T,M,3], node rotations [T,M,4]
         self.register_buffer("frame_poses", torch.zeros(0, 1, 4, 4, device=device))
         self.register_buffer("frame_positions", torch.zeros(0, nodes.shape[0], 3, device=device))
@@ -142,12 +156,20 @@ class GarmentPart(AvatarPart):
         return bones[: self.node_weights.shape[1]]
 
     def skinned_nodes(self, bones: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Node positions [M,3] and rotations [M,4] as skinning alone would pose them (``bones`` [J+E,4,4])."""
+        """Node positions [M,3] and rotations [M,4] as skinning alone would pose the rest shape (``bones``
+        [J+E,4,4]); the positions are differentiable with respect to the rest shape."""
         identity = self.nodes.new_tensor(_IDENTITY_QUAT).expand(self.node_count, 4).contiguous()
-        return ops.lbs(self.nodes, self.node_weights, self._bones(bones).contiguous(), quats=identity)
+        return ops.lbs(self.cloth.rest_positions(), self.node_weights, self._bones(bones).contiguous(),
+                       quats=identity)
+
+    def skinned_rest(self, bones: torch.Tensor) -> torch.Tensor:
+        """Node positions [M,3] of the rest shape skinned into a pose (``bones`` [J+E,4,4]), differentiable with
+        respect to the rest shape (:meth:`skinned_nodes` without the rotations)."""
+        return ops.lbs(self.cloth.rest_positions(), self.node_weights, self._bones(bones).contiguous())[0]
 
     def attachment_targets(self, bones: torch.Tensor) -> torch.Tensor:
-        """Where the attached nodes are in a pose [A,3]: their rest positions skinned by the body."""
+        """Where the attached nodes are in a pose [A,3]: their rest positions skinned by the body (the rest
+        shape never moves them)."""
         attached = self.attached
         points, _ = ops.lbs(self.nodes[attached].contiguous(), self.node_weights[attached].contiguous(),
                             self._bones(bones).contiguous())
@@ -175,6 +197,42 @@ class GarmentPart(AvatarPart):
         return self.cloth.step(state, self.attachment_targets(bones), float(seconds),
                                capsules=self.posed_capsules(bones),
                                previous_capsules=self.posed_capsules(previous_bones))
+
+    @torch.no_grad()
+    def displacements(self, bones: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
+        """Node positions ``[T,M,3]`` of the frames with skinning transforms ``bones`` [T,J+E,4,4] as displacements
+        from the skinned rest shape, ``x_t - skinned_t(P)`` (what :meth:`window` starts from)."""
+        return torch.stack([x - self.skinned_rest(b) for b, x in zip(bones, positions)])
+
+    def window(self, cache: tuple[torch.Tensor, torch.Tensor], bones: torch.Tensor, seconds: list[float], index: int,
+               frames: int) -> ClothState:
+        """Frame ``index`` simulated with gradients over the ``frames`` frames before it, from a cached rollout.
+
+        The window starts at frame ``s = max(0, index - frames)`` from ``skinned_s(P) + d_s``: the cached
+        displacement ``d_s`` carried by the current rest shape ``P``, so the start state, and every frame after
+        it, depends on the rest shape (as well as on the physics, through the simulated frames) even though the
+        cache holds no gradients. The simulated frames' displacements and velocities are written back.
+
+        Args:
+            cache: ``(displacements, velocities)`` of every training frame, ``[T,M,3]`` each (:meth:`displacements`
+                of a rollout, and its velocities), updated in place.
+            bones: [T,J+E,4,4] every skinning transform of each training frame.
+            seconds: [T] seconds from each frame to the one before.
+            index: the frame wanted.
+            frames: the window's length (>= 0).
+
+        Returns:
+            The state of frame ``index``, differentiable with respect to the cloth's parameters.
+        """
+        displacements, velocities = cache
+        start = max(0, index - frames)
+        state = ClothState(self.skinned_rest(bones[start]) + displacements[start], velocities[start].clone())
+        for frame in range(start + 1, index + 1):
+            state = self.step(state, bones[frame - 1], bones[frame], seconds[frame])
+            with torch.no_grad():
+                displacements[frame] = state.positions - self.skinned_rest(bones[frame])
+                velocities[frame] = state.velocities
+        return state
 
     @torch.no_grad()
     def rollout(self, bones: torch.Tensor, seconds: list[float], *, progress: bool = False
@@ -295,9 +353,12 @@ class GarmentPart(AvatarPart):
                                                            weights["capsule_radius"]),
                    capsule_ids=weights["capsule_ids"], voxel_size=hyper["voxel_size"],
                    max_substep=hyper["max_substep"], up=hyper["up"], joint_count=hyper["joint_count"],
-                   graph=ClothGraph(weights["stretch"], weights["bend"]), settle_frames=hyper["settle_frames"])
+                   graph=ClothGraph(weights["stretch"], weights["bend"]), settle_frames=hyper["settle_frames"],
+                   rest_bound=hyper.get("rest_bound", 0.0))
         for name in ("anchor", "frame_poses", "frame_positions", "frame_quats"):
             setattr(part, name, weights[name])
+        for name, value in part.state_dict().items():  # (files older than the learned rest shape lack its buffer)
+            weights.setdefault(name, value)
         part.load_state_dict(weights)
         return part
 
@@ -337,6 +398,18 @@ class GarmentOptions:
                                     "scales with its inverse square")
     lr_garment: float = option(0.02, "Adam learning rate of the cloth's parameters (logits of rest lengths, "
                                "stiffness, damping, drag, mass scale)")
+    garment_rest_bound: float = option(0.3, "how far the cloth's learned rest shape may move a free node from where "
+                                       "detection put it, as a fraction of the garment's longest canonical side "
+                                       "(0: the rest shape stays as detected)")
+    lr_garment_rest: float = option(0.005, "Adam learning rate of the rest shape's offsets (unitless: a step moves "
+                                    "a node by at most about this times the bound)")
+    lambda_garment_rest_smooth: float = option(0.01, "weight of the rest shape's roughness: mean over nodes of "
+                                               "|offset - mean of its neighbours' offsets|^2 / node spacing^2 "
+                                               "(dimensionless; a smooth flare of a ring scores too, so keep it "
+                                               "small: it mostly decides where the images say little)")
+    lambda_garment_rest_collapse: float = option(1.0, "weight of the penalty on rest-shape edges shorter than "
+                                                 "half their detected length: mean of max(0, 0.5 - ratio)^2 "
+                                                 "(dimensionless)")
 
 
 class GarmentExtension(Extension):
@@ -362,9 +435,12 @@ class GarmentExtension(Extension):
         for name in ("garment_threshold", "garment_min_fraction"):
             if not 0.0 < getattr(options, name) < 1.0:
                 raise ValueError(f"--{name.replace('_', '-')} must be in (0, 1), got {getattr(options, name)}")
-        for name in ("garment_voxel", "garment_substep", "lr_garment"):
+        for name in ("garment_voxel", "garment_substep", "lr_garment", "lr_garment_rest"):
             if not getattr(options, name) > 0.0:
                 raise ValueError(f"--{name.replace('_', '-')} must be > 0, got {getattr(options, name)}")
+        for name in ("garment_rest_bound", "lambda_garment_rest_smooth", "lambda_garment_rest_collapse"):
+            if not 0.0 <= getattr(options, name) < math.inf:
+                raise ValueError(f"--{name.replace('_', '-')} must be a number >= 0, got {getattr(options, name)}")
 
     def attach(self) -> None:
         names = self.fit.frames.skeleton.names
@@ -444,11 +520,12 @@ class GarmentExtension(Extension):
         if bool((radius > 0).any()):  # a bone the garment hides entirely (thighs under a skirt) gets a typical radius
             radius = torch.where(radius > 0, radius, radius[radius > 0].median())
         capsules = Capsules(capsules.segment_start, capsules.segment_end, radius)
-        extent = float((nodes.max(0).values - nodes.min(0).values).norm())
-        capsule_ids = capsules_near(capsules, nodes, margin=0.5 * extent)
+        sides = nodes.max(0).values - nodes.min(0).values
+        capsule_ids = capsules_near(capsules, nodes, margin=0.5 * float(sides.norm()))
         part = GarmentPart(ids, nodes, node_weights, attached, joint=joint, capsules=capsules,
                            capsule_ids=capsule_ids, voxel_size=voxel, max_substep=options.garment_substep,
-                           up=tuple(float(u) for u in skeleton.up), joint_count=len(skeleton.names))
+                           up=tuple(float(u) for u in skeleton.up), joint_count=len(skeleton.names),
+                           rest_bound=options.garment_rest_bound * float(sides.max()))
         part.bind(means)
         self._use(part)
         return part
@@ -500,7 +577,11 @@ class GarmentExtension(Extension):
 
     def _use(self, part: GarmentPart) -> None:
         self.part = self.fit.avatar.add_part(part)
-        self.optimizer = torch.optim.Adam(list(part.cloth.parameters()), lr=self.options.lr_garment)
+        cloth = part.cloth
+        groups = [{"params": [p for name, p in cloth.named_parameters() if name != "rest_offset_logit"]}]
+        if cloth.rest_offset_logit is not None:
+            groups.append({"params": [cloth.rest_offset_logit], "lr": self.options.lr_garment_rest})
+        self.optimizer = torch.optim.Adam(groups, lr=self.options.lr_garment)
         self.cache = None
         self.bones = None
 
@@ -523,29 +604,30 @@ class GarmentExtension(Extension):
         part.set_node_weights(field.weights(part.nodes, field.grid_weights() if grid is None else grid))
         self.bones = self._training_bones()
         positions, velocities = part.rollout(self.bones, frames.seconds)
-        self.cache = (positions, velocities)
+        self.cache = (part.displacements(self.bones, positions), velocities)
         part.set_training_rollout(frames.bone_transforms, self.bones, positions)
         self.refreshed = self.step
 
     def frame_input(self, step) -> torch.Tensor | None:
         """Node positions [M,3] of training frame ``step.index``: the ``--garment-window`` frames before it
-        simulated with gradients from the cached state (which they then update)."""
+        simulated with gradients from the cached state (which they then update; see GarmentPart.window)."""
         self.state = None
         if self.part is None:
             return None
         if self.cache is None or self.bones is None or \
                 step.step - self.refreshed >= self.options.garment_refresh_every:
             self.refresh(step.grid)
-        part, frames = self.part, self.fit.frames
-        positions, velocities = self.cache
-        start = max(0, step.index - self.options.garment_window)
-        state = ClothState(positions[start].clone(), velocities[start].clone())
-        for frame in range(start + 1, step.index + 1):
-            state = part.step(state, self.bones[frame - 1], self.bones[frame], frames.seconds[frame])
-            positions[frame] = state.positions.detach()
-            velocities[frame] = state.velocities.detach()
-        self.state = state
-        return state.positions
+        self.state = self.part.window(self.cache, self.bones, self.fit.frames.seconds, step.index,
+                                      self.options.garment_window)
+        return self.state.positions
+
+    def losses(self, step) -> dict[str, LossTerm]:
+        """The rest shape's penalties (roughness, collapsed edges), while it is learned."""
+        if self.part is None or self.part.cloth.rest_offset_logit is None:
+            return {}
+        cloth, options = self.part.cloth, self.options
+        return {"garment_rest_smooth": LossTerm(options.lambda_garment_rest_smooth, cloth.rest_shape_roughness()),
+                "garment_rest_collapse": LossTerm(options.lambda_garment_rest_collapse, cloth.rest_shape_collapse())}
 
     def optimizers(self, step) -> list[torch.optim.Optimizer]:
         return [] if self.part is None or self.state is None else [self.optimizer]
@@ -566,7 +648,9 @@ class GarmentExtension(Extension):
         return {"garment_stiffness": float(torch.sigmoid(cloth.stiffness_logit.detach()).mean()),
                 "garment_damping": float(torch.sigmoid(cloth.damping_logit.detach())),
                 "garment_drag": float(torch.sigmoid(cloth.drag_logit.detach())),
-                "garment_mass_scale": float(cloth.masses().detach().mean() / cloth.base_mass.mean())}
+                "garment_mass_scale": float(cloth.masses().detach().mean() / cloth.base_mass.mean()),
+                "garment_rest_offset": float((cloth.rest_positions() - cloth.initial_rest_positions).detach()
+                                             .norm(dim=1).mean())}
 
     def finish(self) -> None:
         if self.part is not None:
@@ -578,16 +662,23 @@ class GarmentExtension(Extension):
         report = self.report
         if self.part is None:
             return [f"garment: none detected among {report['gaussians']} Gaussians"]
-        return [f"garment: {report['garment_gaussians']} of {report['gaussians']} Gaussians (heights "
-                f"{report['height_range'][0]:.2f}-{report['height_range'][1]:.2f} of the body), split between "
-                f"{' and '.join(report['split'])}, hung from {report['joint']}: {report['nodes']} cloth nodes, "
-                f"{report['attached']} attached, {report['capsules']} body capsules"]
+        lines = [f"garment: {report['garment_gaussians']} of {report['gaussians']} Gaussians (heights "
+                 f"{report['height_range'][0]:.2f}-{report['height_range'][1]:.2f} of the body), split between "
+                 f"{' and '.join(report['split'])}, hung from {report['joint']}: {report['nodes']} cloth nodes, "
+                 f"{report['attached']} attached, {report['capsules']} body capsules"]
+        cloth = self.part.cloth
+        if cloth.rest_offset_logit is not None:
+            moved = (cloth.rest_positions() - cloth.initial_rest_positions).detach().norm(dim=1)
+            lines.append(f"garment rest shape: nodes moved {float(moved.mean()):.3g} on average, at most "
+                         f"{float(moved.max()):.3g} (bound {cloth.rest_offset_bound:.3g}, world units)")
+        return lines
 
     def state_dict(self) -> dict:
         state = {"decided": self.decided, "report": dict(self.report), "refreshed": self.refreshed}
         if self.part is not None:
             state.update(part=self.part.state_for_file(), optimizer=self.optimizer.state_dict(),
-                         cache=None if self.cache is None else [tensor.cpu() for tensor in self.cache])
+                         cache=None if self.cache is None else [tensor.cpu() for tensor in self.cache],
+                         cache_holds="displacements")
         return state
 
     def load_state_dict(self, state: dict) -> None:
@@ -602,4 +693,6 @@ class GarmentExtension(Extension):
             if state["cache"] is not None:
                 self.cache = tuple(tensor.to(self.fit.device) for tensor in state["cache"])
                 self.bones = self._training_bones()
+                if state.get("cache_holds") != "displacements":  # a checkpoint that cached node positions
+                    self.cache = (self.part.displacements(self.bones, self.cache[0]), self.cache[1])
 

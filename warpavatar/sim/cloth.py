@@ -40,6 +40,14 @@ For the damped oscillator ``m x'' = -k x - c x'`` semi-implicit Euler is stable 
 compression may still buckle, as cloth does, at a rate bounded by the same numbers). Rest lengths stay
 within ``[0.5, 1.5]`` times their rest-shape values, the mass scale within ``[1 / mass_range, mass_range]``.
 
+A learnable rest shape (``rest_offset_bound > 0``). The rest positions are the initial ones plus a bounded
+offset per free node, ``P_i = X_i + b z_i / sqrt(1 + |z_i|^2)`` (``|P_i - X_i| < b``; attached nodes keep
+``X_i``), and every edge's rest-shape length is ``|P_i - P_j|`` (then scaled by its ``[0.5, 1.5]`` factor), so
+a wider hem has longer hem springs. The stability bounds above depend on the masses alone, so they hold for
+any rest shape. Two penalties keep the shape plausible: :meth:`ClothModel.rest_shape_roughness` (the offsets'
+graph Laplacian) and :meth:`ClothModel.rest_shape_collapse` (stretch edges shorter than half their initial
+length).
+
 The price of an explicit step: a stretch spring can be at most ``0.4 m- / (n^s h^2)`` stiff, so a hanging
 chain of ``N`` nodes of mass ``m`` stretches by at least about ``N^2 g n^s h^2 m / (0.8 m-)`` in all (its
 springs carry ``N^2 m g / 2`` of weight between them): stiff cloth needs a small ``max_substep`` (1/240 s suits
@@ -80,6 +88,9 @@ STRETCH_SHARE = 0.8
 """Part of a node's stiffness budget that its stretch edges may use (the bend edges use the rest)."""
 DAMPING_FRACTION = 0.25
 DRAG_FRACTION = 0.25
+REST_COLLAPSE_RATIO = 0.5
+"""A stretch edge of the learned rest shape shorter than this fraction of its initial length is penalized by
+:meth:`ClothModel.rest_shape_collapse`."""
 
 
 @dataclass
@@ -184,6 +195,9 @@ class ClothModel(torch.nn.Module):
         mass_range: the mass scale stays within ``[1 / mass_range, mass_range]`` (> 1).
         max_external_acceleration: bound of the external acceleration hook [world units / s^2].
         stretch_stiffness, bend_stiffness, damping, drag: initial values as fractions ``(0, 1)`` of their bounds.
+        rest_offset_bound: how far the learnable rest shape may move a free node from ``rest_positions``
+            [world units], ``>= 0``; 0 (default): the rest shape is fixed and the model has no
+            ``rest_offset_logit`` parameter (see the module docstring).
 
     Raises:
         ValueError: bad shapes, attached ids outside ``[0, M)`` or repeated, a non-positive mass, options out
@@ -206,8 +220,11 @@ class ClothModel(torch.nn.Module):
         bend_stiffness: float = 0.1,
         damping: float = 0.1,
         drag: float = 0.02,
+        rest_offset_bound: float = 0.0,
     ):
         super().__init__()
+        if not rest_offset_bound >= 0.0:
+            raise ValueError(f"rest_offset_bound must be >= 0, got {rest_offset_bound}")
         if not max_substep > 0.0:
             raise ValueError(f"max_substep must be > 0, got {max_substep}")
         if not mass_range > 1.0:
@@ -246,6 +263,8 @@ class ClothModel(torch.nn.Module):
         self.register_buffer("attached", attached.to(torch.int64))
         self.register_buffer("base_mass", mass)
         self.register_buffer("rest_length", (rest[pairs[:, 0]] - rest[pairs[:, 1]]).norm(dim=1))
+        self.register_buffer("initial_rest_positions", rest.clone())
+        self.rest_offset_bound = float(rest_offset_bound)
         if gravity is None:
             up_vector = torch.tensor(up, dtype=torch.float32)
             gravity = -9.81 * up_vector / up_vector.norm()
@@ -276,16 +295,63 @@ class ClothModel(torch.nn.Module):
         self.damping_logit = torch.nn.Parameter(torch.tensor(_logit(damping), device=device))
         self.drag_logit = torch.nn.Parameter(torch.tensor(_logit(drag), device=device))
         self.mass_logit = torch.nn.Parameter(torch.tensor(0.0, device=device))
+        self.rest_offset_logit = (torch.nn.Parameter(torch.zeros(node_count, 3, device=device))
+                                  if self.rest_offset_bound > 0.0 else None)
 
     # ------------------------------------------------------------------------------------ bounded values
     @property
     def node_count(self) -> int:
         return self.base_mass.shape[0]
 
+    def rest_positions(self) -> torch.Tensor:
+        """Node positions of the rest shape [world units], ``[M, 3]``: the initial ones plus the learned bounded
+        offsets (attached nodes keep theirs); differentiable with respect to ``rest_offset_logit``."""
+        if self.rest_offset_logit is None:
+            return self.initial_rest_positions
+        z = self.rest_offset_logit
+        offset = self.rest_offset_bound * z * torch.rsqrt(1.0 + (z * z).sum(dim=1, keepdim=True))
+        return self.initial_rest_positions + offset.index_fill(0, self.attached, 0.0)
+
+    def rest_shape_lengths(self) -> torch.Tensor:
+        """Length of every pair (stretch then bend) in the rest shape [world units], ``[P]``."""
+        if self.rest_offset_logit is None:
+            return self.rest_length
+        rest = self.rest_positions()
+        return (rest.index_select(0, self.pairs[:, 0]) - rest.index_select(0, self.pairs[:, 1])).norm(dim=1)
+
     def rest_lengths(self) -> torch.Tensor:
-        """Rest length of every pair (stretch then bend) [world units], ``[P]``."""
+        """Rest length of every pair (stretch then bend) [world units], ``[P]``: its rest-shape length times its
+        learned factor in ``[0.5, 1.5]``."""
         low, high = REST_LENGTH_RANGE
-        return self.rest_length * (low + (high - low) * torch.sigmoid(self.rest_length_logit))
+        return self.rest_shape_lengths() * (low + (high - low) * torch.sigmoid(self.rest_length_logit))
+
+    def rest_shape_roughness(self) -> torch.Tensor:
+        """How unevenly the rest shape moved: the mean over nodes of ``|o_i - mean_j o_j|^2``, ``o`` the rest
+        offsets and ``j`` the node's stretch neighbours, over the squared mean initial stretch length
+        (dimensionless; 0 for a rest shape that did not move or moved rigidly by a translation)."""
+        if self.rest_offset_logit is None:
+            return self.initial_rest_positions.new_zeros(())
+        offset = self.rest_positions() - self.initial_rest_positions
+        stretch = self.pairs[: self.stretch_count]
+        if stretch.shape[0] == 0:
+            return offset.new_zeros(())
+        ends, others = torch.cat([stretch[:, 0], stretch[:, 1]]), torch.cat([stretch[:, 1], stretch[:, 0]])
+        total = torch.zeros_like(offset).index_add_(0, ends, offset.index_select(0, others))
+        degree = torch.zeros(offset.shape[0], device=offset.device, dtype=offset.dtype).index_add_(
+            0, ends, torch.ones_like(ends, dtype=offset.dtype))
+        has_neighbours = degree > 0
+        laplacian = (offset - total / degree.clamp_min(1.0)[:, None])[has_neighbours]
+        scale = self.rest_length[: self.stretch_count].mean().clamp_min(1e-12)
+        return (laplacian * laplacian).sum(dim=1).mean() / scale**2
+
+    def rest_shape_collapse(self) -> torch.Tensor:
+        """How far stretch edges of the rest shape shrank below :data:`REST_COLLAPSE_RATIO` of their initial
+        length: the mean over stretch edges of ``max(0, 0.5 - l / L)^2`` (dimensionless)."""
+        if self.rest_offset_logit is None or self.stretch_count == 0:
+            return self.initial_rest_positions.new_zeros(())
+        ratio = (self.rest_shape_lengths()[: self.stretch_count]
+                 / self.rest_length[: self.stretch_count].clamp_min(1e-12))
+        return torch.relu(REST_COLLAPSE_RATIO - ratio).square().mean()
 
     def stiffness(self) -> torch.Tensor:
         """Spring stiffness of every pair [N / world unit], ``[P]``."""
