@@ -28,6 +28,15 @@ dynamics extension: a no-grad rollout of the whole training sequence (refreshed 
 ``--garment-refresh-every`` steps) caches every frame's state; a step simulates the ``--garment-window`` frames
 before its training frame from the cached state, with gradients, so the image loss reaches the cloth's
 parameters through those substeps. Nothing is learned per training frame: novel poses use the same physics.
+
+A training step's window is device work only (:meth:`GarmentExtension.step_input`), so on CUDA it is captured
+with the rest of the step and replayed: the frame comes from the step's buffers as a device index, which
+gathers the cached start state and the window's transforms and scatters the simulated states back into the
+cache; the window always runs ``W`` frame steps (a frame before the first is a step whose result is discarded
+by a device-side select, so frame ``i < W`` simulates frames ``1..i`` from the cached frame 0), each the length
+of the training frames' interval. The refresh runs between steps, outside the graph, and writes the cache in
+place. Training frames at irregular intervals (an evenly spaced subset, ``--max-train-frames``) get windows of
+their own frames' lengths instead, and those steps run eagerly.
 """
 
 from __future__ import annotations
@@ -38,6 +47,7 @@ from dataclasses import dataclass
 import torch
 
 from warpavatar import ops
+from warpavatar._src.cuda_graph import adam_options
 from warpavatar.extensions.base import Extension, option
 from warpavatar.extensions.garment_detection import detect_garments, related_joints
 from warpavatar.extensions.graph import voxel_downsample
@@ -48,8 +58,6 @@ from warpavatar.sim import (Capsules, ClothGraph, ClothModel, ClothState, capsul
 from warpavatar.sim.capsules import select
 
 __all__ = ["GarmentPart", "GarmentOptions", "GarmentExtension", "body_detection_options"]
-
-_IDENTITY_QUAT = (1.0, 0.0, 0.0, 0.0)
 
 
 class GarmentPart(AvatarPart):
@@ -134,8 +142,9 @@ class GarmentPart(AvatarPart):
 
     @torch.no_grad()
     def set_node_weights(self, node_weights: torch.Tensor) -> None:
-        """Replace the nodes' skinning weights ``[M, J+E]`` (the field trained; joints grew)."""
-        self.node_weights = node_weights.detach().float().clone()
+        """Replace the nodes' skinning weights ``[M, J+E]`` (the field trained; joints grew): in place while the
+        shape holds (a captured training step reads this tensor)."""
+        self.node_weights = _keep_storage(self.node_weights, node_weights.detach().float())
 
     # ------------------------------------------------------------------------------------ the body's part
     def _bones(self, bones: torch.Tensor) -> torch.Tensor:
@@ -143,7 +152,8 @@ class GarmentPart(AvatarPart):
 
     def skinned_nodes(self, bones: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Node positions [M,3] and rotations [M,4] as skinning alone would pose them (``bones`` [J+E,4,4])."""
-        identity = self.nodes.new_tensor(_IDENTITY_QUAT).expand(self.node_count, 4).contiguous()
+        identity = self.nodes.new_zeros(self.node_count, 4)
+        identity[:, 0].fill_(1.0)  # (a fill, not values from the host: a training step is captured on CUDA)
         return ops.lbs(self.nodes, self.node_weights, self._bones(bones).contiguous(), quats=identity)
 
     def attachment_targets(self, bones: torch.Tensor) -> torch.Tensor:
@@ -302,6 +312,22 @@ class GarmentPart(AvatarPart):
         return part
 
 
+def _common_interval(seconds: list[float]) -> float | None:
+    """The interval [s] of evenly timed frames (the largest, where they differ by less than 1e-5 of it), or None.
+    The first frame's interval is no step of a window and is left out."""
+    later = seconds[1:] or seconds
+    longest = max(later)
+    return longest if longest - min(later) <= 1e-5 * longest else None
+
+
+def _keep_storage(old: torch.Tensor | None, new: torch.Tensor) -> torch.Tensor:
+    """``new``'s values in ``old``'s storage when shape, dtype and device agree (what a captured CUDA graph
+    reads stays where it was), else a copy of ``new``."""
+    if old is not None and old.shape == new.shape and old.dtype == new.dtype and old.device == new.device:
+        return old.copy_(new)
+    return new.clone()
+
+
 def body_detection_options(skeleton, field) -> dict:
     """The arguments of :func:`detect_garments` that come from the body: the skeleton's bones and up axis (rules
     1, 5 and 6 of :mod:`.garment_detection`) and the skinning field's largest voxel side [world units], the
@@ -379,6 +405,15 @@ class GarmentExtension(Extension):
         self.refreshed = -1
         self.step = 0
         self.optimizer: torch.optim.Optimizer | None = None
+        self.training = False  # this step simulates a window (a garment exists)
+        window = self.options.garment_window
+        #: window slot offsets -W..0 from the training frame (the start state's frame, then each simulated one)
+        self.window_offsets = torch.arange(-window, 1, device=self.fit.device)
+        #: the training frames' common interval [s] (the largest, when they differ by < 1e-5 of it), or None
+        self.uniform_seconds = _common_interval(self.fit.frames.seconds)
+        self.window_seconds: tuple[float, ...] = ()  # the lengths [s] of this step's window frames
+        #: 1.0 when the step's frame is the first (no window, no gradient: the cloth's Adam skips its update)
+        self.skip_update = torch.zeros((), device=self.fit.device)
 
     # ------------------------------------------------------------------------------------------ detection
     def _skeleton_weights(self, weights: torch.Tensor) -> torch.Tensor:
@@ -500,7 +535,12 @@ class GarmentExtension(Extension):
 
     def _use(self, part: GarmentPart) -> None:
         self.part = self.fit.avatar.add_part(part)
-        self.optimizer = torch.optim.Adam(list(part.cloth.parameters()), lr=self.options.lr_garment)
+        # fused on every device: its step takes a device flag that skips the update (``found_inf``, the flag a
+        # gradient scaler sets), which a step at the first frame raises without a host branch
+        options = {name: value for name, value in adam_options(self.fit.device).items() if name != "foreach"}
+        self.optimizer = torch.optim.Adam(list(part.cloth.parameters()), lr=self.options.lr_garment,
+                                          **{**options, "fused": True})
+        self.optimizer.found_inf = self.skip_update
         self.cache = None
         self.bones = None
 
@@ -515,45 +555,94 @@ class GarmentExtension(Extension):
         return torch.stack([self.fit.avatar.pose_bones(b) for b in frames.bone_transforms])
 
     @torch.no_grad()
-    def refresh(self, grid: torch.Tensor | None = None) -> None:
+    def refresh(self) -> None:
         """Re-read the nodes' skinning weights and roll the whole training motion out (no gradients): the cached
-        states the windows start from and the table novel views of training instants use."""
+        states the windows start from and the table novel views of training instants use. The cache and the
+        transforms keep their storage while their shapes hold (a captured step reads and writes them)."""
         part, frames = self.part, self.fit.frames
         field = self.fit.skinning.field
-        part.set_node_weights(field.weights(part.nodes, field.grid_weights() if grid is None else grid))
-        self.bones = self._training_bones()
-        positions, velocities = part.rollout(self.bones, frames.seconds)
-        self.cache = (positions, velocities)
-        part.set_training_rollout(frames.bone_transforms, self.bones, positions)
+        # (its own evaluation of the grid: reading the step's here, without gradients, would cache it so)
+        part.set_node_weights(field.weights(part.nodes, field.grid_weights()))
+        # the fused Adam and a replayed CUDA graph change the cloth's parameters without bumping their version
+        # counters, which the fused rollout frame keys its coefficients on: say they changed
+        torch.autograd.graph.increment_version(list(part.cloth.parameters()))
+        bones = self._training_bones()
+        positions, velocities = part.rollout(bones, frames.seconds)
+        self.bones = _keep_storage(self.bones, bones)
+        cache = self.cache or (None, None)
+        self.cache = (_keep_storage(cache[0], positions), _keep_storage(cache[1], velocities))
+        part.set_training_rollout(frames.bone_transforms, bones, positions)
         self.refreshed = self.step
 
-    def frame_input(self, step) -> torch.Tensor | None:
-        """Node positions [M,3] of training frame ``step.index``: the ``--garment-window`` frames before it
-        simulated with gradients from the cached state (which they then update)."""
-        self.state = None
-        if self.part is None:
+    def frame_input(self, step) -> None:
+        """The host side of the step's window (the window itself is :meth:`step_input`'s): a refresh of the cached
+        rollout when due, and the lengths of the window's frames. No explicit input: None."""
+        self.training = self.part is not None
+        if not self.training:
             return None
         if self.cache is None or self.bones is None or \
                 step.step - self.refreshed >= self.options.garment_refresh_every:
-            self.refresh(step.grid)
-        part, frames = self.part, self.fit.frames
+            self.refresh()
+        self.window_seconds = self._window_seconds(step.index)
+        return None
+
+    def _window_seconds(self, index: int) -> tuple[float, ...]:
+        """Lengths [s] of the ``W`` frames of the window that ends at training frame ``index``: the common
+        interval for every window when the training frames are evenly timed (one captured step serves all),
+        else each frame's own (a slot before frame 1 is discarded: any length)."""
+        window = self.options.garment_window
+        if self.uniform_seconds is not None:
+            return (self.uniform_seconds,) * window
+        seconds = self.fit.frames.seconds
+        return tuple(seconds[max(1, index - window + slot)] for slot in range(1, window + 1))
+
+    def step_input(self, step) -> torch.Tensor | None:
+        """Node positions [M,3] of training frame ``step.frame`` (a device index): the ``--garment-window`` frames
+        before it simulated with gradients from the cached state at frame ``max(0, i - W)``, written back into the
+        cache. Device work only, a fixed sequence of kernels for every frame (see the module docstring). At the
+        first frame nothing is simulated and the cloth's optimizer skips its step, as when no gradient reaches it."""
+        if not self.training:
+            return None
+        part = self.part
         positions, velocities = self.cache
-        start = max(0, step.index - self.options.garment_window)
-        state = ClothState(positions[start].clone(), velocities[start].clone())
-        for frame in range(start + 1, step.index + 1):
-            state = part.step(state, self.bones[frame - 1], self.bones[frame], frames.seconds[frame])
-            positions[frame] = state.positions.detach()
-            velocities[frame] = state.velocities.detach()
-        self.state = state
+        self.skip_update.copy_(step.frame == 0)
+        rows = step.frame + self.window_offsets  # [W+1]: frames i-W .. i
+        simulated = rows[1:] >= 1  # [W]: a slot whose frame follows frame 0 (else the state stays)
+        rows = rows.clamp_min(0)
+        bones = self.bones.index_select(0, rows)
+        state = ClothState(positions.index_select(0, rows[:1])[0], velocities.index_select(0, rows[:1])[0])
+        states = []
+        for slot, seconds in enumerate(self.window_seconds):
+            stepped = part.step(state, bones[slot], bones[slot + 1], seconds)
+            state = ClothState(torch.where(simulated[slot], stepped.positions, state.positions),
+                               torch.where(simulated[slot], stepped.velocities, state.velocities))
+            states.append(state)
+        with torch.no_grad():  # (a discarded slot writes frame 0's state back where it was read)
+            positions.index_copy_(0, rows[1:], torch.stack([state.positions.detach() for state in states]))
+            velocities.index_copy_(0, rows[1:], torch.stack([state.velocities.detach() for state in states]))
         return state.positions
 
     def optimizers(self, step) -> list[torch.optim.Optimizer]:
-        return [] if self.part is None or self.state is None else [self.optimizer]
+        return [self.optimizer] if self.training else []
 
     def step_capturable(self, step) -> bool:
         """Without a garment (none found, or detection not reached) this extension has no device work in a step;
-        with one, every step rolls a window that starts at the trained frame's cached state (eager)."""
-        return self.part is None
+        with one, the window is device work from the step's buffers, captured when every window has the same
+        frame length (evenly timed training frames)."""
+        return self.part is None or self.uniform_seconds is not None
+
+    def graph_key(self, step) -> tuple:
+        """The window's frame lengths and the storage and shape of what it reads and writes in place: the cache,
+        the transforms, the part's buffers (a new garment, a renumbering or a refresh that changes a shape
+        means capturing again)."""
+        if not self.training:
+            return ()
+        part = self.part
+        tensors = (*self.cache, self.bones, self.skip_update, *part.cloth.buffers(),
+                   *(getattr(part, name) for name in ("nodes", "node_weights", "gaussian_ids", "anchor",
+                                                      "capsule_start", "capsule_end", "capsule_radius",
+                                                      "capsule_ids")))
+        return self.window_seconds, tuple((tensor.data_ptr(), tuple(tensor.shape)) for tensor in tensors)
 
     def on_gaussians_renumbered(self, source_index: torch.Tensor) -> None:
         if self.part is not None:
