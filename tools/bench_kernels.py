@@ -41,6 +41,9 @@ def main(argv=None) -> int:
                         help="avatar mode: a fitted avatar.pt (default: the avatar a fresh fit of --video starts from)")
     parser.add_argument("--video", metavar="FOLDER", default=None,
                         help="avatar mode: the avatar's training video folder (default: the built-in demo subject)")
+    parser.add_argument("--garment", action="store_true",
+                        help="avatar mode: force a simulated garment on the fresh avatar (hung from the root joint), "
+                             "so that the training step includes the cloth's window (default: off)")
     args = parser.parse_args(argv)
 
     modes = MODES if args.mode == "all" else (args.mode,)
@@ -55,7 +58,7 @@ def main(argv=None) -> int:
     out = [header]
     for mode in modes:
         module = importlib.import_module(f"bench_{mode}")
-        extra = {"avatar": args.avatar, "video": args.video} if mode == "avatar" else {}
+        extra = {"avatar": args.avatar, "video": args.video, "garment": args.garment} if mode == "avatar" else {}
         rows = module.run(device=args.device, quick=args.quick, **extra)
         out.append(f"### {mode}\n\n{markdown_table(rows)}\n")
         print(out[-1], flush=True)

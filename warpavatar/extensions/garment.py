@@ -356,7 +356,8 @@ class GarmentOptions:
     garment_voxel: float = option(0.03, "cloth node spacing as a fraction of the canonical box's longest side")
     garment_window: int = option(1, "frames simulated with gradients before each training frame (truncated "
                                  "backpropagation through time; each costs the frame's substeps forward and "
-                                 "backward, about 0.1 s a step on the H100 for 3 frames op by op)")
+                                 "backward; every step runs this many, those before the first frame discarded, so "
+                                 "that one CUDA graph serves every frame of evenly timed training frames)")
     garment_refresh_every: int = option(100, "steps between no-grad rollouts of the whole training motion "
                                         "(the cached states the windows start from)")
     garment_substep: float = option(1.0 / 240.0, "longest simulation substep [s]; the cloth's stiffness bound "
