@@ -186,3 +186,14 @@ def test_captured_garment_steps_match_eager_steps(video, tmp_path):
     assert_captured_run_matches(*results)
     for graph, eager in zip(caches[0], caches[1]):
         torch.testing.assert_close(graph, eager, rtol=1e-3, atol=1e-4)
+
+
+def test_bench_avatar_measures_a_garment_step(tmp_path):
+    """``bench_kernels.py avatar --garment``: the training step row is a step with the cloth's window, captured
+    on CUDA (evenly timed frames), with no host read."""
+    bench = load_tool("bench_avatar")
+    video, config, fitted = bench._load(None, None, "cpu", True, garment=True)
+    trainer = bench._steady_trainer(video, config, fitted, "cpu", str(tmp_path), cuda_graph="off")
+    row = bench._step_row(trainer, video, "cpu", 1, 2)
+    assert trainer.avatar.part("garment") is not None and trainer.extension("garment").step_capturable(None)
+    assert "garment: " in row["notes"] and " 0 host reads" in row["notes"] and "eager:" not in row["notes"]
