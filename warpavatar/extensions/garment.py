@@ -562,7 +562,7 @@ class GarmentExtension(Extension):
         transforms keep their storage while their shapes hold (a captured step reads and writes them)."""
         part, frames = self.part, self.fit.frames
         field = self.fit.skinning.field
-        # (its own evaluation of the grid: reading the step's here, without gradients, would cache it so)
+        # (a grid of its own: the step's grid is evaluated by the step's work, inside a captured graph)
         part.set_node_weights(field.weights(part.nodes, field.grid_weights()))
         # the fused Adam and a replayed CUDA graph change the cloth's parameters without bumping their version
         # counters, which the fused rollout frame keys its coefficients on: say they changed
