@@ -5,9 +5,10 @@ Modes: ``splat`` (rasterizer, against gsplat when importable), ``knn``, ``spring
 and training window), ``cloth`` (one frame of the simulated garment, substeps included, and the capsule
 collision), ``avatar`` (a fitted avatar: rasterizer against gsplat on its posed Gaussians at the training size and
 1080p, the training step eager and captured with its launches and host reads, playback FPS; ``--avatar``,
-``--video``, ``--garment``: a garment forced on the fresh avatar, so the step includes the cloth's window), ``all``. Each mode lives in ``tools/bench_<mode>.py`` and returns table rows;
-this script prints them as a markdown table with the device and date, and appends them to ``--record``
-(default ``BENCHMARKS.md``) when asked, so runs can be compared over time.
+``--video``, ``--garment``: a garment forced on the fresh avatar, so the step includes the cloth's window),
+``all``. Each mode lives in ``tools/bench_<mode>.py`` and returns table rows; this script prints them as a
+markdown table with the device and date, and appends them to ``--record`` (default ``BENCHMARKS.md``) when
+asked, so runs can be compared over time.
 """
 
 from __future__ import annotations
