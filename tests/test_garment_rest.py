@@ -285,7 +285,8 @@ def test_bad_rest_shape_options_are_one_line_errors(capsys, tmp_path):
 
 def test_a_checkpoint_that_cached_positions_resumes_with_displacements(device):
     """Checkpoints written before the cache held displacements hold the rollout's node positions: loading one
-    converts them, so the next window starts where that rollout left the cloth."""
+    converts them, so the next window starts where that rollout left the cloth. Their cloth optimizer held the
+    rest offsets as a second parameter group: its moments go to the rest offsets' own optimizer."""
     from types import SimpleNamespace
 
     from warpavatar.extensions.garment import GarmentExtension, GarmentOptions
@@ -296,14 +297,30 @@ def test_a_checkpoint_that_cached_positions_resumes_with_displacements(device):
     bones = _sway(FRAMES, device)
     positions, velocities = part.rollout(bones, [SECONDS] * FRAMES)
     fit = SimpleNamespace(device=device, avatar=SimpleNamespace(add_part=lambda p: p, pose_bones=lambda b: b),
-                          frames=SimpleNamespace(bone_transforms=bones, seconds=[SECONDS] * FRAMES))
-    extension = GarmentExtension(GarmentOptions(garment="auto"), fit)  # (load_state_dict builds what it needs)
-    extension._use(GarmentPart.from_file_state(part.state_for_file(), device=device))
+                          frames=SimpleNamespace(bone_transforms=bones, seconds=[SECONDS] * FRAMES,
+                                                 skeleton=SimpleNamespace(names=["root"])))
+    extension = GarmentExtension(GarmentOptions(garment="auto"), fit)  # (load_state_dict builds the rest)
+    extension.attach()
+    cloth = part.cloth
+    physics = [p for name, p in cloth.named_parameters() if name != "rest_offset_logit"]
+    grouped = torch.optim.Adam([{"params": physics}, {"params": [cloth.rest_offset_logit], "lr": 0.005}], lr=0.02)
+    (part.window((positions * 0, velocities.clone()), bones, [SECONDS] * FRAMES, 3, 2).positions.square().sum()
+     + cloth.rest_shape_roughness()).backward()
+    grouped.step()
     old = {"decided": True, "report": {}, "refreshed": 0, "part": part.state_for_file(),
-           "optimizer": extension.optimizer.state_dict(), "cache": [positions.cpu(), velocities.cpu()]}
+           "optimizer": grouped.state_dict(), "cache": [positions.cpu(), velocities.cpu()]}
     extension.load_state_dict(old)
     displacements, _ = extension.cache
     torch.testing.assert_close(displacements, part.displacements(bones, positions))
     state = extension.part.window(extension.cache, bones, [SECONDS] * FRAMES, 3, 0)
     torch.testing.assert_close(state.positions, positions[3], rtol=0, atol=1e-6)
-
+    loaded = extension.part.cloth
+    loaded_physics = [p for name, p in loaded.named_parameters() if name != "rest_offset_logit"]
+    for group, optimizer, parameters, theirs in ((0, extension.optimizer, loaded_physics, physics),
+                                                 (1, extension.rest_optimizer, [loaded.rest_offset_logit],
+                                                  [cloth.rest_offset_logit])):
+        options = optimizer.param_groups[0]
+        assert options["fused"] and options["lr"] == grouped.param_groups[group]["lr"]
+        for ours, their in zip(parameters, theirs):
+            torch.testing.assert_close(optimizer.state[ours]["exp_avg"], grouped.state[their]["exp_avg"])
+    assert extension.rest_optimizer.state[loaded.rest_offset_logit]["exp_avg"].abs().sum() > 0

@@ -227,7 +227,14 @@ def test_captured_steps_match_eager_steps(small_video, tmp_path):
         assert trainer.step_graph.enabled == (mode == "on")  # no capture fell back to eager steps
         results.append((losses, trainer.gaussians.count,
                         {name: p.detach().clone() for name, p in trainer.avatar.named_parameters()}))
-    (graph_losses, graph_count, graph), (eager_losses, eager_count, eager), (_, again_count, again) = results
+    assert_captured_run_matches(*results)
+
+
+def assert_captured_run_matches(graph, eager, again) -> None:
+    """A run of captured steps ended as close to an eager run as a second eager run did: each run is (its losses,
+    its Gaussian count, {name: parameter})."""
+    (graph_losses, graph_count, graph), (eager_losses, eager_count, eager) = graph, eager
+    _, again_count, again = again
     assert graph_count == eager_count == again_count and graph.keys() == eager.keys()
     torch.testing.assert_close(torch.tensor(graph_losses), torch.tensor(eager_losses), rtol=1e-3, atol=1e-5)
     # A few elements jump by up to a learning rate between any two runs; a captured step that read a stale input

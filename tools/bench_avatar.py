@@ -53,6 +53,11 @@ QUICK_CONFIG = dict(iterations=400, image_scale=0.25, max_train_frames=6, init_p
                     grid_cells=16, grid_min_cells=6, field_hidden=16, field_layers=1, field_warmup_steps=0,
                     gaussian_only_steps=0, densify_from=1000, densify_until=1000, pose_correction=True,
                     pose_correction_hidden=16, log_every=1000, checkpoint_every=100000, preview_frames=0)
+#: ``--garment``: a garment forced on the fresh avatar (every Gaussian whose weights split slightly, hung from the
+#: root joint) from the first step, so that the training step includes the cloth's window; evenly timed frames
+#: (8 of the quick fit's), so that the garment step is captured too
+GARMENT_CONFIG = dict(garment="auto", garment_from=0, garment_threshold=0.0005, garment_min_fraction=0.01)
+GARMENT_QUICK_CONFIG = dict(max_train_frames=8, garment_voxel=0.12, garment_substep=1.0 / 60.0)
 SYNC_OPS = ("_local_scalar_dense", "nonzero", "masked_select", "unique", "_unique2")
 
 
@@ -131,7 +136,7 @@ def count_step_work(step, *, device: str, steps: int = 4) -> dict:
 
 
 # --------------------------------------------------------------------------------------------- set-up
-def _load(avatar_path, video_path, device: str, quick: bool):
+def _load(avatar_path, video_path, device: str, quick: bool, garment: bool = False):
     video_path = video_path or data.demo_subject_path() / "train"
     if avatar_path:
         state = torch.load(avatar_path, map_location="cpu", weights_only=False)
@@ -142,6 +147,10 @@ def _load(avatar_path, video_path, device: str, quick: bool):
     if quick and fitted is not None:  # a fitted avatar's config on small frames (as many: frame codes)
         config = dataclasses.replace(config, image_scale=min(config.image_scale, 0.25))
     video = data.load_video_folder(video_path, scale=config.image_scale)
+    if garment and fitted is None:
+        config = preset("quick" if quick else "default", **{**(QUICK_CONFIG if quick else {}), **GARMENT_CONFIG,
+                                                            **(GARMENT_QUICK_CONFIG if quick else {})},
+                        garment_attach=video.skeleton.names[0])
     return video, config, fitted
 
 
@@ -226,6 +235,11 @@ def _step_row(trainer, video, device, warmup, repeats) -> dict:
                   f"{counts['graph_launches']:g} graph launches")
     if trainer.use_cuda_graph:
         notes += f", {trainer.graph_replays} of the steps replayed"
+    garment = trainer.extension("garment")
+    if garment is not None and garment.part is not None:
+        notes += (f"; garment: {garment.part.node_count} cloth nodes, window {garment.options.garment_window} "
+                  f"frames of {garment.part.cloth.substeps(max(trainer.frames.seconds))} substeps"
+                  f"{'' if garment.step_capturable(None) else ' (eager: frames unevenly timed)'}")
     return {"measure": f"training step ms ({'CUDA graph' if trainer.use_cuda_graph else 'eager'})", "size": size,
             "ours": milliseconds, "gsplat": None, "ratio": None, "notes": notes + f"; top ops: {counts['top_ops']}"}
 
@@ -257,10 +271,12 @@ def _playback_rows(avatar, video, device, repeats, quick, modes=("off",)) -> lis
     return rows
 
 
-def run(device: str, quick: bool, *, avatar: str | None = None, video: str | None = None) -> list[dict]:
-    """Benchmark rows (see the module docstring)."""
+def run(device: str, quick: bool, *, avatar: str | None = None, video: str | None = None,
+        garment: bool = False) -> list[dict]:
+    """Benchmark rows (see the module docstring); ``garment``: with a garment forced on the fresh avatar
+    (:data:`GARMENT_CONFIG`; a fitted avatar's own config decides)."""
     warmup, repeats = (1, 3) if quick else (5, 20)
-    video_folder, config, fitted = _load(avatar, video, device, quick)
+    video_folder, config, fitted = _load(avatar, video, device, quick, garment)
     with tempfile.TemporaryDirectory() as folder:
         eager = _steady_trainer(video_folder, config, fitted, device, folder, cuda_graph="off")
         rows = _raster_rows(eager.avatar, video_folder, device, warmup, repeats, quick)

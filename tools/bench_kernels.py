@@ -5,9 +5,10 @@ Modes: ``splat`` (rasterizer, against gsplat when importable), ``knn``, ``spring
 and training window), ``cloth`` (one frame of the simulated garment, substeps included, and the capsule
 collision), ``avatar`` (a fitted avatar: rasterizer against gsplat on its posed Gaussians at the training size and
 1080p, the training step eager and captured with its launches and host reads, playback FPS; ``--avatar``,
-``--video``), ``all``. Each mode lives in ``tools/bench_<mode>.py`` and returns table rows;
-this script prints them as a markdown table with the device and date, and appends them to ``--record``
-(default ``BENCHMARKS.md``) when asked, so runs can be compared over time.
+``--video``, ``--garment``: a garment forced on the fresh avatar, so the step includes the cloth's window),
+``all``. Each mode lives in ``tools/bench_<mode>.py`` and returns table rows; this script prints them as a
+markdown table with the device and date, and appends them to ``--record`` (default ``BENCHMARKS.md``) when
+asked, so runs can be compared over time.
 """
 
 from __future__ import annotations
@@ -41,6 +42,9 @@ def main(argv=None) -> int:
                         help="avatar mode: a fitted avatar.pt (default: the avatar a fresh fit of --video starts from)")
     parser.add_argument("--video", metavar="FOLDER", default=None,
                         help="avatar mode: the avatar's training video folder (default: the built-in demo subject)")
+    parser.add_argument("--garment", action="store_true",
+                        help="avatar mode: force a simulated garment on the fresh avatar (hung from the root joint), "
+                             "so that the training step includes the cloth's window (default: off)")
     args = parser.parse_args(argv)
 
     modes = MODES if args.mode == "all" else (args.mode,)
@@ -55,7 +59,7 @@ def main(argv=None) -> int:
     out = [header]
     for mode in modes:
         module = importlib.import_module(f"bench_{mode}")
-        extra = {"avatar": args.avatar, "video": args.video} if mode == "avatar" else {}
+        extra = {"avatar": args.avatar, "video": args.video, "garment": args.garment} if mode == "avatar" else {}
         rows = module.run(device=args.device, quick=args.quick, **extra)
         out.append(f"### {mode}\n\n{markdown_table(rows)}\n")
         print(out[-1], flush=True)

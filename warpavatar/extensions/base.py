@@ -11,6 +11,7 @@ One training step calls, in this order::
 
     begin_step(step)            before the skinning grid is read: may change the model (grow joints)
     frame_input(step)           the explicit input of its avatar part for this step's render, or None
+    step_input(step)            the same, computed as part of the step's device work (captured with it)
       ... the avatar is posed and rendered ...
     losses(step)                {name: LossTerm(weight, value)}; the trainer sums weight * value
     optimizers(step)            the optimizers that step now (zeroed before, stepped after the backward)
@@ -21,7 +22,11 @@ One training step calls, in this order::
 
 Between densification events the shapes of a step stay fixed, so on CUDA the trainer captures the device work
 from posing to ``after_step`` as a CUDA graph and replays it (``--cuda-graph``), refilling only the frame's
-buffers; ``begin_step``, ``frame_input`` and ``optimizers`` run every step on the host. An extension whose step
+buffers (``step.frame``: the training frame's index on the device is one of them); ``begin_step``,
+``frame_input`` and ``optimizers`` run every step on the host. An input that must be computed with gradients
+every step (a window of simulated frames) comes from ``step_input``, which runs inside the captured work and
+reads the frame from ``step.frame``; ``graph_key`` names what the captured work depends on beyond those
+buffers' values (the shapes and storage of the tensors it reads and writes). An extension whose step
 does host work (reads values back, follows a per-step schedule, swaps tensors) keeps the default
 ``step_capturable() -> False`` and the trainer runs those steps eagerly.
 
@@ -107,6 +112,9 @@ class StepContext:
     Attributes:
         step: the step's number (0-based).
         index: the training frame it trains on (index into ``FitContext.frames``).
+        frame: the same index as an int64 0-dim tensor on the training device, held in the step's buffers
+            (refilled before every step, so a captured step reads the frame of the step it replays); set before
+            :meth:`Extension.step_input` runs, None before.
         train_field: whether the skinning field (and the networks that train with it) train in this step.
         grid: the skinning grid of this step (:meth:`warpavatar.model.skinning_field.VoxelSkinningField.grid_weights`,
             with gradients when the field trains), read on first use: an extension that changes the field in
@@ -119,6 +127,7 @@ class StepContext:
     index: int
     train_field: bool
     read_grid: Callable[[], torch.Tensor] = field(repr=False, default=None)
+    frame: torch.Tensor | None = None
     posed: Any = None
     image: torch.Tensor | None = None
     alpha: torch.Tensor | None = None
@@ -206,6 +215,14 @@ class Extension:
         """The explicit input of this extension's avatar part for the step's render (None: the part decides)."""
         return None
 
+    def step_input(self, step: StepContext) -> Any | None:
+        """The explicit input of this extension's avatar part for the step's render, computed as part of the
+        step's device work (captured and replayed with it when the step is capturable), or None. Read the frame
+        from ``step.frame`` (a device tensor), never ``step.index``, and only tensors that keep their storage;
+        write state back in place (``index_copy_``). Runs after :meth:`frame_input`, which may prepare it on the
+        host (a refreshed cache, a flag that a part exists)."""
+        return None
+
     def losses(self, step: StepContext) -> dict[str, LossTerm]:
         """This step's loss terms by name."""
         return {}
@@ -228,6 +245,12 @@ class Extension:
         number, a frame index, a counter) and change tensors only in place; :meth:`begin_step` and
         :meth:`frame_input` run every step, outside the graph. The default, False, runs every step eagerly."""
         return False
+
+    def graph_key(self, step: StepContext) -> tuple:
+        """What this extension's captured work depends on beyond the values of the tensors it reads: shapes, the
+        storage (``data_ptr``) of tensors it reads or writes in place, Python numbers baked into the work. The
+        trainer captures the step again when any extension's key changes. Default: nothing."""
+        return ()
 
     def before_densify(self, visible_count: torch.Tensor) -> None:
         """Density control is about to renumber the Gaussians; ``visible_count`` [N]: steps each was seen in

@@ -32,6 +32,17 @@ holds each frame's displacement from the skinned rest shape, so a window starts 
 image loss of every step reaches the rest positions ``P`` (and, through the simulated frames, the rest lengths
 they define); each refresh rolls the motion out again from the settled new rest shape. Nothing is learned per
 training frame: novel poses use the same physics and rest shape.
+
+A training step's window is device work only (:meth:`GarmentExtension.step_input`), so on CUDA it is captured
+with the rest of the step and replayed: the frame comes from the step's buffers as a device index, which
+gathers the cached start displacement and velocity and the window's transforms, and scatters the simulated
+frames' displacements back into the cache; the window always runs ``W`` frame steps (a frame before the first
+is a step whose result is discarded by a device-side select, so frame ``i < W`` simulates frames ``1..i`` from
+the cached frame 0), each the length of the training frames' interval. It reads the rest shape from the cloth's
+parameters every time (the optimizers update them in place, so a replayed step sees the current shape). The
+refresh runs between steps, outside the graph, and writes the cache in place. Training frames at irregular
+intervals (an evenly spaced subset, ``--max-train-frames``) get windows of their own frames' lengths instead,
+and those steps run eagerly; either way a window is :meth:`GarmentPart.window`'s.
 """
 
 from __future__ import annotations
@@ -42,6 +53,7 @@ from dataclasses import dataclass
 import torch
 
 from warpavatar import ops
+from warpavatar._src.cuda_graph import adam_options
 from warpavatar.extensions.base import Extension, LossTerm, option
 from warpavatar.extensions.garment_detection import detect_garments, related_joints
 from warpavatar.extensions.graph import voxel_downsample
@@ -52,8 +64,6 @@ from warpavatar.sim import (Capsules, ClothGraph, ClothModel, ClothState, capsul
 from warpavatar.sim.capsules import select
 
 __all__ = ["GarmentPart", "GarmentOptions", "GarmentExtension", "body_detection_options"]
-
-_IDENTITY_QUAT = (1.0, 0.0, 0.0, 0.0)
 
 
 class GarmentPart(AvatarPart):
@@ -148,8 +158,9 @@ class GarmentPart(AvatarPart):
 
     @torch.no_grad()
     def set_node_weights(self, node_weights: torch.Tensor) -> None:
-        """Replace the nodes' skinning weights ``[M, J+E]`` (the field trained; joints grew)."""
-        self.node_weights = node_weights.detach().float().clone()
+        """Replace the nodes' skinning weights ``[M, J+E]`` (the field trained; joints grew): in place while the
+        shape holds (a captured training step reads this tensor)."""
+        self.node_weights = _keep_storage(self.node_weights, node_weights.detach().float())
 
     # ------------------------------------------------------------------------------------ the body's part
     def _bones(self, bones: torch.Tensor) -> torch.Tensor:
@@ -158,7 +169,8 @@ class GarmentPart(AvatarPart):
     def skinned_nodes(self, bones: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Node positions [M,3] and rotations [M,4] as skinning alone would pose the rest shape (``bones``
         [J+E,4,4]); the positions are differentiable with respect to the rest shape."""
-        identity = self.nodes.new_tensor(_IDENTITY_QUAT).expand(self.node_count, 4).contiguous()
+        identity = self.nodes.new_zeros(self.node_count, 4)
+        identity[:, 0].fill_(1.0)  # (a fill, not values from the host: a training step is captured on CUDA)
         return ops.lbs(self.cloth.rest_positions(), self.node_weights, self._bones(bones).contiguous(),
                        quats=identity)
 
@@ -363,6 +375,47 @@ class GarmentPart(AvatarPart):
         return part
 
 
+def _common_interval(seconds: list[float]) -> float | None:
+    """The interval [s] of evenly timed frames (the largest, where they differ by less than 1e-5 of it), or None.
+    The first frame's interval is no step of a window and is left out."""
+    later = seconds[1:] or seconds
+    longest = max(later)
+    return longest if longest - min(later) <= 1e-5 * longest else None
+
+
+def _keep_storage(old: torch.Tensor | None, new: torch.Tensor) -> torch.Tensor:
+    """``new``'s values in ``old``'s storage when shape, dtype and device agree (what a captured CUDA graph
+    reads stays where it was), else a copy of ``new``."""
+    if old is not None and old.shape == new.shape and old.dtype == new.dtype and old.device == new.device:
+        return old.copy_(new)
+    return new.clone()
+
+
+def _split_groups(saved: dict) -> tuple[dict, dict]:
+    """The state of an optimizer with two parameter groups as the states of two optimizers of one group each
+    (checkpoints that kept the rest offsets as a group of the cloth's optimizer)."""
+    def one(group: dict) -> dict:
+        ids = group["params"]
+        return {"state": {new: saved["state"][old] for new, old in enumerate(ids) if old in saved["state"]},
+                "param_groups": [{**group, "params": list(range(len(ids)))}]}
+
+    return one(saved["param_groups"][0]), one(saved["param_groups"][1])
+
+
+def _load_optimizer(optimizer: torch.optim.Optimizer, saved: dict) -> None:
+    """Load a saved state but keep the optimizer's own implementation (a checkpoint written before the cloth's Adam
+    was fused would otherwise switch it back): its options, and step counts where its kernels want them."""
+    kept = [{name: group[name] for name in ("fused", "capturable", "foreach") if name in group}
+            for group in optimizer.param_groups]
+    optimizer.load_state_dict(saved)
+    for group, options in zip(optimizer.param_groups, kept):
+        group.update(options)
+        for parameter in group["params"]:
+            moments = optimizer.state.get(parameter, {})
+            if "step" in moments and (options.get("fused") or options.get("capturable")):
+                moments["step"] = moments["step"].to(dtype=torch.float32, device=parameter.device)
+
+
 def body_detection_options(skeleton, field) -> dict:
     """The arguments of :func:`detect_garments` that come from the body: the skeleton's bones and up axis (rules
     1, 5 and 6 of :mod:`.garment_detection`) and the skinning field's largest voxel side [world units], the
@@ -391,7 +444,8 @@ class GarmentOptions:
     garment_voxel: float = option(0.03, "cloth node spacing as a fraction of the canonical box's longest side")
     garment_window: int = option(1, "frames simulated with gradients before each training frame (truncated "
                                  "backpropagation through time; each costs the frame's substeps forward and "
-                                 "backward, about 0.1 s a step on the H100 for 3 frames op by op)")
+                                 "backward; every step runs this many, those before the first frame discarded, so "
+                                 "that one CUDA graph serves every frame of evenly timed training frames)")
     garment_refresh_every: int = option(100, "steps between no-grad rollouts of the whole training motion "
                                         "(the cached states the windows start from)")
     garment_substep: float = option(1.0 / 240.0, "longest simulation substep [s]; the cloth's stiffness bound "
@@ -454,7 +508,17 @@ class GarmentExtension(Extension):
         self.bones: torch.Tensor | None = None  # the training frames' skinning transforms [T,J+E,4,4]
         self.refreshed = -1
         self.step = 0
-        self.optimizer: torch.optim.Optimizer | None = None
+        self.optimizer: torch.optim.Optimizer | None = None  # the cloth's physics
+        self.rest_optimizer: torch.optim.Optimizer | None = None  # its rest shape's offsets, while learned
+        self.training = False  # this step simulates a window (a garment exists)
+        window = self.options.garment_window
+        #: window slot offsets -W..0 from the training frame (the start state's frame, then each simulated one)
+        self.window_offsets = torch.arange(-window, 1, device=self.fit.device)
+        #: the training frames' common interval [s] (the largest, when they differ by < 1e-5 of it), or None
+        self.uniform_seconds = _common_interval(self.fit.frames.seconds)
+        self.window_seconds: tuple[float, ...] = ()  # the lengths [s] of this step's window frames
+        #: 1.0 when the step's frame is the first (no window, no gradient: the cloth's Adam skips its update)
+        self.skip_update = torch.zeros((), device=self.fit.device)
 
     # ------------------------------------------------------------------------------------------ detection
     def _skeleton_weights(self, weights: torch.Tensor) -> torch.Tensor:
@@ -577,11 +641,18 @@ class GarmentExtension(Extension):
 
     def _use(self, part: GarmentPart) -> None:
         self.part = self.fit.avatar.add_part(part)
+        # fused on every device: its step takes a device flag that skips the update (``found_inf``, the flag a
+        # gradient scaler sets), which a step at the first frame raises without a host branch
+        options = {name: value for name, value in adam_options(self.fit.device).items() if name != "foreach"}
+        options["fused"] = True
         cloth = part.cloth
-        groups = [{"params": [p for name, p in cloth.named_parameters() if name != "rest_offset_logit"]}]
-        if cloth.rest_offset_logit is not None:
-            groups.append({"params": [cloth.rest_offset_logit], "lr": self.options.lr_garment_rest})
-        self.optimizer = torch.optim.Adam(groups, lr=self.options.lr_garment)
+        physics = [p for name, p in cloth.named_parameters() if name != "rest_offset_logit"]
+        self.optimizer = torch.optim.Adam(physics, lr=self.options.lr_garment, **options)
+        self.optimizer.found_inf = self.skip_update
+        # the rest shape's offsets have an optimizer of their own, which the first frame does not skip: its window
+        # starts at the skinned rest shape, so the image loss reaches them there too
+        self.rest_optimizer = (None if cloth.rest_offset_logit is None else
+                               torch.optim.Adam([cloth.rest_offset_logit], lr=self.options.lr_garment_rest, **options))
         self.cache = None
         self.bones = None
 
@@ -596,33 +667,83 @@ class GarmentExtension(Extension):
         return torch.stack([self.fit.avatar.pose_bones(b) for b in frames.bone_transforms])
 
     @torch.no_grad()
-    def refresh(self, grid: torch.Tensor | None = None) -> None:
+    def refresh(self) -> None:
         """Re-read the nodes' skinning weights and roll the whole training motion out (no gradients): the cached
-        states the windows start from and the table novel views of training instants use."""
+        states the windows start from and the table novel views of training instants use. The cache and the
+        transforms keep their storage while their shapes hold (a captured step reads and writes them)."""
         part, frames = self.part, self.fit.frames
         field = self.fit.skinning.field
-        part.set_node_weights(field.weights(part.nodes, field.grid_weights() if grid is None else grid))
-        self.bones = self._training_bones()
-        positions, velocities = part.rollout(self.bones, frames.seconds)
-        self.cache = (part.displacements(self.bones, positions), velocities)
-        part.set_training_rollout(frames.bone_transforms, self.bones, positions)
+        # (a grid of its own: the step's grid is evaluated by the step's work, inside a captured graph)
+        part.set_node_weights(field.weights(part.nodes, field.grid_weights()))
+        # the fused Adam and a replayed CUDA graph change the cloth's parameters (the rest offsets among them)
+        # without bumping their version counters, which the fused rollout frame keys its coefficients on: say
+        # they changed
+        torch.autograd.graph.increment_version(list(part.cloth.parameters()))
+        bones = self._training_bones()
+        positions, velocities = part.rollout(bones, frames.seconds)
+        self.bones = _keep_storage(self.bones, bones)
+        cache = self.cache or (None, None)
+        self.cache = (_keep_storage(cache[0], part.displacements(bones, positions)),
+                      _keep_storage(cache[1], velocities))
+        part.set_training_rollout(frames.bone_transforms, bones, positions)
         self.refreshed = self.step
 
-    def frame_input(self, step) -> torch.Tensor | None:
-        """Node positions [M,3] of training frame ``step.index``: the ``--garment-window`` frames before it
-        simulated with gradients from the cached state (which they then update; see GarmentPart.window)."""
-        self.state = None
-        if self.part is None:
+    def frame_input(self, step) -> None:
+        """The host side of the step's window (the window itself is :meth:`step_input`'s): a refresh of the cached
+        rollout when due, and the lengths of the window's frames. No explicit input: None."""
+        self.training = self.part is not None
+        if not self.training:
             return None
         if self.cache is None or self.bones is None or \
                 step.step - self.refreshed >= self.options.garment_refresh_every:
-            self.refresh(step.grid)
-        self.state = self.part.window(self.cache, self.bones, self.fit.frames.seconds, step.index,
-                                      self.options.garment_window)
-        return self.state.positions
+            self.refresh()
+        self.window_seconds = self._window_seconds(step.index)
+        return None
+
+    def _window_seconds(self, index: int) -> tuple[float, ...]:
+        """Lengths [s] of the ``W`` frames of the window that ends at training frame ``index``: the common
+        interval for every window when the training frames are evenly timed (one captured step serves all),
+        else each frame's own (a slot before frame 1 is discarded: any length)."""
+        window = self.options.garment_window
+        if self.uniform_seconds is not None:
+            return (self.uniform_seconds,) * window
+        seconds = self.fit.frames.seconds
+        return tuple(seconds[max(1, index - window + slot)] for slot in range(1, window + 1))
+
+    def step_input(self, step) -> torch.Tensor | None:
+        """Node positions [M,3] of training frame ``step.frame`` (a device index): :meth:`GarmentPart.window` as
+        device work, a fixed sequence of kernels for every frame (see the module docstring). The
+        ``--garment-window`` frames before it are simulated with gradients from the skinned rest shape plus the
+        cached displacement at frame ``max(0, i - W)``, and their displacements from the skinned rest shape are
+        written back into the cache. At the first frame nothing is simulated and the cloth's physics optimizer
+        skips its step, as when no gradient reaches it (the rest offsets still get one)."""
+        if not self.training:
+            return None
+        part = self.part
+        displacements, velocities = self.cache
+        self.skip_update.copy_(step.frame == 0)
+        rows = step.frame + self.window_offsets  # [W+1]: frames i-W .. i
+        simulated = rows[1:] >= 1  # [W]: a slot whose frame follows frame 0 (else the state stays)
+        rows = rows.clamp_min(0)
+        bones = self.bones.index_select(0, rows)
+        start = displacements.index_select(0, rows[:1])[0]
+        state = ClothState(part.skinned_rest(bones[0]) + start, velocities.index_select(0, rows[:1])[0])
+        written = []
+        for slot, seconds in enumerate(self.window_seconds):
+            stepped = part.step(state, bones[slot], bones[slot + 1], seconds)
+            state = ClothState(torch.where(simulated[slot], stepped.positions, state.positions),
+                               torch.where(simulated[slot], stepped.velocities, state.velocities))
+            with torch.no_grad():  # (a discarded slot writes frame 0's own values back where they were read)
+                written.append((torch.where(simulated[slot], state.positions - part.skinned_rest(bones[slot + 1]),
+                                            start), state.velocities.detach()))
+        with torch.no_grad():
+            displacements.index_copy_(0, rows[1:], torch.stack([moved for moved, _ in written]))
+            velocities.index_copy_(0, rows[1:], torch.stack([velocity for _, velocity in written]))
+        return state.positions
 
     def losses(self, step) -> dict[str, LossTerm]:
-        """The rest shape's penalties (roughness, collapsed edges), while it is learned."""
+        """The rest shape's penalties (roughness, collapsed edges), while it is learned: device work, captured
+        with the step."""
         if self.part is None or self.part.cloth.rest_offset_logit is None:
             return {}
         cloth, options = self.part.cloth, self.options
@@ -630,12 +751,28 @@ class GarmentExtension(Extension):
                 "garment_rest_collapse": LossTerm(options.lambda_garment_rest_collapse, cloth.rest_shape_collapse())}
 
     def optimizers(self, step) -> list[torch.optim.Optimizer]:
-        return [] if self.part is None or self.state is None else [self.optimizer]
+        if not self.training:
+            return []
+        return [self.optimizer] if self.rest_optimizer is None else [self.optimizer, self.rest_optimizer]
 
     def step_capturable(self, step) -> bool:
         """Without a garment (none found, or detection not reached) this extension has no device work in a step;
-        with one, every step rolls a window that starts at the trained frame's cached state (eager)."""
-        return self.part is None
+        with one, the window is device work from the step's buffers, captured when every window has the same
+        frame length (evenly timed training frames)."""
+        return self.part is None or self.uniform_seconds is not None
+
+    def graph_key(self, step) -> tuple:
+        """The window's frame lengths and the storage and shape of what it reads and writes in place: the cache,
+        the transforms, the part's buffers (a new garment, a renumbering or a refresh that changes a shape
+        means capturing again)."""
+        if not self.training:
+            return ()
+        part = self.part
+        tensors = (*self.cache, self.bones, self.skip_update, *part.cloth.buffers(), *part.cloth.parameters(),
+                   *(getattr(part, name) for name in ("nodes", "node_weights", "gaussian_ids", "anchor",
+                                                      "capsule_start", "capsule_end", "capsule_radius",
+                                                      "capsule_ids")))
+        return self.window_seconds, tuple((tensor.data_ptr(), tuple(tensor.shape)) for tensor in tensors)
 
     def on_gaussians_renumbered(self, source_index: torch.Tensor) -> None:
         if self.part is not None:
@@ -677,6 +814,7 @@ class GarmentExtension(Extension):
         state = {"decided": self.decided, "report": dict(self.report), "refreshed": self.refreshed}
         if self.part is not None:
             state.update(part=self.part.state_for_file(), optimizer=self.optimizer.state_dict(),
+                         rest_optimizer=None if self.rest_optimizer is None else self.rest_optimizer.state_dict(),
                          cache=None if self.cache is None else [tensor.cpu() for tensor in self.cache],
                          cache_holds="displacements")
         return state
@@ -689,7 +827,12 @@ class GarmentExtension(Extension):
         self.refreshed = int(state["refreshed"])
         if "part" in state:
             self._use(GarmentPart.from_file_state(state["part"], device=self.fit.device))
-            self.optimizer.load_state_dict(state["optimizer"])
+            saved, saved_rest = state["optimizer"], state.get("rest_optimizer")
+            if saved_rest is None and len(saved["param_groups"]) == 2:  # one optimizer with the offsets' group
+                saved, saved_rest = _split_groups(saved)
+            _load_optimizer(self.optimizer, saved)
+            if self.rest_optimizer is not None and saved_rest is not None:
+                _load_optimizer(self.rest_optimizer, saved_rest)
             if state["cache"] is not None:
                 self.cache = tuple(tensor.to(self.fit.device) for tensor in state["cache"])
                 self.bones = self._training_bones()

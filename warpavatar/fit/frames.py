@@ -108,18 +108,20 @@ class TrainingFrames:
     def step_buffers(self, index: int) -> SimpleNamespace:
         """Training frame ``index`` in tensors that keep their storage from call to call (one set per image size),
         refilled by device-to-device copies, so that one captured training step serves every frame of a size:
-        ``bones`` [J,4,4], ``image`` [H,W,3] uint8, ``mask`` [H,W] uint8 or None, ``camera`` (``K``,
-        ``world_to_camera``, ``width``, ``height``)."""
+        ``index`` (the frame's index, int64 0-dim), ``bones`` [J,4,4], ``image`` [H,W,3] uint8, ``mask`` [H,W]
+        uint8 or None, ``camera`` (``K``, ``world_to_camera``, ``width``, ``height``)."""
         camera = self.cameras[index]
         size = (camera.width, camera.height)
         buffers = self._step_buffers.get(size)
         if buffers is None:
             buffers = self._step_buffers[size] = SimpleNamespace(
+                index=torch.tensor(int(index), dtype=torch.int64, device=self.images.device),
                 bones=self.bone_transforms[index].clone(), image=self.images[index].clone(),
                 mask=None if self.masks is None else self.masks[index].clone(),
                 camera=SimpleNamespace(K=camera.K.clone(), world_to_camera=camera.world_to_camera.clone(),
                                        width=camera.width, height=camera.height))
             return buffers
+        buffers.index.fill_(int(index))  # (a fill kernel: no host-to-device copy, no sync)
         buffers.bones.copy_(self.bone_transforms[index])
         buffers.image.copy_(self.images[index])
         if buffers.mask is not None:

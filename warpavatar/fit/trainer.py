@@ -147,6 +147,9 @@ class Trainer:
         """The device work of a step, from the frame's buffers to the optimizers' update: no host reads, so it
         runs eagerly or is captured as a CUDA graph. Returns (image, alpha, loss terms incl. ``loss``)."""
         frames = self.frames
+        step.frame = buffers.index
+        inputs = {**inputs, **{extension.name: value for extension in self.extensions
+                               if (value := extension.step_input(step)) is not None}}
         step.target, step.mask = frames.target_of(buffers.image, buffers.mask)
         grad_out = torch.zeros(self.gaussians.count, 2, device=self.device)
         step.posed = self.avatar.pose(buffers.bones, grid=step.grid, inputs=inputs, sh_degree=degree)
@@ -187,7 +190,8 @@ class Trainer:
         tensor it updates (a new parameter, moment or statistic means capturing again)."""
         return (degree, step.train_field, self.gaussians.count, self.capacity.value, id(buffers),
                 StepGraph.optimizer_storage(optimizers), self.density.grad_accum.data_ptr(),
-                self.density.visible_count.data_ptr(), self.skinning.graph_key())
+                self.density.visible_count.data_ptr(), self.skinning.graph_key(),
+                tuple(extension.graph_key(step) for extension in self.extensions))
 
     def check_rasterizer(self) -> None:
         """Read the rasterizer's status (:meth:`IntersectionCapacity.check`: one host read, at

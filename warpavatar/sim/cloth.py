@@ -339,10 +339,13 @@ class ClothModel(torch.nn.Module):
         total = torch.zeros_like(offset).index_add_(0, ends, offset.index_select(0, others))
         degree = torch.zeros(offset.shape[0], device=offset.device, dtype=offset.dtype).index_add_(
             0, ends, torch.ones_like(ends, dtype=offset.dtype))
-        has_neighbours = degree > 0
-        laplacian = (offset - total / degree.clamp_min(1.0)[:, None])[has_neighbours]
+        # (the mean over the nodes that have neighbours as a weighted sum: no boolean indexing, which would read
+        # the device, so a captured training step can compute it)
+        has_neighbours = (degree > 0).to(offset.dtype)
+        laplacian = offset - total / degree.clamp_min(1.0)[:, None]
         scale = self.rest_length[: self.stretch_count].mean().clamp_min(1e-12)
-        return (laplacian * laplacian).sum(dim=1).mean() / scale**2
+        roughness = ((laplacian * laplacian).sum(dim=1) * has_neighbours).sum() / has_neighbours.sum().clamp_min(1.0)
+        return roughness / scale**2
 
     def rest_shape_collapse(self) -> torch.Tensor:
         """How far stretch edges of the rest shape shrank below :data:`REST_COLLAPSE_RATIO` of their initial
