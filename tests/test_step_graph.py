@@ -165,6 +165,7 @@ def test_steady_training_step_reads_nothing_from_the_device(small_video, tmp_pat
     for _ in range(3):  # the first step counts the rasterizer's pairs (exact buffers, one read)
         trainer.train_step()
     trainer.step = 20  # past densification, the field training
+    trainer.train_step()  # the field's first training step chooses its active grid points (--field-cells: one read)
     assert trainer.intersection_capacity is not None and trainer.extension("pose_correction") is not None
     counter = load_tool("bench_avatar")._OpCounter()
     with counter:
