@@ -223,7 +223,8 @@ class GarmentPart(AvatarPart):
         The window starts at frame ``s = max(0, index - frames)`` from ``skinned_s(P) + d_s``: the cached
         displacement ``d_s`` carried by the current rest shape ``P``, so the start state, and every frame after
         it, depends on the rest shape (as well as on the physics, through the simulated frames) even though the
-        cache holds no gradients. The simulated frames' displacements and velocities are written back.
+        cache holds no gradients. The simulated frames' displacements and velocities are written back. (The fit
+        runs this window as device work, :meth:`GarmentExtension.step_input`; this is its host-indexed form.)
 
         Args:
             cache: ``(displacements, velocities)`` of every training frame, ``[T,M,3]`` each (:meth:`displacements`
@@ -504,7 +505,8 @@ class GarmentExtension(Extension):
         self.part: GarmentPart | None = None
         self.decided = False  # detection ran (found a garment or not)
         self.report: dict = {}
-        self.cache: tuple[torch.Tensor, torch.Tensor] | None = None  # node positions, velocities [T,M,3]
+        #: every training frame's displacement from the skinned rest shape and velocity, [T,M,3] each
+        self.cache: tuple[torch.Tensor, torch.Tensor] | None = None
         self.bones: torch.Tensor | None = None  # the training frames' skinning transforms [T,J+E,4,4]
         self.refreshed = -1
         self.step = 0
@@ -517,7 +519,7 @@ class GarmentExtension(Extension):
         #: the training frames' common interval [s] (the largest, when they differ by < 1e-5 of it), or None
         self.uniform_seconds = _common_interval(self.fit.frames.seconds)
         self.window_seconds: tuple[float, ...] = ()  # the lengths [s] of this step's window frames
-        #: 1.0 when the step's frame is the first (no window, no gradient: the cloth's Adam skips its update)
+        #: 1.0 when the step's frame is the first (no window, no gradient to the physics: its Adam skips its update)
         self.skip_update = torch.zeros((), device=self.fit.device)
 
     # ------------------------------------------------------------------------------------------ detection
