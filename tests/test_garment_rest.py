@@ -245,7 +245,7 @@ def test_windows_from_absolute_cached_states_recover_less(device):
         part = _part(device)
         _fit_rest_shape(part, targets, bones, steps=80, refresh_every=10, window=1, lr=0.05, carried=carried)
         errors.append(float((part.cloth.rest_positions().detach() - truth)[RING:].norm(dim=1).mean()))
-    assert errors[0] < 0.5 * errors[1], errors
+    assert errors[0] < errors[1] / 1.5, errors
 
 
 def test_the_rest_shape_round_trips_through_the_part_file(device):
