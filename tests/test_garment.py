@@ -466,3 +466,21 @@ def test_detection_rejects_a_blend_between_the_shins_that_does_not_reach_the_hip
     assert len(found) == 1 and found[0].joint == 0
     with pytest.raises(ValueError, match="reach"):
         detect_garments(means, weights, PARENTS, _walk(), heads=HEADS, tails=TAILS, up=UP, reach=1.5)
+
+
+def test_grown_regions_merge_only_with_those_they_overlap():
+    """Rule 6's merge of seed regions that grew into each other (it once compared mask tensors with ``==``)."""
+    from warpavatar.extensions.garment_detection import _merge_overlapping
+
+    def mask(*ids):
+        m = torch.zeros(12, dtype=torch.bool)
+        m[list(ids)] = True
+        return m
+
+    grown = [(mask(0, 1), 1, 2, 3), (mask(3, 4, 5, 6), 4, 5, 6), (mask(8), 7, 8, 9)]
+    merged = _merge_overlapping(grown, (mask(6, 7, 8), 10, 11, 12))  # overlaps the second and the third
+    assert len(merged) == 2
+    assert torch.equal(merged[0][0], mask(0, 1)) and merged[0][1:] == (1, 2, 3)
+    assert torch.equal(merged[1][0], mask(3, 4, 5, 6, 7, 8)) and merged[1][1:] == (4, 5, 6)  # the largest part's joints
+    alone = _merge_overlapping(merged, (mask(10, 11), 0, 1, 2))
+    assert len(alone) == 3 and alone[-1][1:] == (0, 1, 2)

@@ -235,9 +235,22 @@ def assert_captured_run_matches(graph, eager, again) -> None:
     """A run of captured steps ended as close to an eager run as a second eager run did: each run is (its losses,
     its Gaussian count, {name: parameter})."""
     (graph_losses, graph_count, graph), (eager_losses, eager_count, eager) = graph, eager
-    _, again_count, again = again
-    assert graph_count == eager_count == again_count and graph.keys() == eager.keys()
-    torch.testing.assert_close(torch.tensor(graph_losses), torch.tensor(eager_losses), rtol=1e-3, atol=1e-5)
+    again_losses, again_count, again = again
+    assert graph.keys() == eager.keys()
+    # Densification thresholds accumulated gradients, so that rounding may also clone or split a few Gaussians
+    # more in one run than in another (on the H100: 5,436 against 5,431 after 30 garment steps), and the runs'
+    # losses then drift apart by up to about 1 %: the captured run's losses may differ from the eager run's as
+    # much as a second eager run's do (twice that, plus rounding), and when the counts differ the runs'
+    # Gaussians no longer pair up, so the losses are the comparison.
+    graph_losses, eager_losses, again_losses = (torch.tensor(v, dtype=torch.float64)
+                                                for v in (graph_losses, eager_losses, again_losses))
+    gap = float((graph_losses - eager_losses).abs().max())
+    spread = float((again_losses - eager_losses).abs().max())
+    assert gap <= 2.0 * spread + 1e-5 + 1e-3 * float(eager_losses.abs().max()), (gap, spread)
+    assert abs(graph_count - eager_count) <= max(2 * abs(again_count - eager_count), 0.002 * eager_count), (
+        graph_count, eager_count, again_count)
+    if not graph_count == eager_count == again_count:
+        return
     # A few elements jump by up to a learning rate between any two runs; a captured step that read a stale input
     # (a learning rate, a frame, a grid) would move most of them: compare the share of elements that moved.
     for name in graph:

@@ -270,6 +270,21 @@ def _flood(region: torch.Tensor, allowed: torch.Tensor, neighbours: torch.Tensor
 
 
 @torch.no_grad()
+def _merge_overlapping(grown: list[tuple], region: tuple) -> list[tuple]:
+    """Add a grown region ``(mask [N] bool, joint, first, second)`` to ``grown``, merged with every region there
+    that it overlaps (two seed regions of one garment, its front and back, grew into each other); a merged
+    region keeps the joints of its largest part."""
+    garment, joint, first, second = region
+    overlapping = [bool((other[0] & garment).any()) for other in grown]
+    largest = int(garment.sum())
+    for other, overlaps in zip(grown, overlapping):
+        if overlaps:
+            if int(other[0].sum()) > largest:
+                largest, (joint, first, second) = int(other[0].sum()), other[1:]
+            garment = garment | other[0]
+    return [other for other, overlaps in zip(grown, overlapping) if not overlaps] + [(garment, joint, first, second)]
+
+
 def detect_garments(
     means: torch.Tensor,
     weights: torch.Tensor,
@@ -411,12 +426,7 @@ def detect_garments(
             garment_top = float(garment_heights.kthvalue(max(1, int(0.98 * garment_heights.numel()))).values)
             if garment_top < joint_height - reach * body_height:
                 continue
-        for other in [other for other in grown if bool((other[0] & garment).any())]:
-            grown.remove(other)  # two seed regions of one garment (its front and back) grew into each other
-            if int(other[0].sum()) > int(garment.sum()):
-                joint, first, second = other[1:]
-            garment = garment | other[0]
-        grown.append((garment, joint, first, second))
+        grown = _merge_overlapping(grown, (garment, joint, first, second))
     found = [GarmentRegion(torch.nonzero(garment).reshape(-1), joint, (first, second))
              for garment, joint, first, second in grown
              if int(garment.sum()) >= min_fraction * count]  # a crotch or an armpit is no garment (rule 3)
