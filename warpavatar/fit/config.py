@@ -67,9 +67,10 @@ class FitConfig:
                                     group="skinning field")
     field_cells: str = _core(
         "active", "grid points at which a training step evaluates the skinning-field MLP: 'active' (those that "
-        "the Gaussians and the bone samples read, one cell around, chosen anew every --field-cells-every steps, "
-        "when the Gaussians are densified and at checkpoints; the others keep their values from then, which no "
-        "step reads; the loss and its gradient are those of 'all') or 'all' (every grid point, every step)",
+        "the Gaussians and the bone samples read, one cell around, chosen anew every --field-cells-every steps "
+        "and when the Gaussians are densified, kept by checkpoints; the others keep their values from then, "
+        "which no step reads; the loss and its gradient are those of 'all') or 'all' (every grid point, every "
+        "step)",
         group="skinning field", choices=("active", "all"))
     field_cells_every: int = _core(100, "steps between choices of the active grid points (--field-cells active)",
                                    group="skinning field")
