@@ -1,5 +1,7 @@
 """The garment extension: detection, the simulated part, fitting through the simulation, files and consumers."""
 
+import dataclasses
+import json
 import math
 from types import SimpleNamespace
 
@@ -484,3 +486,59 @@ def test_grown_regions_merge_only_with_those_they_overlap():
     assert torch.equal(merged[1][0], mask(3, 4, 5, 6, 7, 8)) and merged[1][1:] == (4, 5, 6)  # the largest part's joints
     alone = _merge_overlapping(merged, (mask(10, 11), 0, 1, 2))
     assert len(alone) == 3 and alone[-1][1:] == (0, 1, 2)
+
+
+def test_detection_tries_again_while_none_is_found_until_its_last_step(video, tmp_path, monkeypatch):
+    """No garment at --garment-from: detection runs again every --garment-retry-every steps up to --garment-until
+    (the field keeps training), and stops at the first garment or the last attempt; it resumes on schedule."""
+    import warpavatar.extensions.garment as garment_module
+
+    real = garment_module.detect_garments
+    attempts = []
+
+    def detect_on_the_third_attempt(*args, **kwargs):
+        attempts.append(len(attempts))
+        return real(*args, **kwargs) if len(attempts) >= 3 else []
+
+    monkeypatch.setattr(garment_module, "detect_garments", detect_on_the_third_attempt)
+    config = _tiny(garment="auto", garment_attach=video.skeleton.names[0], garment_from=6, garment_retry_every=4,
+                   garment_until=20, **{k: v for k, v in FORCED.items() if k != "garment_refresh_every"},
+                   garment_refresh_every=50)
+    trainer = Trainer(video, config, tmp_path / "retry")
+    trainer.fit(progress=False)
+    log = [json.loads(line) for line in (tmp_path / "retry" / "train_log.jsonl").read_text().splitlines()]
+    found = [(entry["step"], entry["garment"]) for entry in log if "garment" in entry]
+    assert [step for step, _ in found] == [6, 10, 14] and len(attempts) == 3
+    assert found[0][1] == found[1][1] == "none" and isinstance(found[2][1], dict)
+    assert trainer.avatar.part("garment") is not None
+
+    # never found: attempts at 6, 10, 14, 18 (not 22 > --garment-until), then none is final
+    attempts.clear()
+    monkeypatch.setattr(garment_module, "detect_garments", lambda *args, **kwargs: attempts.append(0) or [])
+    never = Trainer(video, config, tmp_path / "never")
+    never.fit(progress=False)
+    assert len(attempts) == 4 and never.extension("garment").decided
+    assert never.extension("garment").summary_lines() == [
+        f"garment: none detected among {never.extension('garment').report['gaussians']} Gaussians"]
+    # one attempt only
+    attempts.clear()
+    once = Trainer(video, dataclasses.replace(config, extensions={
+        **config.extensions, "garment": dataclasses.replace(config.extensions["garment"], garment_retry_every=0)}),
+        tmp_path / "once")
+    once.fit(progress=False)
+    assert len(attempts) == 1
+
+    # interrupted between attempts: the resumed fit keeps the schedule
+    attempts.clear()
+    parts = Trainer(video, config, tmp_path / "parts")
+    parts.fit(progress=False, stop_at=12)
+    assert len(attempts) == 2
+    resumed = Trainer(video, config, tmp_path / "parts")
+    resumed.fit(resume=True, progress=False)
+    assert len(attempts) == 4
+
+
+def test_detection_retry_options_are_checked():
+    for name in ("garment_retry_every", "garment_until"):
+        with pytest.raises(ValueError, match=name.replace("_", "-")):
+            _tiny(garment="auto", **{name: -1})

@@ -22,7 +22,9 @@ Where a frame's cloth state comes from, in this order:
 4. otherwise the cloth settled at that pose (one pose on its own: it hangs at rest, never an unsimulated
    smear). This case reads the device once to know it is in it.
 
-The fit (:class:`GarmentExtension`) detects garments at ``--garment-from`` (:mod:`.garment_detection`), builds
+The fit (:class:`GarmentExtension`) detects garments at ``--garment-from`` (:mod:`.garment_detection`; while
+none is found, again every ``--garment-retry-every`` steps up to ``--garment-until``: the field keeps training,
+and on cesium_skirt the detection at one step found the skirt or nothing on small numerical differences), builds
 the part, and from then on trains it by truncated backpropagation through time, in the manner of the
 dynamics extension: a no-grad rollout of the whole training sequence (refreshed every
 ``--garment-refresh-every`` steps) caches every frame's state; a step simulates the ``--garment-window`` frames
@@ -438,6 +440,11 @@ class GarmentOptions:
                                  "(default: detected)", product=True)
     garment_from: int = option(3000, "step at which garments are detected and their cloth starts to train (after "
                                "the skinning field has trained for a while)")
+    garment_retry_every: int = option(500, "steps between further detection attempts while none has found a "
+                                      "garment (the skinning field keeps training, and a blend that was just "
+                                      "under the thresholds may pass later); 0: one attempt")
+    garment_until: int = option(5000, "last step of a detection attempt (a garment found later has too few steps "
+                                "left to fit its cloth)")
     garment_threshold: float = option(0.005, "garment seeds: Gaussians whose skinning weights blend limbs that "
                                       "move apart (weight x weight x distance apart over the training motion) by "
                                       "at least this fraction of the body's longest side (0-1)")
@@ -483,10 +490,11 @@ class GarmentExtension(Extension):
 
     @classmethod
     def check(cls, options, config) -> None:
-        for name in ("garment_from", "garment_window", "garment_refresh_every"):
-            if getattr(options, name) < (0 if name == "garment_from" else 1):
-                raise ValueError(f"--{name.replace('_', '-')} must be >= {0 if name == 'garment_from' else 1}, "
-                                 f"got {getattr(options, name)}")
+        for name in ("garment_from", "garment_retry_every", "garment_until", "garment_window",
+                     "garment_refresh_every"):
+            least = 0 if name in ("garment_from", "garment_retry_every", "garment_until") else 1
+            if getattr(options, name) < least:
+                raise ValueError(f"--{name.replace('_', '-')} must be >= {least}, got {getattr(options, name)}")
         for name in ("garment_threshold", "garment_min_fraction"):
             if not 0.0 < getattr(options, name) < 1.0:
                 raise ValueError(f"--{name.replace('_', '-')} must be in (0, 1), got {getattr(options, name)}")
@@ -503,7 +511,8 @@ class GarmentExtension(Extension):
             raise ValueError(f"--garment-attach {self.options.garment_attach!r}: no such joint; the skeleton's "
                              f"joints are {', '.join(names)}")
         self.part: GarmentPart | None = None
-        self.decided = False  # detection ran (found a garment or not)
+        self.decided = False  # detection is over (a garment found, or no attempt left)
+        self.next_attempt = self.options.garment_from  # step of the next detection attempt
         self.report: dict = {}
         #: every training frame's displacement from the skinned rest shape and velocity, [T,M,3] each
         self.cache: tuple[torch.Tensor, torch.Tensor] | None = None
@@ -542,13 +551,16 @@ class GarmentExtension(Extension):
                                   # says there is a garment)
                                   **(dict(min_weight=0.0) if options.garment_attach else
                                      body_detection_options(skeleton, fit.skinning.field)))
-        self.decided = True
+        retry = options.garment_retry_every
+        self.next_attempt = self.step + retry if regions == [] and retry > 0 else -1
+        self.decided = not 0 <= self.next_attempt <= options.garment_until
         up = torch.as_tensor(skeleton.up, dtype=torch.float32, device=means.device)
         height = means @ up
         low, high = float(height.min()), float(height.max())
         self.report = {"garments": len(regions), "gaussians": int(means.shape[0])}
         if not regions:
-            fit.log({"step": self.step, "garment": "none"})
+            fit.log({"step": self.step, "garment": "none",
+                     **({} if self.decided else {"next_attempt": self.next_attempt})})
             return
         region = regions[0]
         joint = region.joint
@@ -661,7 +673,7 @@ class GarmentExtension(Extension):
     # ------------------------------------------------------------------------------------------ training
     def begin_step(self, step) -> None:
         self.step = step.step
-        if not self.decided and step.step >= self.options.garment_from:
+        if not self.decided and step.step >= self.next_attempt:
             self.detect(step.grid)
 
     def _training_bones(self) -> torch.Tensor:
@@ -796,7 +808,7 @@ class GarmentExtension(Extension):
             self.refresh()
 
     def summary_lines(self) -> list[str]:
-        if not self.decided:
+        if not self.report:
             return []  # the fit ended before --garment-from
         report = self.report
         if self.part is None:
@@ -813,7 +825,8 @@ class GarmentExtension(Extension):
         return lines
 
     def state_dict(self) -> dict:
-        state = {"decided": self.decided, "report": dict(self.report), "refreshed": self.refreshed}
+        state = {"decided": self.decided, "next_attempt": self.next_attempt, "report": dict(self.report),
+                 "refreshed": self.refreshed}
         if self.part is not None:
             state.update(part=self.part.state_for_file(), optimizer=self.optimizer.state_dict(),
                          rest_optimizer=None if self.rest_optimizer is None else self.rest_optimizer.state_dict(),
@@ -825,6 +838,7 @@ class GarmentExtension(Extension):
         if not state:
             return
         self.decided = bool(state["decided"])
+        self.next_attempt = int(state.get("next_attempt", self.options.garment_from))
         self.report = dict(state["report"])
         self.refreshed = int(state["refreshed"])
         if "part" in state:
