@@ -16,6 +16,7 @@ from warpavatar.fit import Trainer, preset
 from warpavatar.sim import ClothState
 
 from conftest import load_tool
+from tests.test_garment_rest import host_window
 
 # a forced garment on the robot (every slightly split Gaussian, hung from the root), coarse nodes and substeps;
 # 8 training frames of the 8 loaded: evenly timed, so every window has the same frame length
@@ -38,10 +39,10 @@ def _trainer(video, folder, **overrides):
 
 
 def _old_window(extension, index: int) -> torch.Tensor:
-    """The eager window this module replaces (:meth:`GarmentPart.window`): frames ``max(0, i - W) + 1 .. i``
-    stepped with host indices from the skinned rest shape plus the cached displacement, each frame's displacement
-    and velocity written back into the cache."""
-    return extension.part.window(extension.cache, extension.bones, extension.fit.frames.seconds, index,
+    """The eager window this module replaces (``host_window``): frames ``max(0, i - W) + 1 .. i`` stepped with
+    host indices from the skinned rest shape plus the cached displacement, each frame's displacement and velocity
+    written back into the cache."""
+    return host_window(extension.part, extension.cache, extension.bones, extension.fit.frames.seconds, index,
                                  extension.options.garment_window).positions
 
 

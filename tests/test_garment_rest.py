@@ -16,6 +16,22 @@ from warpavatar._torch_impl import springs as reference_springs
 from warpavatar.extensions.garment import GarmentPart
 from warpavatar.sim import Capsules, ClothModel, ClothState, cloth_graph, nearest_nodes, ride_on_nodes
 
+def host_window(part: GarmentPart, cache, bones, seconds, index: int, frames: int) -> ClothState:
+    """The reference of a training window (:meth:`GarmentExtension.step_input` does it as device work): frame
+    ``index`` simulated with gradients over the ``frames`` frames before it, from ``skinned_s(P) + d_s`` at frame
+    ``s = max(0, index - frames)`` (the cached displacement carried by the current rest shape), host-indexed, each
+    simulated frame's displacement and velocity written back into ``cache`` = (displacements, velocities) [T,M,3]."""
+    displacements, velocities = cache
+    start = max(0, index - frames)
+    state = ClothState(part.skinned_rest(bones[start]) + displacements[start], velocities[start].clone())
+    for frame in range(start + 1, index + 1):
+        state = part.step(state, bones[frame - 1], bones[frame], seconds[frame])
+        with torch.no_grad():
+            displacements[frame] = state.positions - part.skinned_rest(bones[frame])
+            velocities[frame] = state.velocities
+    return state
+
+
 RING = 8  # nodes per ring
 DEPTHS = (0.0, 0.05, 0.10, 0.15)  # the rings' depths below the top ring [m]
 TUBE_RADIUS = 0.1
@@ -120,7 +136,7 @@ def _camera(device, width=20, height=16):
 
 def _rendered_loss(part, cache, bones, cotangent, gaussians, rasterize):
     """A window of 2 frames to frame 5, the garment Gaussians riding on its nodes, rendered and weighted."""
-    state = part.window(tuple(t.clone() for t in cache), bones, [SECONDS] * FRAMES, 5, 2)
+    state = host_window(part, tuple(t.clone() for t in cache), bones, [SECONDS] * FRAMES, 5, 2)
     means, quats = ride_on_nodes(state.positions, part.node_quats(state.positions, bones[5]), gaussians["anchor"],
                                  gaussians["offset"], gaussians["quats"])
     image, alpha, _ = rasterize(means, quats, gaussians["scales"], gaussians["opacities"], gaussians["colors"],
@@ -200,7 +216,7 @@ def _fit_rest_shape(part, targets, bones, *, steps, refresh_every, window, lr, c
             cache = _cache(part, bones) if carried else part.rollout(bones, [SECONDS] * bones.shape[0])
         index = int(torch.randint(0, bones.shape[0], (1,), generator=generator))
         if carried:
-            state = part.window(cache, bones, [SECONDS] * bones.shape[0], index, window)
+            state = host_window(part, cache, bones, [SECONDS] * bones.shape[0], index, window)
         else:
             state = _absolute_window(part, cache, bones, index, window)
         loss = (state.positions - targets[index]).square().sum(dim=1).mean()
@@ -304,7 +320,7 @@ def test_a_checkpoint_that_cached_positions_resumes_with_displacements(device):
     cloth = part.cloth
     physics = [p for name, p in cloth.named_parameters() if name != "rest_offset_logit"]
     grouped = torch.optim.Adam([{"params": physics}, {"params": [cloth.rest_offset_logit], "lr": 0.005}], lr=0.02)
-    (part.window((positions * 0, velocities.clone()), bones, [SECONDS] * FRAMES, 3, 2).positions.square().sum()
+    (host_window(part, (positions * 0, velocities.clone()), bones, [SECONDS] * FRAMES, 3, 2).positions.square().sum()
      + cloth.rest_shape_roughness()).backward()
     grouped.step()
     old = {"decided": True, "report": {}, "refreshed": 0, "part": part.state_for_file(),
@@ -312,7 +328,7 @@ def test_a_checkpoint_that_cached_positions_resumes_with_displacements(device):
     extension.load_state_dict(old)
     displacements, _ = extension.cache
     torch.testing.assert_close(displacements, part.displacements(bones, positions))
-    state = extension.part.window(extension.cache, bones, [SECONDS] * FRAMES, 3, 0)
+    state = host_window(extension.part, extension.cache, bones, [SECONDS] * FRAMES, 3, 0)
     torch.testing.assert_close(state.positions, positions[3], rtol=0, atol=1e-6)
     loaded = extension.part.cloth
     loaded_physics = [p for name, p in loaded.named_parameters() if name != "rest_offset_logit"]

@@ -44,7 +44,7 @@ the cached frame 0), each the length of the training frames' interval. It reads 
 parameters every time (the optimizers update them in place, so a replayed step sees the current shape). The
 refresh runs between steps, outside the graph, and writes the cache in place. Training frames at irregular
 intervals (an evenly spaced subset, ``--max-train-frames``) get windows of their own frames' lengths instead,
-and those steps run eagerly; either way a window is :meth:`GarmentPart.window`'s.
+and those steps run eagerly, through the same device work.
 """
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ class GarmentPart(AvatarPart):
 
     The rest shape (``cloth.rest_positions()``) is what posing starts from: a pose's skinned cloth, the settled
     start of every rollout, and the frame states of the training rollout, cached as displacements from the
-    skinned rest shape (:meth:`window`). ``nodes`` stay the frame the Gaussians are bound in: a Gaussian's
+    skinned rest shape (:meth:`displacements`). ``nodes`` stay the frame the Gaussians are bound in: a Gaussian's
     offset from its node and the nodes' rotations are measured from them, so the Gaussians move with the rest
     shape.
     """
@@ -111,9 +111,9 @@ class GarmentPart(AvatarPart):
         if graph is None:
             graph = cloth_graph(nodes, neighbours=min(8, nodes.shape[0] - 1))
         joint_count = int(node_weights.shape[1] if joint_count is None else joint_count)
-        self.hyper = dict(joint=int(joint), joint_count=joint_count, voxel_size=float(voxel_size), max_substep=float(max_substep),
-                          up=tuple(float(u) for u in up), settle_frames=int(settle_frames),
-                          rest_bound=float(rest_bound))
+        self.hyper = dict(joint=int(joint), joint_count=joint_count, voxel_size=float(voxel_size),
+                          max_substep=float(max_substep), up=tuple(float(u) for u in up),
+                          settle_frames=int(settle_frames), rest_bound=float(rest_bound))
         self.register_buffer("gaussian_ids", torch.as_tensor(gaussian_ids, device=device).long().clone())
         self.register_buffer("nodes", nodes.clone())
         self.register_buffer("node_weights", node_weights.detach().float().to(device).clone())
@@ -215,39 +215,9 @@ class GarmentPart(AvatarPart):
     @torch.no_grad()
     def displacements(self, bones: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
         """Node positions ``[T,M,3]`` of the frames with skinning transforms ``bones`` [T,J+E,4,4] as displacements
-        from the skinned rest shape, ``x_t - skinned_t(P)`` (what :meth:`window` starts from)."""
+        from the skinned rest shape, ``x_t - skinned_t(P)`` (what a training window starts from,
+        :meth:`GarmentExtension.step_input`)."""
         return torch.stack([x - self.skinned_rest(b) for b, x in zip(bones, positions)])
-
-    def window(self, cache: tuple[torch.Tensor, torch.Tensor], bones: torch.Tensor, seconds: list[float], index: int,
-               frames: int) -> ClothState:
-        """Frame ``index`` simulated with gradients over the ``frames`` frames before it, from a cached rollout.
-
-        The window starts at frame ``s = max(0, index - frames)`` from ``skinned_s(P) + d_s``: the cached
-        displacement ``d_s`` carried by the current rest shape ``P``, so the start state, and every frame after
-        it, depends on the rest shape (as well as on the physics, through the simulated frames) even though the
-        cache holds no gradients. The simulated frames' displacements and velocities are written back. (The fit
-        runs this window as device work, :meth:`GarmentExtension.step_input`; this is its host-indexed form.)
-
-        Args:
-            cache: ``(displacements, velocities)`` of every training frame, ``[T,M,3]`` each (:meth:`displacements`
-                of a rollout, and its velocities), updated in place.
-            bones: [T,J+E,4,4] every skinning transform of each training frame.
-            seconds: [T] seconds from each frame to the one before.
-            index: the frame wanted.
-            frames: the window's length (>= 0).
-
-        Returns:
-            The state of frame ``index``, differentiable with respect to the cloth's parameters.
-        """
-        displacements, velocities = cache
-        start = max(0, index - frames)
-        state = ClothState(self.skinned_rest(bones[start]) + displacements[start], velocities[start].clone())
-        for frame in range(start + 1, index + 1):
-            state = self.step(state, bones[frame - 1], bones[frame], seconds[frame])
-            with torch.no_grad():
-                displacements[frame] = state.positions - self.skinned_rest(bones[frame])
-                velocities[frame] = state.velocities
-        return state
 
     @torch.no_grad()
     def rollout(self, bones: torch.Tensor, seconds: list[float], *, progress: bool = False
@@ -305,7 +275,8 @@ class GarmentPart(AvatarPart):
     def prepare_sequence(self, bones: torch.Tensor, intervals: torch.Tensor, *, progress: bool = False) -> None:
         """Roll a new motion out (settled at its first pose) so its frames get their simulated cloth."""
         positions, _ = self.rollout(bones, intervals.tolist(), progress=progress)
-        self._sequence = (bones[:, :self.hyper["joint_count"]].detach().float().clone(), positions, self._table(bones, positions))
+        self._sequence = (bones[:, :self.hyper["joint_count"]].detach().float().clone(), positions,
+                          self._table(bones, positions))
 
     def _lookup(self, frame, bones: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         pose = frame.bone_transforms
@@ -490,9 +461,8 @@ class GarmentExtension(Extension):
 
     @classmethod
     def check(cls, options, config) -> None:
-        for name in ("garment_from", "garment_retry_every", "garment_until", "garment_window",
-                     "garment_refresh_every"):
-            least = 0 if name in ("garment_from", "garment_retry_every", "garment_until") else 1
+        for name, least in (("garment_from", 0), ("garment_retry_every", 0), ("garment_until", 0),
+                            ("garment_window", 1), ("garment_refresh_every", 1)):
             if getattr(options, name) < least:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= {least}, got {getattr(options, name)}")
         for name in ("garment_threshold", "garment_min_fraction"):
@@ -552,7 +522,7 @@ class GarmentExtension(Extension):
                                   **(dict(min_weight=0.0) if options.garment_attach else
                                      body_detection_options(skeleton, fit.skinning.field)))
         retry = options.garment_retry_every
-        self.next_attempt = self.step + retry if regions == [] and retry > 0 else -1
+        self.next_attempt = self.step + retry if not regions and retry > 0 else -1
         self.decided = not 0 <= self.next_attempt <= options.garment_until
         up = torch.as_tensor(skeleton.up, dtype=torch.float32, device=means.device)
         height = means @ up
@@ -725,8 +695,10 @@ class GarmentExtension(Extension):
         return tuple(seconds[max(1, index - window + slot)] for slot in range(1, window + 1))
 
     def step_input(self, step) -> torch.Tensor | None:
-        """Node positions [M,3] of training frame ``step.frame`` (a device index): :meth:`GarmentPart.window` as
-        device work, a fixed sequence of kernels for every frame (see the module docstring). The
+        """Node positions [M,3] of training frame ``step.frame`` (a device index), as device work: a fixed
+        sequence of kernels for every frame (see the module docstring). The start state, ``skinned_s(P) + d_s``,
+        carries the cached displacement ``d_s`` by the current rest shape ``P``, so the window depends on the rest
+        shape as well as on the physics although the cache holds no gradients. The
         ``--garment-window`` frames before it are simulated with gradients from the skinned rest shape plus the
         cached displacement at frame ``max(0, i - W)``, and their displacements from the skinned rest shape are
         written back into the cache. At the first frame nothing is simulated and the cloth's physics optimizer

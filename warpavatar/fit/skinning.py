@@ -37,8 +37,8 @@ class SkinningStage:
         self.optimizer = torch.optim.Adam(field.parameters(), lr=config.field_lr, **adam_options(device))
         self._frozen: torch.Tensor | None = None  # the grid while the field is frozen
         self._current: tuple[int, torch.Tensor] | None = None  # (step, its grid)
-        # --field-cells active: the grid of the last choice with a padding row [D*H*W+1, J], the chosen grid
-        # points padded to a capacity (padding: row 0 to encode, the padding row to scatter into), and when
+        # --field-cells active: the grid of the last choice with a padding row [D*H*W+1, J], and the chosen grid
+        # points padded to a capacity (padding: row 0 to encode, the padding row to scatter into)
         self._base: torch.Tensor | None = None
         self._encode_cells: torch.Tensor | None = None
         self._scatter_cells: torch.Tensor | None = None
@@ -54,12 +54,9 @@ class SkinningStage:
         generator = torch.Generator().manual_seed(self.config.seed)
         for _ in range(steps):
             self.optimizer.zero_grad(set_to_none=True)
-            if 0 < batch < cells:
-                chosen = torch.randint(cells, (batch,), generator=generator).to(self.prior.device)
-                logits = self.field.mlp(self.field.grid_encoding.index_select(0, chosen))
-                loss = -(self.prior.index_select(0, chosen) * torch.log_softmax(logits, dim=-1)).sum(-1).mean()
-            else:
-                loss = self.field.distillation_loss(self.prior)
+            chosen = (torch.randint(cells, (batch,), generator=generator).to(self.prior.device)
+                      if 0 < batch < cells else None)
+            loss = self.field.distillation_loss(self.prior, chosen)
             loss.backward()
             self.optimizer.step()
         self._frozen = self._current = None
@@ -76,21 +73,28 @@ class SkinningStage:
         if (self._base is not None and step - last_step < self.config.field_cells_every
                 and canonical_means.shape[0] == last_count):
             return
+        cells = self.field.cells_read_by(torch.cat([canonical_means.detach(), self.bone_samples]), dilation=1)
+        capacity = 0 if self._encode_cells is None else self._encode_cells.shape[0]
+        if cells.shape[0] > capacity:  # grows by a quarter more than needed, so most choices keep the buffers
+            capacity = max(cells.shape[0] + cells.shape[0] // 4, 1)
+        self._use_cells(cells, capacity, (step, canonical_means.shape[0]))
+
+    @torch.no_grad()
+    def _use_cells(self, cells: torch.Tensor, capacity: int, chosen: tuple[int, int]) -> None:
+        """Evaluate the whole grid (no gradients) and make ``cells`` [A] (flat indices) the active grid points,
+        padded to ``capacity``; the buffers keep their storage while their sizes hold (a captured step reads
+        them)."""
         field = self.field
-        with torch.no_grad():
-            grid = field.grid_weights().reshape(field.cell_count, field.joint_count)
-            cells = field.cells_read_by(torch.cat([canonical_means.detach(), self.bone_samples]), dilation=1)
-            count, capacity = cells.shape[0], 0 if self._encode_cells is None else self._encode_cells.shape[0]
-            if self._base is None or self._base.shape != (field.cell_count + 1, field.joint_count):
-                self._base = grid.new_zeros(field.cell_count + 1, field.joint_count)
-            if count > capacity:  # grows by a quarter more than needed, so most choices keep the buffers
-                capacity = max(count + count // 4, 1)
-                self._encode_cells = cells.new_zeros(capacity)
-                self._scatter_cells = cells.new_full((capacity,), field.cell_count)
-            self._base[:-1].copy_(grid)
-            self._encode_cells.zero_()[:count] = cells
-            self._scatter_cells.fill_(field.cell_count)[:count] = cells
-        self._cells_chosen = (step, canonical_means.shape[0])
+        count, device = cells.shape[0], field.bbox_min.device
+        if self._base is None or self._base.shape != (field.cell_count + 1, field.joint_count):
+            self._base = torch.zeros(field.cell_count + 1, field.joint_count, device=device)
+        if self._encode_cells is None or self._encode_cells.shape[0] != capacity:
+            self._encode_cells = torch.zeros(capacity, dtype=torch.long, device=device)
+            self._scatter_cells = torch.zeros(capacity, dtype=torch.long, device=device)
+        self._base[:-1].copy_(field.grid_weights().reshape(field.cell_count, field.joint_count))
+        self._encode_cells.zero_()[:count] = cells
+        self._scatter_cells.fill_(field.cell_count)[:count] = cells
+        self._cells_chosen = chosen
         self.active_cells = count
         self._current = None
 
@@ -101,26 +105,21 @@ class SkinningStage:
     def _cells_state(self) -> dict | None:
         if self._cells_chosen[0] < 0 or self._encode_cells is None:
             return None
-        return {"chosen": list(self._cells_chosen), "count": self.active_cells,
-                "cells": self._encode_cells.to(torch.int32).cpu()}
+        return {"chosen": list(self._cells_chosen), "capacity": self._encode_cells.shape[0],
+                "cells": self._encode_cells[:self.active_cells].to(torch.int32).cpu()}
 
-    @torch.no_grad()
     def _load_cells_state(self, state: dict | None) -> None:
         """Restore a choice of active grid points (same points, same padding: the resumed steps evaluate the MLP
         on the same rows); the grid points that no step reads are evaluated anew."""
         self.forget_cells()
         if state is None or self.config.field_cells != "active":
             return
-        field = self.field
-        device = field.bbox_min.device
-        self._encode_cells = state["cells"].to(device=device, dtype=torch.long)
-        count = int(state["count"])
-        self._scatter_cells = self._encode_cells.clone()
-        self._scatter_cells[count:] = field.cell_count
-        self._base = torch.zeros(field.cell_count + 1, field.joint_count, device=device)
-        self._base[:-1].copy_(field.grid_weights().reshape(field.cell_count, field.joint_count))
-        self._cells_chosen = tuple(int(v) for v in state["chosen"])
-        self.active_cells = count
+        self._use_cells(state["cells"].to(device=self.field.bbox_min.device, dtype=torch.long),
+                        int(state["capacity"]), tuple(int(v) for v in state["chosen"]))
+
+    def log_values(self) -> dict[str, int]:
+        """The number of active grid points, for the fit's log (nothing with ``--field-cells all``)."""
+        return {"field_cells": self.active_cells} if self.active_cells else {}
 
     def graph_key(self) -> tuple:
         """What a captured step reads of this stage beyond values: the active grid points' buffers."""

@@ -338,9 +338,7 @@ class Trainer:
             if self.step % config.log_every == 0 or self.step == config.iterations:
                 self.check_rasterizer()
                 record = self._log_record(step, terms)  # the only host reads of a step, every log_every steps
-                record.update(self.step_graph.log_values())
-                if self.skinning.active_cells:
-                    record["field_cells"] = self.skinning.active_cells
+                record.update(self.step_graph.log_values(), **self.skinning.log_values())
                 self._log({**record, "step": self.step, "seconds": round(time.time() - start_time, 2)})
                 bar.set_postfix(loss=f"{record['loss']:.4f}", psnr=f"{record['psnr']:.2f}", n=record["gaussians"])
             if self.step % config.checkpoint_every == 0 and self.step < config.iterations:

@@ -114,10 +114,13 @@ class VoxelSkinningField(torch.nn.Module):
     def _encode(self, points: torch.Tensor) -> torch.Tensor:
         return box_encoding(points, self.bbox_min, self.bbox_max, self.frequencies)
 
+    def _logits(self, cells: torch.Tensor | None = None) -> torch.Tensor:
+        """The MLP's bone logits at every grid point [D*H*W, J], or at ``cells`` (flat indices [A]) only."""
+        return self.mlp(self.grid_encoding if cells is None else self.grid_encoding.index_select(0, cells))
+
     def grid_weights(self) -> torch.Tensor:
         """The voxel grid of skinning weights [D,H,W,J] (softmax of the MLP at the grid points)."""
-        logits = self.mlp(self.grid_encoding)
-        return torch.softmax(logits, dim=-1).reshape(*self.grid_shape, self.joint_count)
+        return torch.softmax(self._logits(), dim=-1).reshape(*self.grid_shape, self.joint_count)
 
     @property
     def cell_count(self) -> int:
@@ -128,7 +131,7 @@ class VoxelSkinningField(torch.nn.Module):
     def cell_weights(self, cells: torch.Tensor) -> torch.Tensor:
         """Skinning weights [A,J] of some grid points (``cells``: [A] flat indices into the [D*H*W] grid): the
         rows of :meth:`grid_weights` for those points, computed by the MLP at those points only."""
-        return torch.softmax(self.mlp(self.grid_encoding.index_select(0, cells)), dim=-1)
+        return torch.softmax(self._logits(cells), dim=-1)
 
     @torch.no_grad()
     def cells_read_by(self, points: torch.Tensor, *, dilation: int = 1) -> torch.Tensor:
@@ -157,10 +160,11 @@ class VoxelSkinningField(torch.nn.Module):
         grid = self.grid_weights() if grid is None else grid
         return ops.sample_grid(grid, points, self.bbox_min, self.bbox_max)
 
-    def distillation_loss(self, prior: torch.Tensor) -> torch.Tensor:
-        """Cross-entropy of the grid's weights against a prior [D*H*W, J] (the warm-up objective)."""
-        logits = self.mlp(self.grid_encoding)
-        return -(prior * torch.log_softmax(logits, dim=-1)).sum(-1).mean()
+    def distillation_loss(self, prior: torch.Tensor, cells: torch.Tensor | None = None) -> torch.Tensor:
+        """Cross-entropy of the grid's weights against a prior [D*H*W, J] (the warm-up objective), over every grid
+        point or over ``cells`` (flat indices [A]) only."""
+        target = prior if cells is None else prior.index_select(0, cells)
+        return -(target * torch.log_softmax(self._logits(cells), dim=-1)).sum(-1).mean()
 
     @torch.no_grad()
     def add_joints(self, parents: torch.Tensor) -> None:
