@@ -189,8 +189,12 @@ def test_captured_garment_steps_match_eager_steps(video, tmp_path):
         results.append((losses, trainer.gaussians.count, parameters))
         caches.append([tensor.clone() for tensor in extension.cache])
     assert_captured_run_matches(*results)
-    for graph, eager in zip(caches[0], caches[1]):
-        torch.testing.assert_close(graph, eager, rtol=1e-3, atol=1e-4)
+    # The cached rollout amplifies the runs' small differences (on the H100, two eager runs' caches differ by
+    # 0.05 on average after 30 steps, as much as a captured and an eager run's): a captured window that wrote
+    # stale or misplaced states would differ by the caches' own size (0.15-0.3), so compare against the spread.
+    for graph, eager, again in zip(*caches):
+        gap, spread = ((run - eager).abs().mean() for run in (graph, again))
+        assert gap <= 2.0 * spread + 1e-4, (float(gap), float(spread), float(eager.abs().mean()))
 
 
 def test_bench_avatar_measures_a_garment_step(tmp_path):

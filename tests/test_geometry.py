@@ -102,3 +102,28 @@ def test_quaternion_functions_keep_the_dtype(dtype):
     quats = _random_quats(3, generator, dtype=dtype)
     assert geometry.quat_to_matrix(quats).dtype == dtype
     assert geometry.quat_from_matrix(geometry.quat_to_matrix(quats)).dtype == dtype
+
+
+def test_rows_linear_matches_torch_linear_in_values_and_gradients(device):
+    """The MLPs' Linear (bias gradient as a matrix-vector product) gives torch.nn.Linear's values and gradients
+    on random rows, keeps its state dict, and passes finite differences in float64."""
+    torch.manual_seed(3)
+    ours = geometry.Linear(13, 7).to(device)
+    reference = torch.nn.Linear(13, 7).to(device)
+    reference.load_state_dict(ours.state_dict())
+    x = torch.randn(301, 13, device=device, requires_grad=True)
+    upstream = torch.randn(301, 7, device=device)
+    for layer in (ours, reference):
+        layer.zero_grad()
+    x_ref = x.detach().clone().requires_grad_(True)
+    (ours(x) * upstream).sum().backward()
+    (reference(x_ref) * upstream).sum().backward()
+    torch.testing.assert_close(ours(x), reference(x_ref))
+    torch.testing.assert_close(x.grad, x_ref.grad)
+    torch.testing.assert_close(ours.weight.grad, reference.weight.grad)
+    torch.testing.assert_close(ours.bias.grad, reference.bias.grad)
+    assert ours.state_dict().keys() == reference.state_dict().keys()
+    double = geometry.Linear(5, 3).to(device).double()
+    rows = torch.randn(11, 5, device=device, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a, w, b: geometry._RowsLinear.apply(a, w, b),
+                                    (rows, double.weight, double.bias))

@@ -21,7 +21,7 @@ import torch
 
 from warpavatar._src.cuda_graph import adam_options
 from warpavatar.extensions.base import Extension, LossTerm, option
-from warpavatar.geometry import match_pose, mlp, quat_from_vector, quat_multiply
+from warpavatar.geometry import Linear, match_pose, mlp, quat_from_vector, quat_multiply
 from warpavatar.model.parts import AvatarPart
 from warpavatar.model.skinning_field import box_encoding
 
@@ -82,7 +82,7 @@ class PoseCorrection(AvatarPart):
         self.register_buffer("frame_poses", torch.zeros(frame_count, joint_count, 4, 4))
         width_in = 3 + 6 * frequencies + pose_width + (code_width if frame_count else 0)
         self.trunk = mlp(width_in, hidden, layers, activation=torch.nn.SiLU)
-        self.head = torch.nn.Linear(hidden, 3 + 3 + 3)
+        self.head = Linear(hidden, 3 + 3 + 3)
         torch.nn.init.zeros_(self.head.weight)
         torch.nn.init.zeros_(self.head.bias)
         self.last_outputs: torch.Tensor | None = None

@@ -14,7 +14,7 @@ import math
 import torch
 
 from warpavatar import ops
-from warpavatar.geometry import fourier_features, mlp
+from warpavatar.geometry import Linear, fourier_features, mlp
 
 __all__ = ["closest_on_segments", "bone_distance_prior", "bone_sample_points", "grid_shape_for_box", "box_encoding",
            "VoxelSkinningField"]
@@ -186,7 +186,7 @@ class VoxelSkinningField(torch.nn.Module):
         weight, bias = old.weight.detach().clone(), old.bias.detach().clone()
         shares = torch.ones(self.joint_count) + torch.bincount(parents, minlength=self.joint_count).float()
         bias = bias - torch.log(shares).to(bias)
-        new = torch.nn.Linear(old.in_features, self.joint_count + parents.numel()).to(weight)
+        new = Linear(old.in_features, self.joint_count + parents.numel()).to(weight)
         new.weight.copy_(torch.cat([weight, weight[parents.to(weight.device)]]))
         new.bias.copy_(torch.cat([bias, bias[parents.to(bias.device)]]))
         self.mlp[-1] = new
