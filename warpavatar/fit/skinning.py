@@ -42,6 +42,7 @@ class SkinningStage:
         self._base: torch.Tensor | None = None
         self._encode_cells: torch.Tensor | None = None
         self._scatter_cells: torch.Tensor | None = None
+        self._cell_encoding: torch.Tensor | None = None  # the MLP's input at _encode_cells, kept per choice
         self._cells_chosen = (-1, -1)  # (step, Gaussian count) of the last choice
         self.active_cells = 0
 
@@ -91,9 +92,16 @@ class SkinningStage:
         if self._encode_cells is None or self._encode_cells.shape[0] != capacity:
             self._encode_cells = torch.zeros(capacity, dtype=torch.long, device=device)
             self._scatter_cells = torch.zeros(capacity, dtype=torch.long, device=device)
+            self._cell_encoding = None
         self._base[:-1].copy_(field.grid_weights().reshape(field.cell_count, field.joint_count))
         self._encode_cells.zero_()[:count] = cells
         self._scatter_cells.fill_(field.cell_count)[:count] = cells
+        # the MLP's input at the chosen points is constant until the next choice: gathered once here
+        encoding = field.cell_encoding(self._encode_cells)
+        if self._cell_encoding is None or self._cell_encoding.shape != encoding.shape:
+            self._cell_encoding = encoding
+        else:
+            self._cell_encoding.copy_(encoding)
         self._cells_chosen = chosen
         self.active_cells = count
         self._current = None
@@ -125,7 +133,8 @@ class SkinningStage:
         """What a captured step reads of this stage beyond values: the active grid points' buffers."""
         if self._encode_cells is None or self.config.field_cells != "active":
             return ()
-        return (self._encode_cells.data_ptr(), self._encode_cells.shape[0], self._base.data_ptr())
+        return (self._encode_cells.data_ptr(), self._encode_cells.shape[0], self._base.data_ptr(),
+                self._cell_encoding.data_ptr())
 
     def grid(self, step: int, *, train_field: bool) -> torch.Tensor:
         """The skinning grid of step ``step``, evaluated once per step (with gradients when the field trains;
@@ -135,7 +144,7 @@ class SkinningStage:
         if train_field and self.config.field_cells == "active" and self._cells_chosen[0] >= 0:
             # the chosen grid points from the MLP (with gradients), the others as evaluated at the last choice
             # (after joints were added, until the next choice: every grid point)
-            values = self.field.cell_weights(self._encode_cells)
+            values = self.field.cell_weights(self._encode_cells, encoding=self._cell_encoding)
             grid = self._base.index_put((self._scatter_cells,), values)[:-1]
             grid = grid.reshape(*self.field.grid_shape, self.field.joint_count)
         elif train_field:

@@ -1,0 +1,93 @@
+"""TF32 for the float32 GEMMs of the avatar's MLPs on CUDA: an explicit choice, switched on only where they run.
+
+TF32 tensor cores multiply float32 matrices with 10-bit mantissas (inputs rounded to about 3 decimal digits,
+sums kept in float32), several times faster than full float32 GEMMs on Ampere and later GPUs. The MLPs of a
+training step and of playback (the skinning field's, the pose correction's) tolerate that rounding as they
+tolerate the noise of stochastic training; the rest of posing does not always (bone transforms composed by
+matmuls, where a relative error of 5e-4 moves a 2 m body by a millimetre), so TF32 is not switched on for the
+whole process. Instead:
+
+- the trainer and the :class:`~warpavatar.model.playback.Player` run their work inside
+  :func:`mlp_precision` (the ``--matmul-precision`` choice), which records the precision for the MLPs;
+- each MLP evaluation runs inside :func:`mlp_matmuls`, which sets torch's float32 matmul precision to the
+  recorded one for that evaluation and restores torch's flag afterwards;
+- a training step's backward pass, whose GEMMs are nearly all the MLPs' gradients, runs inside
+  :func:`matmul_precision` with the same choice (gradients computed in TF32: the rounding Adam sees as noise).
+
+A CUDA graph records the kernels chosen when it is captured, so the captured step and the captured playback
+frame run their MLPs in the precision in force during the capture: the same blocks, so the same choice. On a CPU
+nothing changes (torch's flag is left alone).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+from typing import Iterator
+
+import torch
+
+__all__ = ["MATMUL_PRECISIONS", "check_matmul_precision", "matmul_precision", "mlp_precision", "mlp_matmuls"]
+
+MATMUL_PRECISIONS = ("tf32", "fp32")
+"""The accepted precisions of float32 GEMMs: ``tf32`` (TF32 tensor cores on CUDA) or ``fp32`` (full float32)."""
+
+_mlp_precision: contextvars.ContextVar[str] = contextvars.ContextVar("warpavatar_mlp_precision", default="fp32")
+
+
+def check_matmul_precision(precision: str) -> str:
+    """``precision`` when it is one of :data:`MATMUL_PRECISIONS`.
+
+    Raises:
+        ValueError: any other value.
+    """
+    if precision not in MATMUL_PRECISIONS:
+        raise ValueError(f"matmul precision must be 'tf32' or 'fp32', got {precision!r}")
+    return precision
+
+
+@contextlib.contextmanager
+def matmul_precision(precision: str, device) -> Iterator[None]:
+    """Float32 matmuls in ``precision`` inside the block when ``device`` is a CUDA device: torch's cuBLAS flag
+    (``torch.backends.cuda.matmul.fp32_precision``, ``allow_tf32`` before torch 2.9) is set, and restored to
+    what it was on leaving. Elsewhere it changes nothing (no CPU library's flag is touched).
+
+    The setting is global to the process, not to the thread: it also reaches autograd's backward threads while
+    the block runs (a ``loss.backward()`` inside it computes its GEMMs in ``precision``).
+    """
+    check_matmul_precision(precision)
+    if torch.device(device).type != "cuda":
+        yield
+        return
+    flags = torch.backends.cuda.matmul
+    if hasattr(flags, "fp32_precision"):  # torch >= 2.9: cuBLAS's own setting ("none": the global one's)
+        before = flags.fp32_precision
+        flags.fp32_precision = "tf32" if precision == "tf32" else "ieee"
+        try:
+            yield
+        finally:
+            flags.fp32_precision = before
+    else:
+        before = flags.allow_tf32
+        flags.allow_tf32 = precision == "tf32"
+        try:
+            yield
+        finally:
+            flags.allow_tf32 = before
+
+
+@contextlib.contextmanager
+def mlp_precision(precision: str) -> Iterator[None]:
+    """Run the avatar's MLPs (every :func:`mlp_matmuls` block) in ``precision`` inside this block (on CUDA); the
+    default outside any block is ``fp32``. Nests; the previous choice is restored on leaving."""
+    token = _mlp_precision.set(check_matmul_precision(precision))
+    try:
+        yield
+    finally:
+        _mlp_precision.reset(token)
+
+
+def mlp_matmuls(device) -> contextlib.AbstractContextManager:
+    """The block in which an MLP on ``device`` runs: :func:`matmul_precision` with the precision that the
+    enclosing :func:`mlp_precision` chose (``fp32`` outside any)."""
+    return matmul_precision(_mlp_precision.get(), device)
