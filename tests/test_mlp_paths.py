@@ -141,21 +141,26 @@ def test_playback_cache_draws_what_uncached_frames_draw(demo_video, device, cuda
     original_encode = part._encode
     part._encode = lambda points: encodings.append(points.shape[0]) or original_encode(points)
     _assert_same_images(_frames(avatar, demo_video, frames, device=device, player=player), uncached, device)
-    assert part._playback is not None and part._playback[1].shape == (avatar.gaussians.count, 16)
+    assert part._playback is not None and part._playback[1].shape == (avatar.gaussians.count, part.position_width)
     assert encodings == [], "the frames encoded the means again"
 
-    # the avatar changes in place: the cache is refilled (same storage, so a captured frame reads it), and a
-    # changed field gives a new grid
+    # the avatar changes in place: the frames follow, the encoding is made again only for new means (in the
+    # same storage, which a captured frame reads), and a changed field gives a new grid
     storage = part._playback[1].data_ptr()
     with torch.no_grad():
         part.trunk[0].weight.mul_(1.3)
-        avatar.gaussians.means.add_(0.01)
         avatar.field.mlp[0].bias.add_(0.5)
-    changed = _frames(avatar, demo_video, frames[:3], device=device, player=player)
+    changed = _frames(avatar, demo_video, frames[:2], device=device, player=player)
+    assert encodings == []
+    _assert_same_images(changed, _frames(_uncached(avatar), demo_video, frames[:2], device=device), device)
+    assert not any(torch.equal(a, b) for a, b in zip(changed, uncached))
+    with torch.no_grad():
+        avatar.gaussians.means.add_(0.01)
+    moved = _frames(avatar, demo_video, frames[:3], device=device, player=player)
     assert encodings == [avatar.gaussians.count]  # once, for the new means
     assert part._playback[1].data_ptr() == storage
-    _assert_same_images(changed, _frames(_uncached(avatar), demo_video, frames[:3], device=device), device)
-    assert not any(torch.equal(a, b) for a, b in zip(changed, uncached))
+    _assert_same_images(moved, _frames(_uncached(avatar), demo_video, frames[:3], device=device), device)
+    assert not any(torch.equal(a, b) for a, b in zip(moved, changed[:1]))
     # a state dict loaded into the part (copied in place) is a change too
     part.load_state_dict({name: value * 0.7 if name.startswith(("trunk", "head")) else value
                           for name, value in part.state_dict().items()})
@@ -170,15 +175,14 @@ def test_playback_cache_serves_only_its_means_without_gradients():
     means = torch.rand(30, 3)
     part.prepare_playback(means)
     with torch.no_grad():
-        assert part._cached_positions(means) is not None
-        assert part._cached_positions(means.clone()) is None  # another tensor, even with equal values
-    assert part._cached_positions(means) is None  # gradients asked for: computed anew
+        assert part._cached_encoding(means) is not None
+        assert part._cached_encoding(means.clone()) is None  # another tensor, even with equal values
+    assert part._cached_encoding(means) is None  # gradients asked for: computed anew
     with torch.no_grad():
         means.add_(0.1)  # changed in place
-        assert part._cached_positions(means) is None
+        assert part._cached_encoding(means) is None
         part.prepare_playback(means)
-        torch.testing.assert_close(part._cached_positions(means),
-                                   part._encode(means) @ part.trunk[0].weight[:, :part.position_width].T)
+        assert torch.equal(part._cached_encoding(means), part._encode(means))
 
 
 # ------------------------------------------------------------------------------------------------ the field
@@ -200,6 +204,37 @@ def test_field_inputs_gathered_once_per_choice_give_the_same_grid(device):
             key = stage.graph_key()
         else:
             assert stage.graph_key() == key  # the kept encoding too: a captured step reads it
+
+
+def test_active_points_are_written_into_the_grid_in_place_step_after_step(device):
+    """The step's grid is the kept grid with the chosen points rewritten in place (no copy of the whole grid): over
+    steps whose field changes, with and without the graph released after the backward, it and its gradients are
+    those of evaluating every grid point."""
+    from tests.test_field_cells import _field, _points, _stage
+
+    points = _points(300, device, 5, spread=0.9)
+    runs = {}
+    for mode in ("all", "active"):
+        field = _field(device, seed=2)
+        stage = _stage(device, mode, field)
+        optimizer = torch.optim.SGD(field.parameters(), lr=0.5)
+        target = torch.softmax(torch.cos(points @ torch.ones(3, 6, device=device) * 3.0), -1)
+        runs[mode] = []
+        for step in range(3):
+            stage.begin_step(step, points, train_field=True)
+            grid = stage.grid(step, train_field=True)
+            if mode == "active":
+                assert grid.data_ptr() == stage._base.data_ptr()  # a view of the kept grid
+            optimizer.zero_grad()
+            ((field.weights(points, grid) - target) ** 2).sum().backward()
+            runs[mode].append([p.grad.clone() for p in field.parameters()])
+            optimizer.step()
+            if step != 1:  # step 1 keeps its graph: the next step must not reach into it
+                stage.release_graph()
+    for active, whole in zip(runs["active"], runs["all"]):
+        assert all(g.abs().max() > 0 for g in whole)
+        for a, b in zip(active, whole):  # sums over points: float32 rounding relative to the largest entry
+            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5 * float(b.abs().max()))
 
 
 # ------------------------------------------------------------------------------------------------ precision

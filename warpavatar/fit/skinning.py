@@ -37,8 +37,9 @@ class SkinningStage:
         self.optimizer = torch.optim.Adam(field.parameters(), lr=config.field_lr, **adam_options(device))
         self._frozen: torch.Tensor | None = None  # the grid while the field is frozen
         self._current: tuple[int, torch.Tensor] | None = None  # (step, its grid)
-        # --field-cells active: the grid of the last choice with a padding row [D*H*W+1, J], and the chosen grid
-        # points padded to a capacity (padding: row 0 to encode, the padding row to scatter into)
+        # --field-cells active: the grid with a padding row [D*H*W+1, J] (evaluated whole at the last choice, the
+        # chosen points rewritten every step), and the chosen grid points padded to a capacity (padding: row 0 to
+        # encode, the padding row to scatter into)
         self._base: torch.Tensor | None = None
         self._encode_cells: torch.Tensor | None = None
         self._scatter_cells: torch.Tensor | None = None
@@ -145,7 +146,9 @@ class SkinningStage:
             # the chosen grid points from the MLP (with gradients), the others as evaluated at the last choice
             # (after joints were added, until the next choice: every grid point)
             values = self.field.cell_weights(self._encode_cells, encoding=self._cell_encoding)
-            grid = self._base.index_put((self._scatter_cells,), values)[:-1]
+            # written into the grid of the last choice in place, not into a copy of the whole grid: every row a
+            # step reads is a chosen point's, rewritten here (detached first, should a step have kept its graph)
+            grid = self._base.detach_().index_put_((self._scatter_cells,), values)[:-1]
             grid = grid.reshape(*self.field.grid_shape, self.field.joint_count)
         elif train_field:
             grid = self.field.grid_weights()
@@ -163,6 +166,8 @@ class SkinningStage:
         and a step captured on another stream would synchronize with that one (an invalid capture)."""
         if self._current is not None and self._current[1].requires_grad:
             self._current = (self._current[0], self._current[1].detach())
+        if self._base is not None:
+            self._base.detach_()  # the active points' values were written into it with their graph
 
     def forget_step(self) -> None:
         """Evaluate the grid anew at the next :meth:`grid` call, even for the same step (capturing a step that
