@@ -132,8 +132,9 @@ class PoseCorrection(AvatarPart):
         every Gaussian, so their columns make a bias of this frame, ``b + W[:, E:] @ [pose, code]``, and only
         the encoding's E columns multiply per Gaussian (no [N, E + pose + code] input is built). Playback reuses
         the encoding when the means are the frozen ones (:meth:`prepare_playback`)."""
+        rotations = relative_rotations_6d(bone_transforms, self.parents)  # posing maths: float32 products
         with mlp_matmuls(means.device):
-            pose = self.pose_encoder(relative_rotations_6d(bone_transforms, self.parents))
+            pose = self.pose_encoder(rotations)
             if code is not None:
                 pose = torch.cat([pose, code])
             first, width = self.trunk[0], self.position_width
