@@ -278,8 +278,9 @@ def recorded_precisions(monkeypatch):
 @pytest.mark.parametrize("choice", ["tf32", "fp32"])
 def test_the_fit_and_the_player_run_their_mlps_in_the_chosen_precision(demo_video, tmp_path, recorded_precisions,
                                                                      choice, monkeypatch):
-    from tests.test_step_graph import _playback_avatar, _tiny_trainer
+    from tests.test_step_graph import _tiny_trainer
     from warpavatar.fit import trainer as trainer_module
+    from warpavatar.model import Avatar
     from warpavatar.model.playback import Player
 
     monkeypatch.setattr(trainer_module, "matmul_precision", precision.matmul_precision)  # the recording one
@@ -288,15 +289,19 @@ def test_the_fit_and_the_player_run_their_mlps_in_the_chosen_precision(demo_vide
     trainer.train_step()
     assert recorded_precisions.count((choice, "cpu")) >= 3  # the field, the correction, the backward pass
     assert all(call == (choice, "cpu") for call in recorded_precisions)
-    avatar = _playback_avatar(demo_video)
+    # the avatar file keeps the choice, and a player of the loaded avatar follows it
+    state = trainer.avatar.state_for_file(config=trainer.config.to_dict())
+    avatar = Avatar.from_state(state)
+    assert avatar.matmul_precision == choice and Avatar.from_state({**state, "config": {}}).matmul_precision == "tf32"
+    bones = torch.as_tensor(demo_video.bone_transforms[1], dtype=torch.float32)
+    other = "fp32" if choice == "tf32" else "tf32"
+    for given, expected in ((None, choice), (other, other)):
+        recorded_precisions.clear()
+        with precision.mlp_precision("fp32"):  # what a caller chose around it does not matter: the player's own
+            Player(avatar, demo_video.cameras[0], cuda_graph="off", matmul_precision=given).render(bones)
+        assert len(recorded_precisions) >= 2 and set(recorded_precisions) == {(expected, "cpu")}
     recorded_precisions.clear()
-    with precision.mlp_precision("tf32"):  # what a caller chose around it does not matter: the player's own
-        Player(avatar, demo_video.cameras[0], cuda_graph="off", matmul_precision=choice
-               ).render(torch.as_tensor(demo_video.bone_transforms[1], dtype=torch.float32))
-    assert len(recorded_precisions) >= 2 and all(call == (choice, "cpu") for call in recorded_precisions)
-    field = _playback_avatar(demo_video).field
-    recorded_precisions.clear()
-    field.grid_weights()  # outside a fit and a player: full float32
+    avatar.field.grid_weights()  # outside a fit and a player: full float32
     assert recorded_precisions == [("fp32", "cpu")]
 
 

@@ -71,6 +71,7 @@ class Trainer:
                                    min_cells=config.grid_min_cells, hidden=config.field_hidden,
                                    layers=config.field_layers, frequencies=config.field_frequencies).to(self.device)
         self.avatar = Avatar(skeleton, gaussians, field)
+        self.avatar.matmul_precision = config.matmul_precision
         if config.shading == "world":
             self.avatar.shading_origin = self.frames.camera_centre()
         self.skinning = SkinningStage(field, skeleton, config, extent=self.extent)

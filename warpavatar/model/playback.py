@@ -63,7 +63,8 @@ class Player:
         capacity_factor: intersection capacity as a multiple of the largest pair count seen (>= 1).
         check_every: read the pair count every this many frames (the only host read of playback).
         matmul_precision: ``tf32`` (the MLPs' float32 GEMMs on TF32 tensor cores, on CUDA) or ``fp32``
-            (:mod:`warpavatar._src.precision`; as ``warpavatar-fit --matmul-precision``). No effect on a CPU.
+            (:mod:`warpavatar._src.precision`); default: the avatar's (``warpavatar-fit --matmul-precision``,
+            kept in the avatar file). No effect on a CPU.
 
     Raises:
         ValueError: bad options, or ``cuda_graph="on"`` without CUDA.
@@ -71,10 +72,10 @@ class Player:
 
     def __init__(self, avatar, camera, *, background: torch.Tensor | None = None, sh_degree: int | None = None,
                  cuda_graph: str = "auto", capacity_factor: float = 2.0, check_every: int = 30,
-                 matmul_precision: str = "tf32"):
+                 matmul_precision: str | None = None):
         if check_every < 1:
             raise ValueError(f"check_every must be >= 1, got {check_every}")
-        self.matmul_precision = check_matmul_precision(matmul_precision)
+        self.matmul_precision = check_matmul_precision(matmul_precision or avatar.matmul_precision)
         self.avatar = avatar
         self.device = avatar.gaussians.means.device
         self.sh_degree = sh_degree
