@@ -1,7 +1,8 @@
-"""The MLPs of a training step and of playback, computed with less work: the pose correction's first layer split
-into a per-Gaussian part and a per-frame bias, that part cached for a frozen avatar's playback, the skinning
-field's inputs gathered once per choice of grid points, and the ``--matmul-precision`` choice reaching the MLPs
-(issue #18). Each is held to the plain computation on random inputs."""
+"""The MLPs of a training step and of playback, computed with less work (issue #18): the pose correction's first
+layer split into a per-Gaussian product and a per-frame bias, the encoding of a frozen avatar's canonical centres
+cached for playback, the skinning field's inputs gathered once per choice of grid points and its chosen points
+written into the kept grid in place, and the ``--matmul-precision`` choice reaching the MLPs. Each is held to the
+plain computation on random inputs."""
 
 from __future__ import annotations
 
