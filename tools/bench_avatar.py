@@ -227,8 +227,9 @@ def _step_row(trainer, video, device, warmup, repeats) -> dict:
     milliseconds = time_function(trainer.train_step, device=device, warmup=warmup, repeats=repeats)
     counts = count_step_work(trainer.train_step, device=device)
     size = f"{video.cameras[0].width}x{video.cameras[0].height}"
-    notes = (f"{trainer.gaussians.count} Gaussians; per step: {counts['warp']:g} Warp launches, "
-             f"{counts['torch_ops']:g} torch ops, {counts['host_reads']:g} host reads "
+    notes = (f"{trainer.gaussians.count} Gaussians, MLPs in {trainer.config.matmul_precision}; per step: "
+             f"{counts['warp']:g} Warp launches, {counts['torch_ops']:g} torch ops, "
+             f"{counts['host_reads']:g} host reads "
              f"(+{counts['optimizer_reads']:g} of host step counts)")
     if "cuda_launches" in counts:
         notes += (f", {counts['cuda_launches']:g} CUDA kernel launches, {counts['cuda_syncs']:g} syncs, "
@@ -244,14 +245,14 @@ def _step_row(trainer, video, device, warmup, repeats) -> dict:
             "ours": milliseconds, "gsplat": None, "ratio": None, "notes": notes + f"; top ops: {counts['top_ops']}"}
 
 
-def _playback_rows(avatar, video, device, repeats, quick, modes=("off",)) -> list[dict]:
+def _playback_rows(avatar, video, device, repeats, quick, modes=("off",), *, precision: str) -> list[dict]:
     width, height = (160, 90) if quick else (1920, 1080)
     scene = _camera_at(video.cameras[0], width, height, device)
     camera = type("Camera", (), scene)
     bones = torch.as_tensor(video.bone_transforms, dtype=torch.float32, device=device)
     rows = []
     for mode in modes:
-        player = Player(avatar, camera, cuda_graph=mode)
+        player = Player(avatar, camera, cuda_graph=mode, matmul_precision=precision)
         frame = iter(range(10 ** 9))
 
         def draw():
@@ -265,23 +266,26 @@ def _playback_rows(avatar, video, device, repeats, quick, modes=("off",)) -> lis
         counts = count_step_work(draw, device=device)
         rows.append({"measure": f"playback FPS ({'CUDA graph' if player.use_graph else 'eager'})",
                      "size": f"{width}x{height}", "ours": 1000.0 / milliseconds, "gsplat": None, "ratio": None,
-                     "notes": f"{milliseconds:.3f} ms/frame; per frame: {counts['warp']:g} Warp launches, "
-                              f"{counts['torch_ops']:g} torch ops, {counts['host_reads']:g} host reads"
+                     "notes": f"{milliseconds:.3f} ms/frame (MLPs in {precision}); per frame: {counts['warp']:g} "
+                              f"Warp launches, {counts['torch_ops']:g} torch ops, {counts['host_reads']:g} host reads"
                               + (f", {counts['cuda_syncs']:g} syncs" if "cuda_syncs" in counts else "")})
     return rows
 
 
 def run(device: str, quick: bool, *, avatar: str | None = None, video: str | None = None,
-        garment: bool = False) -> list[dict]:
+        garment: bool = False, matmul_precision: str | None = None) -> list[dict]:
     """Benchmark rows (see the module docstring); ``garment``: with a garment forced on the fresh avatar
-    (:data:`GARMENT_CONFIG`; a fitted avatar's own config decides)."""
+    (:data:`GARMENT_CONFIG`; a fitted avatar's own config decides); ``matmul_precision``: the MLPs' GEMMs in
+    the step and in playback (default: the config's)."""
     warmup, repeats = (1, 3) if quick else (5, 20)
     video_folder, config, fitted = _load(avatar, video, device, quick, garment)
+    if matmul_precision is not None:
+        config = dataclasses.replace(config, matmul_precision=matmul_precision)
     with tempfile.TemporaryDirectory() as folder:
         eager = _steady_trainer(video_folder, config, fitted, device, folder, cuda_graph="off")
         rows = _raster_rows(eager.avatar, video_folder, device, warmup, repeats, quick)
         rows.append(_step_row(eager, video_folder, device, warmup, repeats))
-    rows += _playback_rows(eager.avatar, video_folder, device, repeats, quick)
+    rows += _playback_rows(eager.avatar, video_folder, device, repeats, quick, precision=config.matmul_precision)
     if device.startswith("cuda"):  # last: a capture that fails must not cost the rows above
         with tempfile.TemporaryDirectory() as folder:
             graphed = _steady_trainer(video_folder, config, fitted, device, folder, cuda_graph="on")
@@ -289,7 +293,8 @@ def run(device: str, quick: bool, *, avatar: str | None = None, video: str | Non
                 rows.append(_step_row(graphed, video_folder, device, warmup, repeats))
             except Exception as error:  # noqa: BLE001
                 rows.append(_failed_row("training step ms (CUDA graph)", "", error))
-        rows += _playback_rows(eager.avatar, video_folder, device, repeats, quick, modes=("on",))
+        rows += _playback_rows(eager.avatar, video_folder, device, repeats, quick, modes=("on",),
+                               precision=config.matmul_precision)
     return rows
 
 

@@ -45,6 +45,9 @@ def main(argv=None) -> int:
     parser.add_argument("--garment", action="store_true",
                         help="avatar mode: force a simulated garment on the fresh avatar (hung from the root joint), "
                              "so that the training step includes the cloth's window (default: off)")
+    parser.add_argument("--matmul-precision", choices=("tf32", "fp32"), default=None,
+                        help="avatar mode: precision of the MLPs' float32 GEMMs in the training step and in playback "
+                             "(warpavatar-fit --matmul-precision; default: the fitted avatar's config, else tf32)")
     args = parser.parse_args(argv)
 
     modes = MODES if args.mode == "all" else (args.mode,)
@@ -59,7 +62,8 @@ def main(argv=None) -> int:
     out = [header]
     for mode in modes:
         module = importlib.import_module(f"bench_{mode}")
-        extra = {"avatar": args.avatar, "video": args.video, "garment": args.garment} if mode == "avatar" else {}
+        extra = ({"avatar": args.avatar, "video": args.video, "garment": args.garment,
+                  "matmul_precision": args.matmul_precision} if mode == "avatar" else {})
         rows = module.run(device=args.device, quick=args.quick, **extra)
         out.append(f"### {mode}\n\n{markdown_table(rows)}\n")
         print(out[-1], flush=True)

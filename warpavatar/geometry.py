@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 __all__ = ["SH_C0", "quat_multiply", "quat_conjugate", "quat_rotate", "quat_to_matrix", "quat_from_matrix",
-           "quat_from_vector", "sh_basis", "camera_centre", "match_pose", "fourier_features", "Linear", "mlp"]
+           "quat_from_vector", "sh_basis", "camera_centre", "match_pose", "fourier_features", "Linear", "linear_rows", "mlp"]
 
 SH_C0 = 0.28209479177387814
 """Degree-0 real spherical-harmonics constant: colour = SH_C0 * dc + 0.5."""
@@ -194,9 +194,15 @@ class Linear(torch.nn.Linear):
     every training step."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if x.dim() != 2 or self.bias is None or not torch.is_grad_enabled():
-            return super().forward(x)
-        return _RowsLinear.apply(x, self.weight, self.bias)
+        return linear_rows(x, self.weight, self.bias)
+
+
+def linear_rows(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+    """``torch.nn.functional.linear`` whose backward over rows ``x`` [N,C] takes the bias gradient as one
+    matrix-vector product (see :class:`Linear`); other shapes, no bias or no gradients: the plain function."""
+    if x.dim() != 2 or bias is None or not torch.is_grad_enabled():
+        return torch.nn.functional.linear(x, weight, bias)
+    return _RowsLinear.apply(x, weight, bias)
 
 
 def mlp(width_in: int, hidden: int, layers: int, width_out: int | None = None, *,

@@ -15,13 +15,15 @@ a training instant) uses that frame's code, any other pose uses the zero code, i
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import torch
 
 from warpavatar._src.cuda_graph import adam_options
+from warpavatar._src.precision import mlp_matmuls
 from warpavatar.extensions.base import Extension, LossTerm, option
-from warpavatar.geometry import Linear, match_pose, mlp, quat_from_vector, quat_multiply
+from warpavatar.geometry import Linear, linear_rows, match_pose, mlp, quat_from_vector, quat_multiply
 from warpavatar.model.parts import AvatarPart
 from warpavatar.model.skinning_field import box_encoding
 
@@ -86,6 +88,8 @@ class PoseCorrection(AvatarPart):
         torch.nn.init.zeros_(self.head.weight)
         torch.nn.init.zeros_(self.head.bias)
         self.last_outputs: torch.Tensor | None = None
+        #: (key, encoding [N,E]) of the frozen canonical means in playback (prepare_playback)
+        self._playback: tuple[tuple, torch.Tensor] | None = None
 
     def _encode(self, points: torch.Tensor) -> torch.Tensor:
         return box_encoding(points, self.bbox_min, self.bbox_max, self.frequencies)
@@ -114,14 +118,71 @@ class PoseCorrection(AvatarPart):
         """World length of a unit position output: a tenth of the canonical box's diagonal."""
         return 0.1 * (self.bbox_max - self.bbox_min).norm()
 
+    @property
+    def position_width(self) -> int:
+        """Width of the position encoding: the first columns of the trunk's first layer (the pose's follow)."""
+        return 3 + 6 * self.frequencies
+
     def _outputs(self, means: torch.Tensor, bone_transforms: torch.Tensor, code: torch.Tensor | None
                  ) -> torch.Tensor:
-        """Raw network outputs [N,9] for a pose and a frame code (None without codes)."""
-        pose = self.pose_encoder(relative_rotations_6d(bone_transforms, self.parents))
-        if code is not None:
-            pose = torch.cat([pose, code])
-        features = torch.cat([self._encode(means.detach()), pose.expand(means.shape[0], -1)], dim=-1)
-        return self.head(self.trunk(features))
+        """Raw network outputs [N,9] for a pose and a frame code (None without codes).
+
+        The trunk's first layer reads ``[encoding(mean), pose, code]``; the pose and the code are the same for
+        every Gaussian, so their columns make a bias of this frame, ``b + W[:, E:] @ [pose, code]``, and only
+        the encoding's E columns multiply per Gaussian (no [N, E + pose + code] input is built). Playback reuses
+        the encoding when the means are the frozen ones (:meth:`prepare_playback`)."""
+        rotations = relative_rotations_6d(bone_transforms, self.parents)  # posing maths: float32 products
+        with mlp_matmuls(means.device):
+            pose = self.pose_encoder(rotations)
+            if code is not None:
+                pose = torch.cat([pose, code])
+            first, width = self.trunk[0], self.position_width
+            bias = torch.addmv(first.bias, first.weight[:, width:], pose)
+            encoded = self._cached_encoding(means)
+            if encoded is None:
+                encoded = self._encode(means.detach())
+            hidden = linear_rows(encoded, first.weight[:, :width], bias)
+            for layer in itertools.islice(self.trunk, 1, None):
+                hidden = layer(hidden)
+            return self.head(hidden)
+
+    def _encoding_key(self, means: torch.Tensor) -> tuple:
+        """What the encoding of ``means`` depends on beyond values: the tensors themselves (held, so that no other
+        tensor takes their identity), their storage and version counters (bumped by every in-place change:
+        optimizer steps, ``load_state_dict``)."""
+        tensors = (means, self.bbox_min, self.bbox_max)
+        return tensors, tuple((t.data_ptr(), t._version, tuple(t.shape)) for t in tensors)
+
+    def _cached_encoding(self, means: torch.Tensor) -> torch.Tensor | None:
+        """The encoding [N,E] of ``means`` from the playback cache when it was made from these very means,
+        unchanged (and no gradient is asked for), else None."""
+        cache = self._playback
+        if cache is None or torch.is_grad_enabled():
+            return None
+        (tensors, versions), encoded = cache
+        now_tensors, now_versions = self._encoding_key(means)
+        if any(a is not b for a, b in zip(tensors, now_tensors)) or versions != now_versions:
+            return None
+        return encoded
+
+    @torch.no_grad()
+    def prepare_playback(self, rest_means: torch.Tensor) -> tuple:
+        """Cache the positional encoding [N,E] of the stored canonical centres [N,3] (every frame of a frozen
+        avatar computes it again: a dozen small kernels), in a buffer refilled in place while its shape holds;
+        returns that buffer's storage (a captured frame reads it). Used by :meth:`_outputs` only for these very
+        means, unchanged, without gradients.
+
+        The first layer's product with it still runs every frame: the product [N,hidden] is the size of the
+        layer's output, so a cached product would cost a pass over that size to add the frame's bias, more
+        memory traffic than the product of E = 27 columns with the bias added in the GEMM."""
+        if self._cached_encoding(rest_means) is None:
+            encoded = self._encode(rest_means)
+            old = None if self._playback is None else self._playback[1]
+            if old is not None and old.shape == encoded.shape and old.device == encoded.device:
+                encoded = old.copy_(encoded)
+            self._playback = (self._encoding_key(rest_means), encoded)
+        encoded = self._playback[1]
+        return (encoded.data_ptr(), tuple(encoded.shape))
 
     def history_offsets(self, means: torch.Tensor, frame: int) -> torch.Tensor:
         """Position offsets [N,3] [world units] that training frame ``frame``'s code adds to the pose-only

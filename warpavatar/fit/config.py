@@ -15,6 +15,7 @@ import math
 from dataclasses import dataclass, field, fields
 from typing import Mapping
 
+from warpavatar._src.precision import MATMUL_PRECISIONS
 from warpavatar.extensions import get_extension, registered
 
 __all__ = ["FitConfig", "CORE_GROUPS", "RANGES", "range_text", "option_owners", "flat_options", "changed_options"]
@@ -42,6 +43,13 @@ class FitConfig:
                                group="data and schedule", product=True)
     max_train_frames: int = _core(0, "use at most this many training frames, evenly spaced (0 = all)",
                                   group="data and schedule", product=True)
+    matmul_precision: str = _core(
+        "tf32", "precision of the float32 matrix products of the MLPs (skinning field, pose correction) on CUDA, "
+        "in training steps (forward and backward) and in playback of the fitted avatar (warpavatar-render; kept in "
+        "avatar.pt): 'tf32' (TensorFloat-32 tensor cores: faster products whose inputs are rounded to 10-bit "
+        "mantissas, a relative error up to 2^-11 each, sums kept in float32; the rest of posing stays float32) or "
+        "'fp32' (full float32 products: slower, as fits before this option); no effect on a CPU",
+        group="data and schedule", product=True, choices=MATMUL_PRECISIONS)
     # Initialization (TAGA Sec. 3.1, no body template) and the Gaussians
     init_points_per_bone: int = _core(400, "Gaussians sampled around each bone's midpoint at start", group="Gaussians")
     init_carve: bool = _core(True, "also seed Gaussians by carving the canonical box with the training masks",

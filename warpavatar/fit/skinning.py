@@ -37,11 +37,13 @@ class SkinningStage:
         self.optimizer = torch.optim.Adam(field.parameters(), lr=config.field_lr, **adam_options(device))
         self._frozen: torch.Tensor | None = None  # the grid while the field is frozen
         self._current: tuple[int, torch.Tensor] | None = None  # (step, its grid)
-        # --field-cells active: the grid of the last choice with a padding row [D*H*W+1, J], and the chosen grid
-        # points padded to a capacity (padding: row 0 to encode, the padding row to scatter into)
+        # --field-cells active: the grid with a padding row [D*H*W+1, J] (evaluated whole at the last choice, the
+        # chosen points rewritten every step), and the chosen grid points padded to a capacity (padding: row 0 to
+        # encode, the padding row to scatter into)
         self._base: torch.Tensor | None = None
         self._encode_cells: torch.Tensor | None = None
         self._scatter_cells: torch.Tensor | None = None
+        self._cell_encoding: torch.Tensor | None = None  # the MLP's input at _encode_cells, kept per choice
         self._cells_chosen = (-1, -1)  # (step, Gaussian count) of the last choice
         self.active_cells = 0
 
@@ -91,9 +93,16 @@ class SkinningStage:
         if self._encode_cells is None or self._encode_cells.shape[0] != capacity:
             self._encode_cells = torch.zeros(capacity, dtype=torch.long, device=device)
             self._scatter_cells = torch.zeros(capacity, dtype=torch.long, device=device)
+            self._cell_encoding = None
         self._base[:-1].copy_(field.grid_weights().reshape(field.cell_count, field.joint_count))
         self._encode_cells.zero_()[:count] = cells
         self._scatter_cells.fill_(field.cell_count)[:count] = cells
+        # the MLP's input at the chosen points is constant until the next choice: gathered once here
+        encoding = field.cell_encoding(self._encode_cells)
+        if self._cell_encoding is None or self._cell_encoding.shape != encoding.shape:
+            self._cell_encoding = encoding
+        else:
+            self._cell_encoding.copy_(encoding)
         self._cells_chosen = chosen
         self.active_cells = count
         self._current = None
@@ -125,7 +134,8 @@ class SkinningStage:
         """What a captured step reads of this stage beyond values: the active grid points' buffers."""
         if self._encode_cells is None or self.config.field_cells != "active":
             return ()
-        return (self._encode_cells.data_ptr(), self._encode_cells.shape[0], self._base.data_ptr())
+        return (self._encode_cells.data_ptr(), self._encode_cells.shape[0], self._base.data_ptr(),
+                self._cell_encoding.data_ptr())
 
     def grid(self, step: int, *, train_field: bool) -> torch.Tensor:
         """The skinning grid of step ``step``, evaluated once per step (with gradients when the field trains;
@@ -135,8 +145,10 @@ class SkinningStage:
         if train_field and self.config.field_cells == "active" and self._cells_chosen[0] >= 0:
             # the chosen grid points from the MLP (with gradients), the others as evaluated at the last choice
             # (after joints were added, until the next choice: every grid point)
-            values = self.field.cell_weights(self._encode_cells)
-            grid = self._base.index_put((self._scatter_cells,), values)[:-1]
+            values = self.field.cell_weights(self._encode_cells, encoding=self._cell_encoding)
+            # written into the grid of the last choice in place, not into a copy of the whole grid: every row a
+            # step reads is a chosen point's, rewritten here (detached first, should a step have kept its graph)
+            grid = self._base.detach_().index_put_((self._scatter_cells,), values)[:-1]
             grid = grid.reshape(*self.field.grid_shape, self.field.joint_count)
         elif train_field:
             grid = self.field.grid_weights()
@@ -154,6 +166,8 @@ class SkinningStage:
         and a step captured on another stream would synchronize with that one (an invalid capture)."""
         if self._current is not None and self._current[1].requires_grad:
             self._current = (self._current[0], self._current[1].detach())
+        if self._base is not None:
+            self._base.detach_()  # the active points' values were written into it with their graph
 
     def forget_step(self) -> None:
         """Evaluate the grid anew at the next :meth:`grid` call, even for the same step (capturing a step that

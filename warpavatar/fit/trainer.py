@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 import tqdm
 
+from warpavatar._src.precision import matmul_precision, mlp_precision
 from warpavatar.extensions import FitContext, LossTerm, StepContext, get_extension
 from warpavatar.fit.checkpoint import CHECKPOINT_NAME, read_checkpoint, save_checkpoint
 from warpavatar.fit.config import FitConfig, changed_options
@@ -70,6 +71,7 @@ class Trainer:
                                    min_cells=config.grid_min_cells, hidden=config.field_hidden,
                                    layers=config.field_layers, frequencies=config.field_frequencies).to(self.device)
         self.avatar = Avatar(skeleton, gaussians, field)
+        self.avatar.matmul_precision = config.matmul_precision
         if config.shading == "world":
             self.avatar.shading_origin = self.frames.camera_centre()
         self.skinning = SkinningStage(field, skeleton, config, extent=self.extent)
@@ -165,7 +167,8 @@ class Trainer:
         loss = sum(term.weight * term.value for term in terms.values())
         for optimizer in optimizers:
             optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        with matmul_precision(self.config.matmul_precision, self.device):
+            loss.backward()
         for extension in self.extensions:
             extension.after_backward(step)
         for optimizer in optimizers:
@@ -212,7 +215,15 @@ class Trainer:
         The step's device work (:meth:`_step_work`) reads nothing from the device. On CUDA (``cuda_graph``) it is
         captured as a graph once shapes and parameters settle and replayed while they stay, unless an extension
         says the step cannot be (:meth:`~warpavatar.extensions.Extension.step_capturable`).
+
+        The MLPs run in ``--matmul-precision`` (:mod:`warpavatar._src.precision`), and so do the GEMMs of the
+        backward pass, nearly all of them the MLPs' gradients: in eager steps and in the capture alike (a graph
+        replays the kernels chosen when it was captured).
         """
+        with mlp_precision(self.config.matmul_precision):
+            return self._train_step()
+
+    def _train_step(self) -> tuple[StepContext, dict[str, LossTerm]]:
         config = self.config
         number = self.step
         train_field = number >= config.gaussian_only_steps
@@ -327,7 +338,8 @@ class Trainer:
         else:
             self.log_path.unlink(missing_ok=True)
             (self.output_dir / "config.json").write_text(config.to_json())
-            warm = self.skinning.warmup(config.field_warmup_steps)
+            with mlp_precision(config.matmul_precision), matmul_precision(config.matmul_precision, self.device):
+                warm = self.skinning.warmup(config.field_warmup_steps)  # the field's MLP alone
             self._log({"stage": "warmup", "distillation_loss": warm, "gaussians": self.gaussians.count})
         start_time = time.time()
         end = config.iterations if stop_at is None else min(stop_at, config.iterations)

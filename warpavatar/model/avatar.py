@@ -26,6 +26,7 @@ from typing import Any, Mapping
 import torch
 
 from warpavatar import ops
+from warpavatar._src.precision import check_matmul_precision
 from warpavatar.geometry import camera_centre
 from warpavatar.model.gaussians import GaussianModel
 from warpavatar.model.parts import (AvatarPart, CanonicalGaussians, PoseFrame, frame_intervals, part_class_path,
@@ -76,6 +77,9 @@ class Avatar(torch.nn.Module):
         self.parts = torch.nn.ModuleDict()
         #: world point [3] the SH colours are evaluated from (``shading="world"``); None: the render camera
         self.shading_origin: torch.Tensor | None = None
+        #: precision of the MLPs' float32 GEMMs in playback (``tf32`` or ``fp32``, on CUDA): the fit's
+        #: ``--matmul-precision``, read back from the avatar file's config
+        self.matmul_precision = "tf32"
 
     # ------------------------------------------------------------------------------------------------ parts
     def add_part(self, part: AvatarPart, *, first: bool = False) -> AvatarPart:
@@ -312,6 +316,8 @@ class Avatar(torch.nn.Module):
                              f"skeleton {avatar.joint_count} joints and {avatar.grown_joint_count} grown ones")
         if state.get("shading_origin") is not None:
             avatar.shading_origin = state["shading_origin"].to(device=device, dtype=torch.float32)
+        config = state.get("config") or {}
+        avatar.matmul_precision = check_matmul_precision(config.get("matmul_precision", avatar.matmul_precision))
         return avatar
 
     @classmethod

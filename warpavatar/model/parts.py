@@ -151,6 +151,18 @@ class AvatarPart(torch.nn.Module):
         """Get ready to pose the frames of a motion: every skinning transform [T,J+E,4,4], seconds [T] since the
         frame before (:func:`frame_intervals`)."""
 
+    # -------------------------------------------------------------------------------------- playback
+    def prepare_playback(self, rest_means: torch.Tensor) -> tuple:
+        """Called by :class:`~warpavatar.model.playback.Player` before every frame, outside any captured graph,
+        with the stored canonical centres [N,3]: a part may cache what depends only on them and on its own
+        parameters (the same for every frame of a frozen avatar), refilled in place when they change.
+
+        Returns:
+            The storage a captured frame reads of those caches (data pointers, shapes); when it changes, the
+            player captures again. Nothing by default.
+        """
+        return ()
+
     # ------------------------------------------------------------------------------------------ files
     def state_for_file(self) -> dict:
         """Everything :meth:`from_file_state` needs (tensors on the CPU)."""

@@ -9,6 +9,13 @@ frame is drawn with exact buffers to learn how many (Gaussian, tile) pairs the a
 is set to ``capacity_factor`` times that; every ``check_every`` frames the player reads the most pairs a frame
 needed so far (one synchronization, :class:`~warpavatar.model.capacity.IntersectionCapacity`)
 and, when a frame needed more than the capacity, grows it, captures again and redraws the frame.
+
+What depends only on the frozen avatar is computed once, before any capture, in buffers a captured frame reads:
+the skinning grid, and what parts cache (:meth:`~warpavatar.model.parts.AvatarPart.prepare_playback`: the
+pose correction's first layer at the canonical centres). Before each frame the player compares the version
+counters of the avatar's tensors with those the caches were made from (host values, no device read): a change
+(an optimizer step, ``load_state_dict``) refills the caches in place, and a change of the storage a captured
+frame reads (the caches', the Gaussians') captures again.
 """
 
 from __future__ import annotations
@@ -18,6 +25,7 @@ from typing import Any, Mapping
 import torch
 
 from warpavatar._src.cuda_graph import capture_or_fall_back, resolve_cuda_graph
+from warpavatar._src.precision import check_matmul_precision, mlp_precision
 from warpavatar.model.capacity import IntersectionCapacity
 from warpavatar.model.parts import AvatarPart
 
@@ -44,7 +52,8 @@ class Player:
     """Draws an avatar in a sequence of poses through one camera size, reusing its buffers from frame to frame.
 
     Args:
-        avatar: the :class:`~warpavatar.model.avatar.Avatar` (its field is read once: the grid is cached).
+        avatar: the :class:`~warpavatar.model.avatar.Avatar` (its skinning grid is cached, and evaluated again
+            when the field's parameters change).
         camera: object with ``K`` [3,3], ``world_to_camera`` [4,4], ``width``, ``height`` [px]; later frames may
             bring other matrices, not another size.
         background: [3] RGB in 0..1 (default black).
@@ -53,15 +62,20 @@ class Player:
             parts that keep state over a sequence (they need the frame's index, a host number) always run eagerly.
         capacity_factor: intersection capacity as a multiple of the largest pair count seen (>= 1).
         check_every: read the pair count every this many frames (the only host read of playback).
+        matmul_precision: ``tf32`` (the MLPs' float32 GEMMs on TF32 tensor cores, on CUDA) or ``fp32``
+            (:mod:`warpavatar._src.precision`); default: the avatar's (``warpavatar-fit --matmul-precision``,
+            kept in the avatar file). No effect on a CPU.
 
     Raises:
         ValueError: bad options, or ``cuda_graph="on"`` without CUDA.
     """
 
     def __init__(self, avatar, camera, *, background: torch.Tensor | None = None, sh_degree: int | None = None,
-                 cuda_graph: str = "auto", capacity_factor: float = 2.0, check_every: int = 30):
+                 cuda_graph: str = "auto", capacity_factor: float = 2.0, check_every: int = 30,
+                 matmul_precision: str | None = None):
         if check_every < 1:
             raise ValueError(f"check_every must be >= 1, got {check_every}")
+        self.matmul_precision = check_matmul_precision(matmul_precision or avatar.matmul_precision)
         self.avatar = avatar
         self.device = avatar.gaussians.means.device
         self.sh_degree = sh_degree
@@ -78,11 +92,14 @@ class Player:
         self._bones = torch.zeros(avatar.joint_count, 4, 4, device=self.device)
         self._inputs: dict[str, torch.Tensor] = {}
         self._frame_index: int | None = None
-        with torch.no_grad():
-            self._grid = avatar.field.grid_weights()
         self._graph = None
         self._graph_outputs = None
         self._frames_since_check = 0
+        self._grid: torch.Tensor | None = None
+        self._field_tensors: list[torch.Tensor] = []  # held: their identities are part of the field's key
+        self._field_key: tuple = ()
+        self._cache_key: tuple | None = None  # what the captured graph reads of the caches
+        self._refresh()
 
     @property
     def capacity(self) -> int | None:
@@ -94,10 +111,37 @@ class Player:
         self._capacity.value = value
         self._graph = self._graph_outputs = None  # its buffers have the old size
 
+    @torch.no_grad()
+    def _refresh(self) -> None:
+        """Bring what the player caches of the avatar up to date (host checks only, unless something changed):
+        the skinning grid when the field's parameters changed, the parts' playback caches; drop the captured
+        graph when the storage it reads changed (the caches', the Gaussians', a replaced field or part), and
+        count the pairs again when the number of Gaussians changed. Host work only: about 30 us a frame on a
+        slow, shared CPU core."""
+        avatar = self.avatar
+        field = avatar.field
+        tensors = list(field.parameters())
+        field_key = (id(field), tuple((t.data_ptr(), t._version, tuple(t.shape)) for t in tensors))
+        if self._grid is None or field_key != self._field_key:
+            with mlp_precision(self.matmul_precision):
+                grid = field.grid_weights()
+            if self._grid is not None and self._grid.shape == grid.shape:
+                grid = self._grid.copy_(grid)  # in place: a captured frame reads this storage
+            self._grid, self._field_tensors, self._field_key = grid, tensors, field_key
+        gaussians = avatar.gaussians
+        key = (gaussians.count, self._grid.data_ptr(), tuple(t.data_ptr() for t in gaussians.parameters()),
+               tuple((id(part), part.prepare_playback(gaussians.means)) for part in avatar.parts.values()))
+        if key != self._cache_key:
+            if self._cache_key is not None and key[0] != self._cache_key[0]:
+                self._capacity.value = None  # other Gaussians: the next frame counts their pairs
+            self._graph = self._graph_outputs = None
+            self._cache_key = key
+
     def _draw(self):
         """One frame from the player's tensors: (image, alpha, depth); its rasterizer status is recorded."""
-        posed = self.avatar.pose(self._bones, sh_degree=self.sh_degree, grid=self._grid, inputs=self._inputs,
-                                 frame_index=self._frame_index)
+        with mlp_precision(self.matmul_precision):
+            posed = self.avatar.pose(self._bones, sh_degree=self.sh_degree, grid=self._grid, inputs=self._inputs,
+                                     frame_index=self._frame_index)
         image, alpha, depth, info = self.avatar.rasterize(posed, self._camera, background=self._background,
                                                           return_info=True, intersection_capacity=self.capacity)
         self._capacity.record(info["status"])
@@ -135,6 +179,7 @@ class Player:
             outputs, overwritten by the next frame: copy what you keep.
         """
         self._load(bone_transforms, inputs, camera, frame_index)
+        self._refresh()
         if self.capacity is None:  # the first frame: exact buffers, to learn the pair count
             image, alpha, depth = self._draw()
             self._capacity.check()

@@ -14,6 +14,7 @@ import math
 import torch
 
 from warpavatar import ops
+from warpavatar._src.precision import mlp_matmuls
 from warpavatar.geometry import Linear, fourier_features, mlp
 
 __all__ = ["closest_on_segments", "bone_distance_prior", "bone_sample_points", "grid_shape_for_box", "box_encoding",
@@ -114,9 +115,18 @@ class VoxelSkinningField(torch.nn.Module):
     def _encode(self, points: torch.Tensor) -> torch.Tensor:
         return box_encoding(points, self.bbox_min, self.bbox_max, self.frequencies)
 
-    def _logits(self, cells: torch.Tensor | None = None) -> torch.Tensor:
-        """The MLP's bone logits at every grid point [D*H*W, J], or at ``cells`` (flat indices [A]) only."""
-        return self.mlp(self.grid_encoding if cells is None else self.grid_encoding.index_select(0, cells))
+    def cell_encoding(self, cells: torch.Tensor) -> torch.Tensor:
+        """The MLP's input [A, 3 + 6*frequencies] at some grid points (``cells``: [A] flat indices), to keep for
+        as long as the same points are evaluated (:meth:`cell_weights`' ``encoding``)."""
+        return self.grid_encoding.index_select(0, cells)
+
+    def _logits(self, cells: torch.Tensor | None = None, encoding: torch.Tensor | None = None) -> torch.Tensor:
+        """The MLP's bone logits at every grid point [D*H*W, J], or at ``cells`` (flat indices [A]) only, whose
+        inputs may be given (``encoding``: :meth:`cell_encoding` of ``cells``)."""
+        if encoding is None:
+            encoding = self.grid_encoding if cells is None else self.cell_encoding(cells)
+        with mlp_matmuls(encoding.device):
+            return self.mlp(encoding)
 
     def grid_weights(self) -> torch.Tensor:
         """The voxel grid of skinning weights [D,H,W,J] (softmax of the MLP at the grid points)."""
@@ -128,10 +138,11 @@ class VoxelSkinningField(torch.nn.Module):
         depth, height, width = self.grid_shape
         return depth * height * width
 
-    def cell_weights(self, cells: torch.Tensor) -> torch.Tensor:
+    def cell_weights(self, cells: torch.Tensor, *, encoding: torch.Tensor | None = None) -> torch.Tensor:
         """Skinning weights [A,J] of some grid points (``cells``: [A] flat indices into the [D*H*W] grid): the
-        rows of :meth:`grid_weights` for those points, computed by the MLP at those points only."""
-        return torch.softmax(self._logits(cells), dim=-1)
+        rows of :meth:`grid_weights` for those points, computed by the MLP at those points only (from
+        ``encoding``, their :meth:`cell_encoding`, when given)."""
+        return torch.softmax(self._logits(cells, encoding), dim=-1)
 
     @torch.no_grad()
     def cells_read_by(self, points: torch.Tensor, *, dilation: int = 1) -> torch.Tensor:
