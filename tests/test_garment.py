@@ -542,3 +542,42 @@ def test_detection_retry_options_are_checked():
     for name in ("garment_retry_every", "garment_until"):
         with pytest.raises(ValueError, match=name.replace("_", "-")):
             _tiny(garment="auto", **{name: -1})
+
+
+def test_a_region_the_avatar_draws_as_well_as_the_rest_is_no_garment(video, tmp_path, monkeypatch):
+    """Rule 8: a region the rules find counts only when its pixels' image error exceeds the rest's by
+    --garment-residual. The measure responds to a region drawn wrong (its colours inverted), and detection keeps
+    or rejects the same region on it (logged with its excess)."""
+    import warpavatar.extensions.garment as garment_module
+    from warpavatar.extensions.garment_detection import GarmentRegion
+
+    trainer = Trainer(video, _tiny(garment="auto", garment_from=1000, **FORCED), tmp_path / "rule8")
+    trainer.fit(progress=False)
+    extension = trainer.extension("garment")
+    grid = trainer.skinning.field.grid_weights().detach()
+    means = trainer.gaussians.means.detach()
+    up = torch.as_tensor(video.skeleton.up, dtype=torch.float32)
+    height = means @ up
+    ids = torch.nonzero(height < height.median()).squeeze(1)  # the lower half: legs, a region of the body
+    fitted = extension.residual_excess(ids, grid)
+    assert abs(fitted) < 0.05, fitted
+    with torch.no_grad():
+        trainer.gaussians.sh_dc[ids] = -trainer.gaussians.sh_dc[ids] - 1.0  # drawn wrong: colours inverted
+    wrong = extension.residual_excess(ids, grid)
+    assert wrong > fitted + 0.05, (fitted, wrong)
+
+    monkeypatch.setattr(garment_module, "detect_garments", lambda *args, **kwargs: [GarmentRegion(ids, 0, (0, 0))])
+    default = extension.options
+    # under a threshold above its excess: rejected, and the log says why
+    extension.options = dataclasses.replace(default, garment_residual=wrong + 0.01)
+    extension.detect(grid)
+    assert extension.part is None and extension.report["garments"] == 0
+    entry = [json.loads(line) for line in (tmp_path / "rule8" / "train_log.jsonl").read_text().splitlines()][-1]
+    assert entry["garment"] == "none" and entry["rejected"][0]["gaussians"] == ids.numel()
+    assert entry["rejected"][0]["residual_excess"] == pytest.approx(wrong, abs=1e-3)
+    # under the default threshold: kept
+    extension.options = default
+    extension.detect(grid)
+    assert extension.part is not None and extension.report["residual_excess"] == pytest.approx(wrong, abs=1e-3)
+    with pytest.raises(ValueError, match="garment-residual"):
+        _tiny(garment="auto", garment_residual=1.0)

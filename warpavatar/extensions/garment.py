@@ -420,6 +420,12 @@ class GarmentOptions:
                                       "move apart (weight x weight x distance apart over the training motion) by "
                                       "at least this fraction of the body's longest side (0-1)")
     garment_min_fraction: float = option(0.03, "smallest garment, as a fraction of all Gaussians (0-1)")
+    garment_residual: float = option(0.02, "a found garment counts only when its pixels' mean absolute image "
+                                     "error on the training frames (0-1 intensity, each pixel weighted by the "
+                                     "garment's share of it) exceeds the rest of the avatar's by at least this: "
+                                     "cloth that skinning cannot follow leaves its texture misplaced, while a "
+                                     "body part the field merely blends is fitted as well as the rest (0: no "
+                                     "check; a named --garment-attach skips it too)")
     garment_voxel: float = option(0.03, "cloth node spacing as a fraction of the canonical box's longest side")
     garment_window: int = option(1, "frames simulated with gradients before each training frame (truncated "
                                  "backpropagation through time; each costs the frame's substeps forward and "
@@ -468,6 +474,8 @@ class GarmentExtension(Extension):
         for name in ("garment_threshold", "garment_min_fraction"):
             if not 0.0 < getattr(options, name) < 1.0:
                 raise ValueError(f"--{name.replace('_', '-')} must be in (0, 1), got {getattr(options, name)}")
+        if not 0.0 <= options.garment_residual < 1.0:
+            raise ValueError(f"--garment-residual must be in [0, 1), got {options.garment_residual}")
         for name in ("garment_voxel", "garment_substep", "lr_garment", "lr_garment_rest"):
             if not getattr(options, name) > 0.0:
                 raise ValueError(f"--{name.replace('_', '-')} must be > 0, got {getattr(options, name)}")
@@ -521,6 +529,13 @@ class GarmentExtension(Extension):
                                   # says there is a garment)
                                   **(dict(min_weight=0.0) if options.garment_attach else
                                      body_detection_options(skeleton, fit.skinning.field)))
+        # rule 8 (the images): a region the avatar already draws as well as the rest of itself is body
+        checked = not options.garment_attach and options.garment_residual > 0
+        excess = [self.residual_excess(region.gaussian_ids, grid) if checked else math.inf for region in regions]
+        rejected = [{"gaussians": int(region.gaussian_ids.numel()), "residual_excess": round(value, 4)}
+                    for region, value in zip(regions, excess) if value < options.garment_residual]
+        excess, regions = ([value for value in excess if value >= options.garment_residual],
+                           [region for region, value in zip(regions, excess) if value >= options.garment_residual])
         retry = options.garment_retry_every
         self.next_attempt = self.step + retry if not regions and retry > 0 else -1
         self.decided = not 0 <= self.next_attempt <= options.garment_until
@@ -529,7 +544,7 @@ class GarmentExtension(Extension):
         low, high = float(height.min()), float(height.max())
         self.report = {"garments": len(regions), "gaussians": int(means.shape[0])}
         if not regions:
-            fit.log({"step": self.step, "garment": "none",
+            fit.log({"step": self.step, "garment": "none", **({"rejected": rejected} if rejected else {}),
                      **({} if self.decided else {"next_attempt": self.next_attempt})})
             return
         region = regions[0]
@@ -539,6 +554,8 @@ class GarmentExtension(Extension):
         ids = region.gaussian_ids
         garment_height = height[ids]
         span = max(high - low, 1e-9)
+        if checked:
+            self.report["residual_excess"] = round(excess[0], 4)
         self.report.update(garment_gaussians=int(ids.numel()), joint=skeleton.names[joint],
                            split=[skeleton.names[j] for j in region.split_joints],
                            height_range=[round((float(garment_height.min()) - low) / span, 3),
@@ -547,6 +564,36 @@ class GarmentExtension(Extension):
         self.report.update(nodes=part.node_count, attached=int(part.attached.numel()),
                            capsules=int(part.capsule_ids.numel()))
         fit.log({"step": self.step, "garment": dict(self.report)})
+
+    @torch.no_grad()
+    def residual_excess(self, ids: torch.Tensor, grid: torch.Tensor, *, frames: int = 25) -> float:
+        """How much worse the avatar draws the Gaussians ``ids`` [G] than the rest of itself: the mean absolute
+        image error [0-1 intensity] inside the training frames' masks, each pixel weighted by the region's share
+        of its opacity (the region rendered in white, the rest in black), minus the same mean weighted by the
+        rest's share; over up to ``frames`` evenly spaced training frames (given poses, this grid)."""
+        fit = self.fit
+        training = fit.frames
+        count = fit.avatar.gaussians.count
+        white = torch.zeros(count, 3, device=fit.device)
+        white[ids.to(fit.device)] = 1.0
+        sums = torch.zeros(4, device=fit.device, dtype=torch.float64)
+        total = len(training.cameras)
+        for index in range(0, total, max(1, -(-total // frames))):
+            camera = training.cameras[index]
+            posed = fit.avatar.pose(training.bone_transforms[index], frame_index=index, grid=grid)
+            image, alpha, _ = fit.avatar.rasterize(posed, camera, background=training.background)
+            share = ops.rasterize_gaussians(
+                posed["means"][:count], posed["quats"][:count], posed["scales"][:count],
+                posed["opacities"][:count], white, torch.as_tensor(camera.K, dtype=torch.float32, device=fit.device),
+                torch.as_tensor(camera.world_to_camera, dtype=torch.float32, device=fit.device),
+                int(camera.width), int(camera.height))[0][..., 0]
+            target, mask = training.target_of(training.images[index], None if training.masks is None
+                                              else training.masks[index])
+            error = (image - target).abs().mean(-1) * (1.0 if mask is None else mask)
+            rest = (alpha - share).clamp_min(0.0)
+            sums += torch.stack([(error * share).sum(), share.sum(), (error * rest).sum(), rest.sum()]).double()
+        region_error, region_weight, rest_error, rest_weight = sums.tolist()
+        return region_error / max(region_weight, 1e-9) - rest_error / max(rest_weight, 1e-9)
 
     def _build(self, means, weights, grid, ids: torch.Tensor, joint: int) -> GarmentPart:
         fit, options = self.fit, self.options
