@@ -458,6 +458,13 @@ def launch_block_dim(device) -> int:
     return 1
 
 
+def _device_of(array):
+    """The device a launch with ``array`` runs on: a ``wp.array``'s own, or, for a launch descriptor
+    (``warp_utils.warp_descriptor``, which carries no device), Warp's current device, where ``wp.launch`` runs
+    it."""
+    return getattr(array, "device", None)
+
+
 def launch_project(
     means, quats, scales, opacities, coefficients, intrinsics, world_to_camera, *, width: int, height: int,
     sh_degree: int, used_coefficients: int, xy_opacity, conics, color_depth, radii, tiles_touched,
@@ -486,7 +493,7 @@ def launch_project(
         inputs=[means, quats, scales, opacities, coefficients, intrinsics, world_to_camera, width, height, tiles_x,
                 tiles_y, sh_degree, used_coefficients],
         outputs=[xy_opacity, conics, color_depth, radii, tiles_touched, bad_input_flags],
-        block_dim=launch_block_dim(means.device),
+        block_dim=launch_block_dim(_device_of(means)),
     )
 
 
@@ -598,7 +605,7 @@ def launch_emit_tile_keys(xy_opacity, depth_bits, radii, tile_ends, *, width: in
         dim=gaussian_count,
         inputs=[xy_opacity, conics, depth_bits, radii, tile_ends, width, height, tiles_x, tiles_y],
         outputs=[keys, gaussian_ids],
-        block_dim=launch_block_dim(keys.device),
+        block_dim=launch_block_dim(_device_of(keys)),
     )
 
 
@@ -634,7 +641,7 @@ def launch_tile_ranges(sorted_keys, pair_count: int, tile_ranges) -> None:
     if pair_count == 0:
         return
     wp.launch(tile_ranges_kernel, dim=pair_count, inputs=[sorted_keys, pair_count], outputs=[tile_ranges],
-              block_dim=launch_block_dim(sorted_keys.device))
+              block_dim=launch_block_dim(_device_of(sorted_keys)))
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -773,7 +780,7 @@ def launch_composite_forward(tile_ranges, sorted_ids, xy_opacity, conics, color_
         dim=(tiles_x * tiles_y, int(PIXELS_PER_TILE)),
         inputs=[tile_ranges, sorted_ids, xy_opacity, conics, color_depth, background, width, height, tiles_x],
         outputs=[image, alpha, depth, final_transmittance, last_index],
-        block_dim=launch_block_dim(image.device),
+        block_dim=launch_block_dim(_device_of(image)),
     )
 
 
@@ -980,7 +987,7 @@ def launch_composite_backward(tile_ranges, sorted_ids, xy_opacity, conics, color
         inputs=[tile_ranges, sorted_ids, xy_opacity, conics, color_depth, background, width, height, tiles_x,
                 final_transmittance, last_index, grad_image, grad_alpha, grad_depth, int(bool(with_abs))],
         outputs=[grads],
-        block_dim=launch_block_dim(grads.device),
+        block_dim=launch_block_dim(_device_of(grads)),
     )
 
 
@@ -1059,7 +1066,7 @@ def launch_project_backward(
         adj_inputs=[grad_means, grad_quats, grad_scales, grad_coefficients, None, None, None, 0, 0, 0],
         adj_outputs=[grad_mean2d, grad_conic, grad_depth, grad_color],
         adjoint=True,
-        block_dim=launch_block_dim(means.device),
+        block_dim=launch_block_dim(_device_of(means)),
     )
 
 
@@ -1105,7 +1112,7 @@ def launch_tile_ranges_padded(sorted_keys, key_count: int, tile_ranges) -> None:
     if key_count == 0:
         return
     wp.launch(tile_ranges_padded_kernel, dim=key_count, inputs=[sorted_keys, key_count], outputs=[tile_ranges],
-              block_dim=launch_block_dim(sorted_keys.device))
+              block_dim=launch_block_dim(_device_of(sorted_keys)))
 
 
 __all__ += ["padding_key", "tile_ranges_padded_kernel", "launch_tile_ranges_padded"]

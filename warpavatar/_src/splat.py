@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from warpavatar._src.warp_utils import check_tensor, to_warp, torch_stream_scope
+from warpavatar._src.warp_utils import check_tensor, to_warp, torch_stream_scope, warp_descriptor
 from warpavatar.kernels import splat as splat_kernels
 
 __all__ = ["rasterize_gaussians", "rasterizer_status"]
@@ -60,16 +60,14 @@ def _bin(status, capacity, w_xy_opacity, w_conics, color_depth, w_radii, w_tile_
     if count:
         if capacity is not None:
             sort_keys[:count].fill_(splat_kernels.padding_key(tiles_x * tiles_y))
-        w_sort_keys, w_sorted_ids = to_warp(sort_keys), to_warp(sorted_ids)
         splat_kernels.launch_emit_tile_keys(
-            w_xy_opacity, to_warp(color_depth.view(torch.int32)), w_radii, w_tile_ends, width=width, height=height,
-            keys=w_sort_keys[:count], gaussian_ids=w_sorted_ids[:count], conics=w_conics)
-        wp.utils.radix_sort_pairs(w_sort_keys, w_sorted_ids, count, begin_bit=0,
+            w_xy_opacity, warp_descriptor(color_depth.view(torch.int32)), w_radii, w_tile_ends, width=width,
+            height=height, keys=warp_descriptor(sort_keys[:count]), gaussian_ids=warp_descriptor(sorted_ids[:count]),
+            conics=w_conics)
+        wp.utils.radix_sort_pairs(to_warp(sort_keys), to_warp(sorted_ids), count, begin_bit=0,
                                   end_bit=splat_kernels.sort_key_bits(tiles_x * tiles_y))
-        if capacity is None:
-            splat_kernels.launch_tile_ranges(w_sort_keys, count, to_warp(tile_ranges))
-        else:
-            splat_kernels.launch_tile_ranges_padded(w_sort_keys, count, to_warp(tile_ranges))
+        launch_ranges = splat_kernels.launch_tile_ranges if capacity is None else splat_kernels.launch_tile_ranges_padded
+        launch_ranges(warp_descriptor(sort_keys), count, warp_descriptor(tile_ranges))
     return sorted_ids
 
 class _RasterizeGaussians(torch.autograd.Function):
@@ -100,33 +98,33 @@ class _RasterizeGaussians(torch.autograd.Function):
         last_index = torch.empty(height, width, **i32)
 
         with torch_stream_scope(device):
-            w_means = to_warp(means, wp.vec3)
-            w_coefficients = to_warp(coefficients, wp.vec3)
-            w_K = to_warp(K.reshape(1, 3, 3), wp.mat33)
-            w_view = to_warp(world_to_camera.reshape(1, 4, 4), wp.mat44)
-            w_xy_opacity = to_warp(xy_opacity, wp.vec3)
-            w_conics = to_warp(conics, wp.vec3)
-            w_color_depth = to_warp(color_depth, wp.vec4)
-            w_radii = to_warp(radii, wp.vec2i)
-            w_tiles_touched = to_warp(tiles_touched)
-            w_tile_ends = to_warp(tile_ends_and_flag[1:gaussian_count + 1])
+            # Kernel arguments as launch descriptors (a fraction of a wp.array's host cost); the scan and the sort
+            # of warp.utils take wp.arrays.
+            w_xy_opacity = warp_descriptor(xy_opacity, wp.vec3)
+            w_conics = warp_descriptor(conics, wp.vec3)
+            w_color_depth = warp_descriptor(color_depth, wp.vec4)
+            w_radii = warp_descriptor(radii, wp.vec2i)
+            tile_ends = tile_ends_and_flag[1:gaussian_count + 1]
             splat_kernels.launch_project(
-                w_means, to_warp(quats, wp.vec4), to_warp(scales, wp.vec3), to_warp(opacities), w_coefficients,
-                w_K, w_view, width=width, height=height, sh_degree=sh_degree, used_coefficients=used_coefficients,
+                warp_descriptor(means, wp.vec3), warp_descriptor(quats, wp.vec4), warp_descriptor(scales, wp.vec3),
+                warp_descriptor(opacities), warp_descriptor(coefficients, wp.vec3),
+                warp_descriptor(K.view(1, 3, 3), wp.mat33), warp_descriptor(world_to_camera.view(1, 4, 4), wp.mat44),
+                width=width, height=height, sh_degree=sh_degree, used_coefficients=used_coefficients,
                 xy_opacity=w_xy_opacity, conics=w_conics, color_depth=w_color_depth, radii=w_radii,
-                tiles_touched=w_tiles_touched, bad_input_flags=to_warp(tile_ends_and_flag[gaussian_count + 1:]),
+                tiles_touched=warp_descriptor(tiles_touched),
+                bad_input_flags=warp_descriptor(tile_ends_and_flag[gaussian_count + 1:]),
             )
             if gaussian_count:
-                wp.utils.array_scan(w_tiles_touched, w_tile_ends, inclusive=True)
+                wp.utils.array_scan(to_warp(tiles_touched), to_warp(tile_ends), inclusive=True)
             sorted_ids = _bin(tile_ends_and_flag[gaussian_count:], intersection_capacity, w_xy_opacity, w_conics,
-                              color_depth, w_radii, w_tile_ends, tile_ranges, width=width, height=height)
-            w_sorted_ids = to_warp(sorted_ids)
-            w_background = to_warp(background.reshape(1, 3), wp.vec3)
+                              color_depth, w_radii, warp_descriptor(tile_ends), tile_ranges, width=width,
+                              height=height)
             splat_kernels.launch_composite_forward(
-                to_warp(tile_ranges), w_sorted_ids, w_xy_opacity, w_conics, w_color_depth, w_background, width=width,
-                height=height, image=to_warp(image.view(-1, 3), wp.vec3), alpha=to_warp(alpha.view(-1)),
-                depth=to_warp(depth.view(-1)), final_transmittance=to_warp(final_transmittance.view(-1)),
-                last_index=to_warp(last_index.view(-1)),
+                warp_descriptor(tile_ranges), warp_descriptor(sorted_ids), w_xy_opacity, w_conics, w_color_depth,
+                warp_descriptor(background.view(1, 3), wp.vec3), width=width, height=height,
+                image=warp_descriptor(image.view(-1, 3), wp.vec3), alpha=warp_descriptor(alpha.view(-1)),
+                depth=warp_descriptor(depth.view(-1)), final_transmittance=warp_descriptor(final_transmittance.view(-1)),
+                last_index=warp_descriptor(last_index.view(-1)),
             )
 
         ctx.save_for_backward(means, quats, scales, coefficients, background, K, world_to_camera, xy_opacity, conics,
@@ -166,32 +164,34 @@ class _RasterizeGaussians(torch.autograd.Function):
         grad_scales = param_grads[7 * n: 10 * n].view(n, 3)
         grad_coefficients = param_grads[10 * n:].view(n, coefficient_count, 3)
         with torch_stream_scope(device):
-            w_screen = to_warp(screen_grads)
-            w_background = to_warp(background.reshape(1, 3), wp.vec3)
             splat_kernels.launch_composite_backward(
-                to_warp(tile_ranges), to_warp(sorted_ids), to_warp(xy_opacity, wp.vec3), to_warp(conics, wp.vec3),
-                to_warp(color_depth, wp.vec4), w_background, width=width, height=height,
-                final_transmittance=to_warp(final_transmittance.view(-1)), last_index=to_warp(last_index.view(-1)),
-                grad_image=to_warp(grad_image.view(-1, 3), wp.vec3), grad_alpha=to_warp(grad_alpha.view(-1)),
-                grad_depth=to_warp(grad_depth.view(-1)), with_abs=densify_grad_out is not None, grads=w_screen,
+                warp_descriptor(tile_ranges), warp_descriptor(sorted_ids), warp_descriptor(xy_opacity, wp.vec3),
+                warp_descriptor(conics, wp.vec3), warp_descriptor(color_depth, wp.vec4),
+                warp_descriptor(background.view(1, 3), wp.vec3), width=width, height=height,
+                final_transmittance=warp_descriptor(final_transmittance.view(-1)),
+                last_index=warp_descriptor(last_index.view(-1)),
+                grad_image=warp_descriptor(grad_image.view(-1, 3), wp.vec3),
+                grad_alpha=warp_descriptor(grad_alpha.view(-1)), grad_depth=warp_descriptor(grad_depth.view(-1)),
+                with_abs=densify_grad_out is not None, grads=warp_descriptor(screen_grads),
             )
             if any(ctx.needs_input_grad[i] for i in (0, 1, 2, 4)):
                 scratch = torch.empty(9 * n, device=device, dtype=torch.float32)
                 splat_kernels.launch_project_backward(
-                    to_warp(means, wp.vec3), to_warp(quats, wp.vec4), to_warp(scales, wp.vec3),
-                    to_warp(coefficients, wp.vec3), to_warp(K.reshape(1, 3, 3), wp.mat33),
-                    to_warp(world_to_camera.reshape(1, 4, 4), wp.mat44), to_warp(radii, wp.vec2i), width=width,
-                    height=height, sh_degree=sh_degree,
-                    scratch_mean2d=to_warp(scratch[: 2 * n].view(n, 2), wp.vec2),
-                    scratch_conic=to_warp(scratch[2 * n: 5 * n].view(n, 3), wp.vec3),
-                    scratch_depth=to_warp(scratch[5 * n: 6 * n]),
-                    scratch_color=to_warp(scratch[6 * n:].view(n, 3), wp.vec3),
-                    grad_mean2d=to_warp(screen_grads[: 2 * n].view(n, 2), wp.vec2),
-                    grad_conic=to_warp(screen_grads[2 * n: 5 * n].view(n, 3), wp.vec3),
-                    grad_depth=to_warp(screen_grads[9 * n: 10 * n]),
-                    grad_color=to_warp(screen_grads[6 * n: 9 * n].view(n, 3), wp.vec3),
-                    grad_means=to_warp(grad_means, wp.vec3), grad_quats=to_warp(grad_quats, wp.vec4),
-                    grad_scales=to_warp(grad_scales, wp.vec3), grad_coefficients=to_warp(grad_coefficients, wp.vec3),
+                    warp_descriptor(means, wp.vec3), warp_descriptor(quats, wp.vec4), warp_descriptor(scales, wp.vec3),
+                    warp_descriptor(coefficients, wp.vec3), warp_descriptor(K.view(1, 3, 3), wp.mat33),
+                    warp_descriptor(world_to_camera.view(1, 4, 4), wp.mat44), warp_descriptor(radii, wp.vec2i),
+                    width=width, height=height, sh_degree=sh_degree,
+                    scratch_mean2d=warp_descriptor(scratch[: 2 * n].view(n, 2), wp.vec2),
+                    scratch_conic=warp_descriptor(scratch[2 * n: 5 * n].view(n, 3), wp.vec3),
+                    scratch_depth=warp_descriptor(scratch[5 * n: 6 * n]),
+                    scratch_color=warp_descriptor(scratch[6 * n:].view(n, 3), wp.vec3),
+                    grad_mean2d=warp_descriptor(screen_grads[: 2 * n].view(n, 2), wp.vec2),
+                    grad_conic=warp_descriptor(screen_grads[2 * n: 5 * n].view(n, 3), wp.vec3),
+                    grad_depth=warp_descriptor(screen_grads[9 * n: 10 * n]),
+                    grad_color=warp_descriptor(screen_grads[6 * n: 9 * n].view(n, 3), wp.vec3),
+                    grad_means=warp_descriptor(grad_means, wp.vec3), grad_quats=warp_descriptor(grad_quats, wp.vec4),
+                    grad_scales=warp_descriptor(grad_scales, wp.vec3),
+                    grad_coefficients=warp_descriptor(grad_coefficients, wp.vec3),
                 )
         if densify_grad_out is not None:
             densify_grad_out.add_(screen_grads[10 * n:].view(n, 2))
