@@ -47,6 +47,7 @@ __all__ = [
     "TILE_SIZE",
     "PIXELS_PER_TILE",
     "GRAD_RECORD_FLOATS",
+    "screen_grad_floats",
     "NEAR_PLANE",
     "FAR_PLANE",
     "BAD_MEANS",
@@ -97,8 +98,15 @@ GRAD_RECORD_FLOATS = 12
 
 The buffer is structure-of-arrays, ``[12 * gaussian_count]`` float32, segments in this order:
 ``d mean2d`` (vec2), ``d conic`` (vec3: a, b, c of ``a dx^2/2 + b dx dy + c dy^2/2``), ``d opacity``,
-``d colour`` (vec3), ``d depth``, ``sum |d mean2d|`` per axis (vec2).
+``d colour`` (vec3), ``d depth``, ``sum |d mean2d|`` per axis (vec2). Without the sums (no densification
+statistics asked for) the buffer may end before them: :func:`screen_grad_floats`.
 """
+
+
+def screen_grad_floats(with_abs: bool) -> int:
+    """Floats per Gaussian the compositing backward's buffer needs: :data:`GRAD_RECORD_FLOATS`, less the two
+    ``sum |d mean2d|`` floats when ``with_abs`` is False (they are then never written)."""
+    return GRAD_RECORD_FLOATS if with_abs else GRAD_RECORD_FLOATS - 2
 
 # Bits of the non-finite-input flag written by the projection kernel.
 BAD_MEANS = wp.constant(1)
@@ -970,15 +978,17 @@ def composite_backward_kernel(
 def launch_composite_backward(tile_ranges, sorted_ids, xy_opacity, conics, color_depth, background, *, width: int,
                               height: int, final_transmittance, last_index, grad_image, grad_alpha, grad_depth,
                               with_abs: bool, grads) -> None:
-    """Launch :data:`composite_backward_kernel`; ``grads`` is a zeroed float32 array of ``12 * gaussian_count``."""
+    """Launch :data:`composite_backward_kernel`; ``grads`` is a zeroed float32 array of
+    ``screen_grad_floats(with_abs) * gaussian_count``."""
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
     tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
     if tile_ranges.shape[0] != tiles_x * tiles_y:
         raise ValueError(f"tile_ranges has {tile_ranges.shape[0]} rows, expected {tiles_x * tiles_y} tiles")
     _check_pixel_arrays(width, height, final_transmittance=final_transmittance, last_index=last_index,
                         grad_image=grad_image, grad_alpha=grad_alpha, grad_depth=grad_depth)
-    if grads.shape[0] != GRAD_RECORD_FLOATS * xy_opacity.shape[0]:
-        raise ValueError(f"grads has {grads.shape[0]} entries, expected {GRAD_RECORD_FLOATS} * gaussian_count")
+    floats = screen_grad_floats(with_abs)
+    if grads.shape[0] != floats * xy_opacity.shape[0]:
+        raise ValueError(f"grads has {grads.shape[0]} entries, expected {floats} * gaussian_count")
     if width * height == 0 or xy_opacity.shape[0] == 0:
         return
     wp.launch(

@@ -40,7 +40,7 @@ def _tile_grid(width: int, height: int) -> tuple[int, int]:
 
 def _bin(status, capacity, w_xy_opacity, w_conics, color_depth, w_radii, w_tile_ends, tile_ranges, *, width,
          height):
-    """Sort the (Gaussian, tile) pairs; returns the sorted Gaussian ids.
+    """Sort the (Gaussian, tile) pairs; returns the sorted Gaussian ids (one per pair, or per capacity slot).
 
     Without a ``capacity`` the buffers have the exact size: ``status`` ([pair count, flags]) is read from the
     device (the one host synchronization) and non-finite input raises. With one, nothing is read: unused slots
@@ -68,7 +68,10 @@ def _bin(status, capacity, w_xy_opacity, w_conics, color_depth, w_radii, w_tile_
                                   end_bit=splat_kernels.sort_key_bits(tiles_x * tiles_y))
         launch_ranges = splat_kernels.launch_tile_ranges if capacity is None else splat_kernels.launch_tile_ranges_padded
         launch_ranges(warp_descriptor(sort_keys), count, warp_descriptor(tile_ranges))
-    return sorted_ids
+    # The sort's second halves were its scratch: the backward keeps only the sorted ids (4 bytes a pair, not
+    # the 8 of the double buffer), copied once the keys' 16 bytes a pair are released.
+    del sort_keys
+    return sorted_ids[:count].clone()
 
 class _RasterizeGaussians(torch.autograd.Function):
     """Autograd wrapper; inputs are already validated, float32 and contiguous (see :func:`rasterize_gaussians`)."""
@@ -156,9 +159,13 @@ class _RasterizeGaussians(torch.autograd.Function):
         grad_depth = as_grad(grad_depth, (height, width))
 
         n = gaussian_count
-        screen_grads = torch.zeros(splat_kernels.GRAD_RECORD_FLOATS * n, device=device, dtype=torch.float32)
+        # One zeroed allocation (one fill) for the screen-space gradients (the |d mean2d| sums only when asked
+        # for) and the parameters' gradients, which the kernels add into.
+        screen_floats = splat_kernels.screen_grad_floats(densify_grad_out is not None)
         coefficient_count = coefficients.shape[1]
-        param_grads = torch.zeros((10 + 3 * coefficient_count) * n, device=device, dtype=torch.float32)
+        gradients = torch.zeros((screen_floats + 10 + 3 * coefficient_count) * n, device=device, dtype=torch.float32)
+        screen_grads = gradients[: screen_floats * n]
+        param_grads = gradients[screen_floats * n:]
         grad_means = param_grads[: 3 * n].view(n, 3)
         grad_quats = param_grads[3 * n: 7 * n].view(n, 4)
         grad_scales = param_grads[7 * n: 10 * n].view(n, 3)

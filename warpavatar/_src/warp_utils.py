@@ -71,11 +71,11 @@ def _element_layout(torch_dtype: torch.dtype, dtype) -> tuple[object, tuple[int,
     ``torch_dtype`` read as elements of ``dtype`` (None: the default scalar); raises when they do not fit."""
     scalars = _WARP_SCALARS_OF_TORCH.get(torch_dtype)
     if scalars is None:
-        raise TypeError(f"Warp kernels cannot read torch {torch_dtype} tensors")
+        raise TypeError(f"Warp kernels cannot read {torch_dtype} tensors")
     if dtype is None:
         dtype = scalars[0]
     if getattr(dtype, "_wp_scalar_type_", dtype) not in scalars:
-        raise TypeError(f"cannot view a torch {torch_dtype} tensor as Warp {dtype.__name__}")
+        raise TypeError(f"cannot view a {torch_dtype} tensor as Warp {dtype.__name__}")
     inner_shape = tuple(getattr(dtype, "_shape_", ()))
     item_bytes = ctypes.sizeof(dtype._type_)
     for size in inner_shape:
@@ -201,22 +201,37 @@ def warp_stream_of(stream: torch.cuda.Stream) -> wp.Stream:
     return wrapper
 
 
-@contextlib.contextmanager
-def torch_stream_scope(device: torch.device | str):
+class torch_stream_scope:
     """Run the Warp launches inside this block on torch's current stream of ``device``.
 
-    On CPU it only selects the Warp device.
+    On CPU it only selects the Warp device. ``with torch_stream_scope(device) as name:`` gives Warp's name of the
+    device. The Warp device of a torch device with an index is looked up once; the stream is torch's current
+    one at entry.
     """
-    init_warp()
-    device = torch.device(device)
-    name = warp_device(device)
-    if device.type == "cuda":
-        stream = warp_stream_of(torch.cuda.current_stream(device))
-        with wp.ScopedDevice(name), wp.ScopedStream(stream, sync_enter=False):
-            yield name
-    else:
-        with wp.ScopedDevice(name):
-            yield name
+
+    __slots__ = ("_device", "_scopes")
+
+    def __init__(self, device: torch.device | str):
+        self._device = device if isinstance(device, torch.device) else torch.device(device)
+        self._scopes = ()
+
+    def __enter__(self) -> str:
+        device = self._device
+        warp_device_object = _warp_device_object(device) if device.index is not None or device.type == "cpu" else (
+            _warp_device_object(torch.device("cuda", torch.cuda.current_device())))
+        if device.type == "cuda":
+            stream = warp_stream_of(torch.cuda.current_stream(device))
+            self._scopes = (wp.ScopedDevice(warp_device_object), wp.ScopedStream(stream, sync_enter=False))
+        else:
+            self._scopes = (wp.ScopedDevice(warp_device_object),)
+        for scope in self._scopes:
+            scope.__enter__()
+        return warp_device_object.alias
+
+    def __exit__(self, *exc) -> None:
+        for scope in reversed(self._scopes):
+            scope.__exit__(*exc)
+        self._scopes = ()
 
 
 def available_devices() -> list[str]:
