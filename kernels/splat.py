@@ -1054,8 +1054,9 @@ def launch_project_backward(
 
     ``grad_mean2d``/``grad_conic``/``grad_depth``/``grad_color`` are the incoming per-Gaussian gradients; the
     ``grad_means``/``grad_quats``/``grad_scales``/``grad_coefficients`` arrays (zeroed by the caller) receive
-    the result. ``scratch_*`` arrays (same shapes as the incoming gradients, contents ignored) are written by
-    the forward replay of the adjoint kernel.
+    the result. ``scratch_*`` arrays (``gaussian_count`` long, contents ignored) are written by the forward
+    replay of the adjoint kernel and never read: ``warp_utils.write_only_descriptor`` lets them share one
+    element.
     """
     gaussian_count = means.shape[0]
     for name, array in (("quats", quats), ("scales", scales), ("coefficients", coefficients), ("radii", radii),

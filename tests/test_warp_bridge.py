@@ -6,7 +6,7 @@ import pytest
 import torch
 import warp as wp
 
-from warpavatar._src.warp_utils import init_warp, to_warp, torch_stream_scope, warp_descriptor
+from warpavatar._src.warp_utils import init_warp, to_warp, torch_stream_scope, warp_descriptor, write_only_descriptor
 
 init_warp()
 
@@ -87,3 +87,33 @@ def test_bad_layouts_are_refused():
     # to_warp copies a non-contiguous tensor instead.
     strided = torch.arange(24.0).reshape(4, 6)[:, ::2]
     assert to_warp(strided).numpy().tolist() == strided.tolist()
+
+
+@wp.kernel
+def _weighted_square_kernel(values: wp.array(dtype=wp.vec3), weight: float, squares: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    v = values[i]
+    squares[i] = weight * wp.cw_mul(v, v)
+
+
+def test_adjoint_launch_with_write_only_outputs(device):
+    # The forward outputs an adjoint launch replays may all share one element: the gradients are those of full
+    # output arrays, bit for bit, and equal to the closed form 2 w v * d squares.
+    count, weight = 53, 1.75
+    values = torch.randn(count, 3, device=device)
+    grad_squares = torch.randn(count, 3, device=device)
+    gradients = []
+    for write_only in (False, True):
+        grad_values = torch.zeros(count, 3, device=device)
+        sink = torch.empty(3, device=device)
+        squares = (write_only_descriptor(sink, count, wp.vec3) if write_only
+                   else warp_descriptor(torch.empty(count, 3, device=device), wp.vec3))
+        with torch_stream_scope(device):
+            wp.launch(_weighted_square_kernel, dim=count, inputs=[warp_descriptor(values, wp.vec3), weight],
+                      outputs=[squares], adj_inputs=[warp_descriptor(grad_values, wp.vec3), 0.0],
+                      adj_outputs=[warp_descriptor(grad_squares, wp.vec3)], adjoint=True)
+        gradients.append(grad_values)
+    assert torch.equal(gradients[0], gradients[1])
+    torch.testing.assert_close(gradients[1], 2.0 * weight * values * grad_squares)
+    with pytest.raises(ValueError, match="at least 12 bytes, got 8"):
+        write_only_descriptor(torch.empty(2, device=device), count, wp.vec3)

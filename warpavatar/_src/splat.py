@@ -1,11 +1,16 @@
 """Differentiable Gaussian-splatting rasterizer: torch autograd bridge to the Warp kernels of ``kernels/splat.py``.
 
 One forward pass makes four Warp kernel launches (projection, key emission, tile ranges, compositing) plus the
-prefix sum and radix sort of ``warp.utils``, two small torch fills, and one host synchronization: reading the
-number of (Gaussian, tile) pairs to size the sort buffers (an upper bound would cost far more memory, as any
-Gaussian may cover the whole image). The same read fetches the non-finite-input flag, so checking the inputs
-costs no extra synchronization. One backward pass makes two Warp launches (compositing backward, projection
-adjoint), two torch fills and no synchronization.
+prefix sum and radix sort of ``warp.utils``, two small torch fills, a copy of the sorted ids (the backward keeps
+4 bytes a pair, not the sort's double buffer), and one host synchronization: reading the number of
+(Gaussian, tile) pairs to size the sort buffers (an upper bound would cost far more memory, as any Gaussian may
+cover the whole image). The same read fetches the non-finite-input flag, so checking the inputs costs no extra
+synchronization. One backward pass makes two Warp launches (compositing backward, projection adjoint), one torch
+fill and no synchronization.
+
+Host work per call is kept small: kernel arguments are Warp launch descriptors
+(:func:`~warpavatar._src.warp_utils.warp_descriptor`), not ``wp.array`` objects, and only the scan and the sort
+get arrays. Memory a pass holds, per Gaussian / pair / pixel, is listed in ``docs/rasterizer_memory.md``.
 
 With ``intersection_capacity`` the sort buffers have that fixed size instead: unused slots get a padding key that
 sorts last, the key kernel drops pairs past the capacity, and nothing is read from the device, so the pass can
@@ -18,7 +23,8 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from warpavatar._src.warp_utils import check_tensor, to_warp, torch_stream_scope, warp_descriptor
+from warpavatar._src.warp_utils import (check_tensor, to_warp, torch_stream_scope, warp_descriptor,
+                                        write_only_descriptor)
 from warpavatar.kernels import splat as splat_kernels
 
 __all__ = ["rasterize_gaussians", "rasterizer_status"]
@@ -182,16 +188,18 @@ class _RasterizeGaussians(torch.autograd.Function):
                 with_abs=densify_grad_out is not None, grads=warp_descriptor(screen_grads),
             )
             if any(ctx.needs_input_grad[i] for i in (0, 1, 2, 4)):
-                scratch = torch.empty(9 * n, device=device, dtype=torch.float32)
+                # The adjoint launch replays the projection's outputs, which nothing reads: they all land on one
+                # vec3 (write_only_descriptor) instead of a buffer of 9 floats a Gaussian.
+                sink = torch.empty(3, device=device, dtype=torch.float32)
                 splat_kernels.launch_project_backward(
                     warp_descriptor(means, wp.vec3), warp_descriptor(quats, wp.vec4), warp_descriptor(scales, wp.vec3),
                     warp_descriptor(coefficients, wp.vec3), warp_descriptor(K.view(1, 3, 3), wp.mat33),
                     warp_descriptor(world_to_camera.view(1, 4, 4), wp.mat44), warp_descriptor(radii, wp.vec2i),
                     width=width, height=height, sh_degree=sh_degree,
-                    scratch_mean2d=warp_descriptor(scratch[: 2 * n].view(n, 2), wp.vec2),
-                    scratch_conic=warp_descriptor(scratch[2 * n: 5 * n].view(n, 3), wp.vec3),
-                    scratch_depth=warp_descriptor(scratch[5 * n: 6 * n]),
-                    scratch_color=warp_descriptor(scratch[6 * n:].view(n, 3), wp.vec3),
+                    scratch_mean2d=write_only_descriptor(sink, n, wp.vec2),
+                    scratch_conic=write_only_descriptor(sink, n, wp.vec3),
+                    scratch_depth=write_only_descriptor(sink, n, wp.float32),
+                    scratch_color=write_only_descriptor(sink, n, wp.vec3),
                     grad_mean2d=warp_descriptor(screen_grads[: 2 * n].view(n, 2), wp.vec2),
                     grad_conic=warp_descriptor(screen_grads[2 * n: 5 * n].view(n, 3), wp.vec3),
                     grad_depth=warp_descriptor(screen_grads[9 * n: 10 * n]),

@@ -26,6 +26,7 @@ __all__ = [
     "warp_device",
     "to_warp",
     "warp_descriptor",
+    "write_only_descriptor",
     "torch_stream_scope",
     "warp_stream_of",
     "available_devices",
@@ -76,11 +77,15 @@ def _element_layout(torch_dtype: torch.dtype, dtype) -> tuple[object, tuple[int,
         dtype = scalars[0]
     if getattr(dtype, "_wp_scalar_type_", dtype) not in scalars:
         raise TypeError(f"cannot view a {torch_dtype} tensor as Warp {dtype.__name__}")
-    inner_shape = tuple(getattr(dtype, "_shape_", ()))
+    return dtype, tuple(getattr(dtype, "_shape_", ())), _item_bytes(dtype)
+
+
+def _item_bytes(dtype) -> int:
+    """Bytes of one element of a Warp scalar, vector or matrix dtype."""
     item_bytes = ctypes.sizeof(dtype._type_)
-    for size in inner_shape:
+    for size in getattr(dtype, "_shape_", ()):
         item_bytes *= size
-    return dtype, inner_shape, item_bytes
+    return item_bytes
 
 
 _LAYOUTS: dict[tuple, tuple[object, tuple[int, ...], tuple[int, ...]]] = {}
@@ -179,6 +184,31 @@ def warp_descriptor(tensor: torch.Tensor, dtype=None):
     dtype, shape, strides = _array_layout(tensor, dtype)
     descriptor = _array_descriptor_type()(tensor.data_ptr(), 0, len(shape), shape, strides)
     descriptor._tensor = tensor
+    return descriptor
+
+
+def write_only_descriptor(sink: torch.Tensor, element_count: int, dtype):
+    """A launch descriptor of ``element_count`` elements of ``dtype`` that all lie at the start of ``sink``
+    (stride 0), for an output a kernel must be given but whose values nobody reads: the forward outputs that an
+    adjoint launch (``wp.launch(..., adjoint=True)``) writes again while it computes the gradients, whose
+    adjoints read only the gradient arrays. Every thread writes the same bytes, so they hold no meaning; the
+    buffer costs one element instead of ``element_count``.
+
+    Args:
+        sink: a contiguous tensor of at least one element of ``dtype`` (its bytes), on the launch's device; kept
+            alive by the descriptor.
+        element_count: the length the kernel sees (``shape[0]``).
+        dtype: Warp dtype of one element (e.g. ``wp.vec3``).
+
+    Raises:
+        ValueError: ``sink`` is not contiguous or smaller than one element.
+    """
+    item_bytes = _item_bytes(dtype)
+    if not sink.is_contiguous() or sink.numel() * sink.element_size() < item_bytes:
+        raise ValueError(f"the sink of a write-only {dtype.__name__} array must be a contiguous tensor of at least "
+                         f"{item_bytes} bytes, got {sink.numel() * sink.element_size()}")
+    descriptor = _array_descriptor_type()(sink.data_ptr(), 0, 1, (element_count,), (0,))
+    descriptor._tensor = sink
     return descriptor
 
 
