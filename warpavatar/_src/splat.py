@@ -95,16 +95,20 @@ class _RasterizeGaussians(torch.autograd.Function):
         conics = torch.empty(gaussian_count, 3, **f32)
         color_depth = torch.empty(gaussian_count, 4, **f32)
         radii = torch.empty(gaussian_count, 2, **i32)
-        tiles_touched = torch.empty(gaussian_count, **i32)
-        # A zero, the inclusive prefix sum of tiles_touched, then the non-finite-input flag: the last two are the
-        # pair count and the flag (one read fetches both; 0 pairs without Gaussians).
-        tile_ends_and_flag = torch.zeros(gaussian_count + 2, **i32)
+        # One zeroed int32 allocation: the tile counts, then a zero, their inclusive prefix sum and the
+        # non-finite-input flag; the last two are the pair count and the flag (one read fetches both; 0 pairs
+        # without Gaussians).
+        tile_counts = torch.zeros(2 * gaussian_count + 2, **i32)
+        tiles_touched = tile_counts[:gaussian_count]
+        tile_ends_and_flag = tile_counts[gaussian_count:]
         tile_ranges = torch.zeros(tiles_x * tiles_y, 2, **i32)
         image = torch.empty(height, width, 3, **f32)
         alpha = torch.empty(height, width, **f32)
         depth = torch.empty(height, width, **f32)
-        final_transmittance = torch.empty(height, width, **f32)
-        last_index = torch.empty(height, width, **i32)
+        # What the backward reads per pixel, in one allocation: the final transmittance and the last index.
+        pixel_state = torch.empty(2, height, width, **i32)
+        final_transmittance = pixel_state[0].view(torch.float32)
+        last_index = pixel_state[1]
 
         with torch_stream_scope(device):
             # Kernel arguments as launch descriptors (a fraction of a wp.array's host cost); the scan and the sort

@@ -57,6 +57,7 @@ _WARP_SCALARS_OF_TORCH = {
     torch.float32: (wp.float32,),
     torch.float64: (wp.float64,),
     torch.float16: (wp.float16,),
+    torch.bfloat16: (wp.bfloat16,),
     torch.int32: (wp.int32, wp.uint32),
     torch.int64: (wp.int64, wp.uint64),
     torch.int16: (wp.int16, wp.uint16),
