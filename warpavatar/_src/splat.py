@@ -72,8 +72,10 @@ def _bin(status, capacity, w_xy_opacity, w_conics, color_depth, w_radii, w_tile_
             conics=w_conics)
         wp.utils.radix_sort_pairs(to_warp(sort_keys), to_warp(sorted_ids), count, begin_bit=0,
                                   end_bit=splat_kernels.sort_key_bits(tiles_x * tiles_y))
-        launch_ranges = splat_kernels.launch_tile_ranges if capacity is None else splat_kernels.launch_tile_ranges_padded
-        launch_ranges(warp_descriptor(sort_keys), count, warp_descriptor(tile_ranges))
+        if capacity is None:
+            splat_kernels.launch_tile_ranges(warp_descriptor(sort_keys), count, warp_descriptor(tile_ranges))
+        else:
+            splat_kernels.launch_tile_ranges_padded(warp_descriptor(sort_keys), count, warp_descriptor(tile_ranges))
     # The sort's second halves were its scratch: the backward keeps only the sorted ids (4 bytes a pair, not
     # the 8 of the double buffer), copied once the keys' 16 bytes a pair are released.
     del sort_keys
@@ -136,7 +138,8 @@ class _RasterizeGaussians(torch.autograd.Function):
                 warp_descriptor(tile_ranges), warp_descriptor(sorted_ids), w_xy_opacity, w_conics, w_color_depth,
                 warp_descriptor(background.view(1, 3), wp.vec3), width=width, height=height,
                 image=warp_descriptor(image.view(-1, 3), wp.vec3), alpha=warp_descriptor(alpha.view(-1)),
-                depth=warp_descriptor(depth.view(-1)), final_transmittance=warp_descriptor(final_transmittance.view(-1)),
+                depth=warp_descriptor(depth.view(-1)),
+                final_transmittance=warp_descriptor(final_transmittance.view(-1)),
                 last_index=warp_descriptor(last_index.view(-1)),
             )
 
