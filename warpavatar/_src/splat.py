@@ -39,6 +39,21 @@ _BAD_INPUT_NAMES = (
 )
 
 
+_BLACK_BACKGROUNDS: dict[torch.device, torch.Tensor] = {}
+
+
+def _black_background(device: torch.device) -> torch.Tensor:
+    """A black background [3] on ``device``, made once per device (no allocation and fill a call): the kernels
+    only read it and it needs no gradient. Inside a CUDA graph capture a fresh one, captured with its fill (a
+    tensor made during a capture holds its zeros only once the graph replays)."""
+    if device.type == "cuda" and torch.cuda.is_current_stream_capturing():
+        return torch.zeros(3, device=device, dtype=torch.float32)
+    background = _BLACK_BACKGROUNDS.get(device)
+    if background is None:
+        background = _BLACK_BACKGROUNDS[device] = torch.zeros(3, device=device, dtype=torch.float32)
+    return background
+
+
 def _tile_grid(width: int, height: int) -> tuple[int, int]:
     tile = int(splat_kernels.TILE_SIZE)
     return (width + tile - 1) // tile, (height + tile - 1) // tile
@@ -314,7 +329,7 @@ def rasterize_gaussians(
         coefficients = colors
         kernel_degree = sh_degree
     if background is None:
-        background = torch.zeros(3, device=device, dtype=torch.float32)
+        background = _black_background(device)
     else:
         check_tensor("background", background, (3,), device=device)
     if densify_grad_out is not None:
