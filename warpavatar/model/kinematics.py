@@ -1,11 +1,15 @@
-"""Skeleton kinematics: rotations from axis-angle vectors, the skeleton's joints by depth, and a pose corrected
-joint by joint (what pose refinement learns and what test-time refinement and the pose-noise tool apply)."""
+"""Skeleton kinematics: rotations from and to axis-angle vectors, the skeleton's joints by depth, a pose corrected
+joint by joint (what pose refinement learns and what test-time refinement and the pose-noise tool apply), and the
+corrections that smooth a motion in time (the target pose refinement's prior pulls towards)."""
 
 from __future__ import annotations
 
 import torch
 
-__all__ = ["axis_angle_to_matrix", "skeleton_levels", "ancestor_jumps", "posed_pivots", "corrected_transforms"]
+from warpavatar.geometry import quat_from_matrix
+
+__all__ = ["axis_angle_to_matrix", "axis_angle_from_matrix", "skeleton_levels", "ancestor_jumps", "posed_pivots",
+           "corrected_transforms", "local_rotations", "smoothing_corrections"]
 
 
 def axis_angle_to_matrix(vectors: torch.Tensor) -> torch.Tensor:
@@ -22,6 +26,18 @@ def axis_angle_to_matrix(vectors: torch.Tensor) -> torch.Tensor:
     cross = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(*vectors.shape[:-1], 3, 3)
     identity = torch.eye(3, dtype=vectors.dtype, device=vectors.device).expand_as(cross)
     return identity + first * cross + second * (cross @ cross)
+
+
+def axis_angle_from_matrix(rotations: torch.Tensor) -> torch.Tensor:
+    """Axis-angle vectors [...,3] (angle in [0, pi] [rad]) of rotation matrices [...,3,3]: the inverse of
+    :func:`axis_angle_to_matrix`, through the unit quaternion with w >= 0."""
+    quats = quat_from_matrix(rotations)
+    w, vector = quats[..., :1], quats[..., 1:]
+    sine = vector.norm(dim=-1, keepdim=True)  # sin(angle / 2)
+    small = sine < 1e-7
+    # angle / sin(angle / 2), with its limit 2 / cos(angle / 2) for small angles
+    factor = torch.where(small, 2.0 / w, 2.0 * torch.atan2(sine, w) / torch.where(small, 1.0, sine))
+    return vector * factor
 
 
 def skeleton_levels(parents) -> list[list[int]]:
@@ -104,3 +120,114 @@ def corrected_transforms(bone_transforms: torch.Tensor, heads: torch.Tensor, jum
         motion = torch.cat([motion, identity], dim=-3)[..., jump, :, :] @ motion
     return motion @ bone_transforms
 
+
+
+def local_rotations(bone_transforms: torch.Tensor, parents) -> torch.Tensor:
+    """Each joint's rotation [...,J,3,3] relative to its parent's, ``R_parent^T R_j`` (a root's: its own), of poses
+    [...,J,4,4]: what :func:`corrected_transforms` turns by ``exp(d_j)`` on the right."""
+    rotations = bone_transforms[..., :3, :3]
+    parents = torch.as_tensor([int(p) for p in parents], dtype=torch.long, device=rotations.device)
+    parent_rotations = rotations[..., parents.clamp(min=0), :, :]
+    local = parent_rotations.transpose(-1, -2) @ rotations
+    return torch.where((parents < 0)[:, None, None], rotations, local)
+
+
+_ROBUST_SCALE = 6.0
+"""Residuals beyond this many times the median residual of a joint get no weight in the robust passes."""
+
+
+def _local_quadratic_fits(values: torch.Tensor, offsets: torch.Tensor, valid: torch.Tensor, *,
+                          robust_passes: int) -> torch.Tensor:
+    """Values at offset 0 of weighted quadratic fits in time, one per frame and channel.
+
+    Args:
+        values: [T,K,C,3] the K neighbours' values of each frame's C channels (vectors).
+        offsets: [T,K] the neighbours' times relative to the frame, scaled to [-1, 1].
+        valid: [T,K] which neighbours exist.
+        robust_passes: refits with bisquare weights of the previous fit's residual (Tukey's biweight, the
+            residual scale taken per channel over all frames), so that a frame the estimator got badly wrong
+            does not drag its neighbours' targets.
+
+    Returns:
+        [T,C,3] the fitted values at offset 0 (zero where fewer than 4 neighbours exist: 3 points or fewer are
+        interpolated exactly, and every value is measured from the frame's own).
+    """
+    design = torch.stack([torch.ones_like(offsets), offsets, offsets.square()], dim=-1) * valid[..., None]  # [T,K,3]
+    weights = valid[:, :, None].to(values.dtype).expand(*values.shape[:3]).clone()  # [T,K,C]
+    ridge = 1e-9 * torch.eye(3, dtype=values.dtype, device=values.device)
+    enough = valid.sum(1) >= 4  # [T]
+    for robust_pass in range(robust_passes + 1):
+        weighted = design[:, :, None, :] * weights[..., None]  # [T,K,C,3]
+        normal = torch.einsum("tkca,tkb->tcab", weighted, design) + ridge  # [T,C,3,3]
+        moments = torch.einsum("tkca,tkcv->tcav", weighted, values)  # [T,C,3 coefficients,3 components]
+        coefficients = torch.linalg.solve(normal, moments)
+        if robust_pass == robust_passes:
+            break
+        fitted = torch.einsum("tka,tcav->tkcv", design, coefficients)
+        residual = (values - fitted).norm(dim=-1)  # [T,K,C]
+        scale = torch.stack([residual[..., c][valid].median() for c in range(residual.shape[-1])])
+        scale = _ROBUST_SCALE * scale.clamp(min=torch.finfo(values.dtype).tiny)
+        weights = (1.0 - (residual / scale).square()).clamp(min=0.0).square().clamp(min=1e-3) * valid[..., None]
+    return torch.where(enough[:, None, None], coefficients[:, :, 0, :], torch.zeros_like(coefficients[:, :, 0, :]))
+
+
+def smoothing_corrections(bone_transforms: torch.Tensor, heads: torch.Tensor, parents, times: torch.Tensor, *,
+                          window: float, robust_passes: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
+    """The corrections that bring each frame of a motion to the motion smoothed in time.
+
+    Per-frame estimation noise (a pose estimator's jitter) is mostly independent from frame to frame, while a
+    body's motion is smooth over a few frames. Each frame's smoothed pose is a robust local quadratic fit in time
+    (Savitzky-Golay's filter where the frames are evenly spaced; any spacing allowed) over the frames within
+    ``window`` seconds of it:
+
+    * each joint's rotation relative to its parent is fitted on the rotation manifold, in the tangent space at the
+      frame's own rotation (the neighbours' rotations as axis-angle vectors ``log(L_t^T L_s)``), so the value at
+      the frame is directly the correction ``d`` of :func:`corrected_transforms` (``L_t exp(d)``);
+    * the roots' mean pivot is fitted in the world; the correction moves the roots by the difference.
+
+    A quadratic fit keeps a steady turn and a steady acceleration exactly, also at the ends of the motion and next
+    to missing frames, and keeps 70 % of a component varying at 0.5 / ``window`` Hz, less of faster ones; a frame
+    with fewer than four frames within the window keeps its own pose (zero correction).
+
+    Args:
+        bone_transforms: [T,J,4,4] the poses, in the order of ``times``.
+        heads: [J,3] rest-pose pivots [world units].
+        parents: [J] parent index of each joint (-1 for a root).
+        times: [T] the frames' times [s], strictly increasing.
+        window: the half-width [s] of each frame's neighbourhood; 0 gives zero corrections.
+        robust_passes: bisquare reweighting passes after the first fit (see :func:`_local_quadratic_fits`).
+
+    Returns:
+        ``(rotation [T,J,3] [rad], translation [T,3] [world units])``, the arguments of
+        :func:`corrected_transforms` that give the smoothed poses.
+    """
+    if not window >= 0:
+        raise ValueError(f"window must be non-negative, got {window}")
+    poses = torch.as_tensor(bone_transforms, dtype=torch.float64)
+    times = torch.as_tensor(times, dtype=torch.float64, device=poses.device)
+    heads = torch.as_tensor(heads, dtype=torch.float64, device=poses.device)
+    frame_count, joint_count = poses.shape[:2]
+    rotation = poses.new_zeros(frame_count, joint_count, 3)
+    translation = poses.new_zeros(frame_count, 3)
+    if window == 0 or frame_count < 4:
+        return rotation, translation
+    if bool((times[1:] <= times[:-1]).any()):
+        raise ValueError("times must be strictly increasing")
+    # each frame's neighbours within the window [T,K] (K: the most any frame has), padded with the frame itself
+    margin = 1e-9 * max(1.0, float(times.abs().max()))
+    first = torch.searchsorted(times, times - window - margin)
+    last = torch.searchsorted(times, times + window + margin, right=True)
+    span = int((last - first).max())
+    rows = first[:, None] + torch.arange(span, device=poses.device)[None, :]
+    valid = rows < last[:, None]
+    rows = torch.where(valid, rows, torch.arange(frame_count, device=poses.device)[:, None])
+    offsets = (times[rows] - times[:, None]) / window * valid
+
+    local = local_rotations(poses, parents)  # [T,J,3,3]
+    relative = axis_angle_from_matrix(local[:, None].transpose(-1, -2) @ local[rows])  # [T,K,J,3]
+    roots = torch.as_tensor([int(p) < 0 for p in parents], device=poses.device)
+    root_pivots = posed_pivots(poses, heads)[:, roots].mean(1)  # [T,3]
+    shifts = root_pivots[rows] - root_pivots[:, None]  # [T,K,3]
+    values = torch.cat([relative, shifts[:, :, None]], dim=2)  # [T,K,J+1,3]
+    fitted = _local_quadratic_fits(values, offsets, valid, robust_passes=robust_passes)
+    return fitted[:, :joint_count], fitted[:, joint_count]
