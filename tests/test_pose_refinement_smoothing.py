@@ -93,6 +93,24 @@ def test_smoothed_target_leaves_a_clean_motion_nearly_as_it_is():
     assert offsets.max() < 1e-4  # the root's sway at 0.16 and 0.48 Hz and its steady walk [m]
 
 
+def test_a_sudden_move_without_noise_is_kept():
+    # one joint kicks through 1.2 rad in 0.15 s (8 rad/s, starting and stopping at once) on top of the smooth
+    # motion: the widest window alone rounds its corners off by 6.3 degrees; the narrower windows agree with each
+    # other there and not with the widest, so the frames near the corners take a narrower one
+    clean, heads, times = _smooth_motion(90)
+    angle = (8.0 * (times - 1.0)).clamp(0.0, 1.2)
+    kick = torch.zeros(90, len(PARENTS), 3, dtype=torch.float64)
+    kick[:, 3, 0] = angle
+    kicked = corrected_transforms(clean, heads, ancestor_jumps(PARENTS), kick, torch.zeros(90, 3, dtype=torch.float64))
+    angles, _ = _errors(_smoothed(kicked, heads, times, window=0.15), kicked, heads)
+    assert angles.max() < 3.5 and angles.mean() < 0.1, (float(angles.max()), float(angles.mean()))
+    # with noise, the same motion is still averaged around the kick (the noise hides the corners)
+    turns, offsets = _noise(90, degrees=5.0, metres=0.02, seed=1)
+    noisy = corrected_transforms(kicked, heads, ancestor_jumps(PARENTS), turns, offsets)
+    angles, _ = _errors(_smoothed(noisy, heads, times, window=0.15), kicked, heads)
+    assert angles[25:40, 3].mean() < 0.8 * 5.0 and angles.mean() < 0.6 * 5.0
+
+
 def test_single_wild_frames_do_not_drag_their_neighbours():
     # every 11th frame is 40 degrees off per joint (an estimator's glitch): the robust passes give it no weight
     clean, heads, times = _smooth_motion(90)

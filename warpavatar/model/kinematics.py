@@ -135,10 +135,19 @@ def local_rotations(bone_transforms: torch.Tensor, parents) -> torch.Tensor:
 _ROBUST_SCALE = 6.0
 """Residuals beyond this many times the median residual of a joint get no weight in the robust passes."""
 
+_WINDOW_FRACTIONS = (0.5, 0.75, 1.0)
+"""The windows :func:`smoothing_corrections` chooses from, as fractions of the widest."""
+
+_CONFIDENCE = 2.5
+"""Half-width of the confidence intervals of the window choice, in standard deviations of each estimate."""
+
+_CHI2_3_MEDIAN = 2.366
+"""Median of the chi-squared distribution with 3 degrees of freedom (a 3-vector of unit Gaussian noise, squared)."""
+
 
 def _local_quadratic_fits(values: torch.Tensor, offsets: torch.Tensor, valid: torch.Tensor, *,
-                          robust_passes: int) -> torch.Tensor:
-    """Values at offset 0 of weighted quadratic fits in time, one per frame and channel.
+                          robust_passes: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Values at offset 0 of weighted quadratic fits in time, one per frame and channel, and their variance.
 
     Args:
         values: [T,K,C,3] the K neighbours' values of each frame's C channels (vectors).
@@ -149,8 +158,10 @@ def _local_quadratic_fits(values: torch.Tensor, offsets: torch.Tensor, valid: to
             does not drag its neighbours' targets.
 
     Returns:
-        [T,C,3] the fitted values at offset 0 (zero where fewer than 4 neighbours exist: 3 points or fewer are
-        interpolated exactly, and every value is measured from the frame's own).
+        ``(value [T,C,3], variance [T,C])``: the fitted values at offset 0 and their variance per component for
+        values of unit variance, independent from frame to frame (where fewer than 4 neighbours exist: zero and
+        one, the frame's own value, since 3 points or fewer are interpolated exactly and every value is measured
+        from the frame's own).
     """
     design = torch.stack([torch.ones_like(offsets), offsets, offsets.square()], dim=-1) * valid[..., None]  # [T,K,3]
     weights = valid[:, :, None].to(values.dtype).expand(*values.shape[:3]).clone()  # [T,K,C]
@@ -168,7 +179,13 @@ def _local_quadratic_fits(values: torch.Tensor, offsets: torch.Tensor, valid: to
         scale = torch.stack([residual[..., c][valid].median() for c in range(residual.shape[-1])])
         scale = _ROBUST_SCALE * scale.clamp(min=torch.finfo(values.dtype).tiny)
         weights = (1.0 - (residual / scale).square()).clamp(min=0.0).square().clamp(min=1e-3) * valid[..., None]
-    return torch.where(enough[:, None, None], coefficients[:, :, 0, :], torch.zeros_like(coefficients[:, :, 0, :]))
+    # the estimate is sum_k gain_k * value_k: gain_k = weight_k design_k^T normal^-1 e_0
+    first = torch.zeros(3, dtype=values.dtype, device=values.device)
+    first[0] = 1.0
+    centre = torch.linalg.solve(normal, first.expand(*normal.shape[:-1]))  # [T,C,3]
+    gains = torch.einsum("tka,tca->tkc", design, centre) * weights
+    value = torch.where(enough[:, None, None], coefficients[:, :, 0, :], torch.zeros_like(coefficients[:, :, 0, :]))
+    return value, torch.where(enough[:, None], gains.square().sum(1), torch.ones_like(gains[:, 0]))
 
 
 def smoothing_corrections(bone_transforms: torch.Tensor, heads: torch.Tensor, parents, times: torch.Tensor, *,
@@ -187,7 +204,13 @@ def smoothing_corrections(bone_transforms: torch.Tensor, heads: torch.Tensor, pa
 
     A quadratic fit keeps a steady turn and a steady acceleration exactly, also at the ends of the motion and next
     to missing frames, and keeps 70 % of a component varying at 0.5 / ``window`` Hz, less of faster ones; a frame
-    with fewer than four frames within the window keeps its own pose (zero correction).
+    with fewer than four frames within the window keeps its own pose (zero correction). Where the motion changes
+    faster than that (a kick stopped within a few frames), the widest window would round it off by more than the
+    noise: each frame and joint takes the widest of the windows ``window`` x (1/2, 3/4, 1) whose estimate agrees
+    with those of all narrower ones (the intersection of confidence intervals rule of adaptive local polynomial
+    regression: intervals of +-2.5 standard deviations, the noise's level per joint estimated from the widest
+    fit's residuals at the frames themselves). A motion with no noise thus keeps its fast moves, and noise is
+    averaged wherever the motion allows.
 
     Args:
         bone_transforms: [T,J,4,4] the poses, in the order of ``times``.
@@ -213,7 +236,7 @@ def smoothing_corrections(bone_transforms: torch.Tensor, heads: torch.Tensor, pa
         return rotation, translation
     if bool((times[1:] <= times[:-1]).any()):
         raise ValueError("times must be strictly increasing")
-    # each frame's neighbours within the window [T,K] (K: the most any frame has), padded with the frame itself
+    # each frame's neighbours within the widest window [T,K] (K: the most any frame has), padded with the frame
     margin = 1e-9 * max(1.0, float(times.abs().max()))
     first = torch.searchsorted(times, times - window - margin)
     last = torch.searchsorted(times, times + window + margin, right=True)
@@ -229,5 +252,27 @@ def smoothing_corrections(bone_transforms: torch.Tensor, heads: torch.Tensor, pa
     root_pivots = posed_pivots(poses, heads)[:, roots].mean(1)  # [T,3]
     shifts = root_pivots[rows] - root_pivots[:, None]  # [T,K,3]
     values = torch.cat([relative, shifts[:, :, None]], dim=2)  # [T,K,J+1,3]
-    fitted = _local_quadratic_fits(values, offsets, valid, robust_passes=robust_passes)
+    fits = [_local_quadratic_fits(values, offsets / fraction, valid & (offsets.abs() <= fraction + 1e-9),
+                                  robust_passes=robust_passes) for fraction in _WINDOW_FRACTIONS]
+    fitted = _widest_agreeing(fits)
     return fitted[:, :joint_count], fitted[:, joint_count]
+
+
+def _widest_agreeing(fits: list[tuple[torch.Tensor, torch.Tensor]]) -> torch.Tensor:
+    """Per frame and channel, the estimate [T,C,3] of the widest window whose confidence interval meets those of
+    every narrower window (``fits``: :func:`_local_quadratic_fits` of windows from narrowest to widest)."""
+    widest, widest_variance = fits[-1]
+    # the noise's variance per channel: the widest fit's residual at the frame itself is minus its estimate, of
+    # variance (1 - leverage) per component; robust to the frames where the motion is too fast for the window
+    leverage = widest_variance.clamp(max=0.95)
+    noise = torch.stack([(widest[:, c].square().sum(-1) / (1.0 - leverage[:, c])).median()
+                         for c in range(widest.shape[1])]) / _CHI2_3_MEDIAN  # [C]
+    low = high = chosen = None
+    agree = torch.ones(widest.shape[:2], dtype=torch.bool, device=widest.device)
+    for value, variance in fits:
+        half = _CONFIDENCE * (noise[None, :] * variance).sqrt()[..., None]
+        low = value - half if low is None else torch.maximum(low, value - half)
+        high = value + half if high is None else torch.minimum(high, value + half)
+        agree = agree & (low <= high).all(-1)
+        chosen = value if chosen is None else torch.where(agree[..., None], value, chosen)
+    return chosen
