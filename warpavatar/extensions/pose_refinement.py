@@ -28,7 +28,9 @@ otherwise: a turn one camera cannot see keeps the smoothed value, not the frame'
 +-0.15 s keeps 97 % of a component varying at 2 Hz and 70 % at 3.7 Hz (the gain at frequency ``f`` is that of
 Savitzky-Golay's filter: everyday joint motion is mostly below 2-3 Hz, while a few degrees of white per-frame
 noise dominate the spectrum above about 4 Hz) and halves independent noise at 30 fps (9 frames; more frames at a
-higher rate). With the window at 0 the target is the given motion and the corrections start at zero.
+higher rate). Where a move is too fast for the window (a kick stopped within a few frames) and the noise does not
+hide it, the fit narrows the window for those frames and joints, so exact poses stay nearly as given. With the
+window at 0 the target is the given motion and the corrections start at zero.
 
 The corrected skinning transforms are rebuilt down the skeleton
 (:func:`warpavatar.model.kinematics.corrected_transforms`): a joint keeps its pivot's offset from its parent's,
@@ -186,8 +188,9 @@ class PoseRefinementOptions:
     pose_prior_window: float = option(0.15, "half-width [s] of the time window over which the given motion is "
                                       "smoothed into the prior's target and the corrections' start (a robust "
                                       "local quadratic fit over the folder's frames within it either side, from "
-                                      "meta.json's fps and the frame numbers): removes per-frame jitter of the "
-                                      "pose estimate, keeps 97 % of 2 Hz motion; 0: the given poses themselves")
+                                      "meta.json's fps and the frame numbers, narrowed where a fast move "
+                                      "stands out of the noise): removes per-frame jitter of the pose estimate, "
+                                      "keeps 97 % of 2 Hz motion; 0: the given poses themselves")
     lambda_pose_smooth: float = option(1.0, "weight of the refined motion's mean squared acceleration over all "
                                        "frames (joints' positions in units of the canonical extent, and "
                                        "rotation matrices, per video frame squared, from the frame numbers of the "

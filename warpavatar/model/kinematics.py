@@ -264,8 +264,9 @@ def _widest_agreeing(fits: list[tuple[torch.Tensor, torch.Tensor]]) -> torch.Ten
     widest, widest_variance = fits[-1]
     # the noise's variance per channel: the widest fit's residual at the frame itself is minus its estimate, of
     # variance (1 - leverage) per component; robust to the frames where the motion is too fast for the window
-    leverage = widest_variance.clamp(max=0.95)
-    noise = torch.stack([(widest[:, c].square().sum(-1) / (1.0 - leverage[:, c])).median()
+    fitted = widest_variance < 1.0 - 1e-9  # [T,C] frames with enough neighbours (the others keep their own)
+    residual = widest.square().sum(-1) / (1.0 - widest_variance.clamp(max=0.95))
+    noise = torch.stack([residual[:, c][fitted[:, c]].median() if bool(fitted[:, c].any()) else residual.new_zeros(())
                          for c in range(widest.shape[1])]) / _CHI2_3_MEDIAN  # [C]
     low = high = chosen = None
     agree = torch.ones(widest.shape[:2], dtype=torch.bool, device=widest.device)
