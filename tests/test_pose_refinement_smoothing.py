@@ -169,8 +169,9 @@ def test_the_fit_starts_at_the_smoothed_target(tmp_path):
                                               rotation_deg=5.0, translation=0.03, seed=0)
     video = data.load_video_folder(tmp_path / "train", scale=0.5)
     exact = data.load_video_folder(data.demo_subject_path() / "train", scale=0.5)
-    config = preset("quick", iterations=1, image_scale=0.5, max_train_frames=25)
-    trainer = Trainer(video, config, tmp_path / "fit")
+    small = dict(iterations=1, image_scale=0.5, max_train_frames=25, init_points_per_bone=30,
+                 init_carve_candidates=20000, init_carve_points=1500, max_gaussians=6000)
+    trainer = Trainer(video, preset("quick", **small), tmp_path / "fit")
     extension = next(e for e in trainer.extensions if e.name == "pose_refinement")
     part = trainer.avatar.part("pose_refinement")
     assert torch.equal(part.rotation.detach(), extension.target_rotation)
@@ -182,6 +183,5 @@ def test_the_fit_starts_at_the_smoothed_target(tmp_path):
     start = (posed_pivots(part.refined_poses().cpu(), heads) - truth).norm(dim=-1).mean()
     assert start < 0.9 * given, (float(start), float(given))
     # a window of 0: today's behaviour, corrections from zero
-    still = Trainer(video, preset("quick", iterations=1, image_scale=0.5, max_train_frames=25, pose_prior_window=0.0),
-                    tmp_path / "still")
+    still = Trainer(video, preset("quick", **small, pose_prior_window=0.0), tmp_path / "still")
     assert still.avatar.part("pose_refinement").rotation.abs().max() == 0
