@@ -2,6 +2,7 @@
 previews giving what the plain ones gave."""
 
 import json
+import math
 import time
 
 import cv2
@@ -14,6 +15,9 @@ from warpavatar._src.cuda_graph import adam_options
 from warpavatar.fit import Trainer, preset
 from warpavatar.fit.outputs import write_previews
 from warpavatar.fit.phases import PhaseClock
+from warpavatar.geometry import quat_to_matrix
+from warpavatar.model import GaussianModel
+from warpavatar.model.gaussians import _PARAMETER_NAMES
 
 
 def _small_config(**overrides):
@@ -115,3 +119,92 @@ def test_previews_are_the_renders_of_their_frames(demo_video, tmp_path):
         expected = (torch.cat([image, target], dim=1).clamp(0, 1).numpy() * 255).round().astype(np.uint8)
         assert written.std() > 5  # a picture, not a blank
         assert np.array_equal(written, expected), index
+
+
+def _gaussians_with_moments(count: int, seed: int) -> GaussianModel:
+    """Random Gaussians whose Adam moments are not zero (two steps on random gradients)."""
+    generator = torch.Generator().manual_seed(seed)
+    gaussians = GaussianModel(torch.randn(count, 3, generator=generator),
+                              torch.rand(count, 3, generator=generator),
+                              0.02 + 0.1 * torch.rand(count, 3, generator=generator), sh_degree=1)
+    with torch.no_grad():
+        gaussians.quats.copy_(torch.randn(count, 4, generator=generator))
+        gaussians.opacity_logits.copy_(torch.randn(count, generator=generator).reshape(gaussians.opacity_logits.shape))
+    gaussians.make_optimizer(lr_position=1e-3, lr_scale=1e-2, lr_rotation=1e-3, lr_opacity=1e-2, lr_color=1e-2)
+    for _ in range(2):
+        for parameter in gaussians.parameters():
+            parameter.grad = torch.randn(parameter.shape, generator=generator)
+        gaussians.optimizer.step()
+    return gaussians
+
+
+def _state(gaussians: GaussianModel) -> dict[str, torch.Tensor]:
+    values = {name: getattr(gaussians, name).detach().clone() for name in _PARAMETER_NAMES}
+    for name in _PARAMETER_NAMES:
+        moments = gaussians.optimizer.state[getattr(gaussians, name)]
+        values.update({f"{name}.{key}": moments[key].clone() for key in ("exp_avg", "exp_avg_sq")})
+    return values
+
+
+def _assert_same(state: dict, expected: dict) -> None:
+    assert state.keys() == expected.keys()
+    for name, value in expected.items():
+        assert torch.equal(state[name], value), name
+
+
+def test_densify_and_prune_rebuild_what_append_then_masked_prune_built():
+    """Densification rebuilds the parameters and moments once (the split Gaussians dropped as their samples are
+    added) and pruning gathers by an index read once: the same Gaussians, moments and renumbering as appending,
+    then masking, gave."""
+    count, threshold, size_split = 400, 0.5, 0.07
+    gaussians, reference = _gaussians_with_moments(count, 5), _gaussians_with_moments(count, 5)
+    grad_norm = torch.rand(count, generator=torch.Generator().manual_seed(6))
+    source = gaussians.densify(grad_norm, threshold=threshold, size_split=size_split,
+                               generator=torch.Generator().manual_seed(7))
+
+    # the reference: densification as it was written before (append everything, then mask the split ones out)
+    selected = grad_norm >= threshold
+    max_scale = reference.scales.detach().max(dim=1).values
+    clone_index = torch.nonzero(selected & (max_scale <= size_split)).squeeze(1)
+    split_index = torch.nonzero(selected & (max_scale > size_split)).squeeze(1)
+    assert clone_index.numel() > 10 and split_index.numel() > 10  # both kinds happen
+    split = reference.raw_parameters(split_index)
+    generator = torch.Generator().manual_seed(7)
+    stds = split["log_scales"].exp()
+    rotations = quat_to_matrix(split["quats"] / split["quats"].norm(dim=-1, keepdim=True))
+    samples = [split["means"] + torch.einsum("nij,nj->ni", rotations, torch.randn(stds.shape, generator=generator)
+                                             * stds) for _ in range(2)]
+    two = {name: torch.cat([value, value]) for name, value in split.items()}
+    two.update(means=torch.cat(samples), log_scales=two["log_scales"] - math.log(1.6))
+    clones = reference.raw_parameters(clone_index)
+    reference.append({name: torch.cat([clones[name], two[name]]) for name in _PARAMETER_NAMES})
+    keep = torch.ones(reference.count, dtype=torch.bool)
+    keep[split_index] = False
+    state = _state(reference)
+    reference_source = torch.cat([torch.arange(count), clone_index, split_index, split_index])[keep]
+    _assert_same(_state(gaussians), {name: value[keep] for name, value in state.items()})
+    assert torch.equal(source, reference_source)
+
+    # pruning by a mask and by its indices: the masked rows of every parameter and moment
+    keep = gaussians.opacities.detach() > 0.4
+    assert 0 < int(keep.sum()) < gaussians.count
+    expected = {name: value[keep] for name, value in _state(gaussians).items()}
+    other = _gaussians_with_moments(count, 5)
+    other.densify(grad_norm, threshold=threshold, size_split=size_split, generator=torch.Generator().manual_seed(7))
+    gaussians.prune(keep)
+    other.prune(torch.nonzero(keep).squeeze(1))
+    _assert_same(_state(gaussians), expected)
+    _assert_same(_state(other), expected)
+
+
+def test_densify_without_splits_appends_the_clones():
+    gaussians = _gaussians_with_moments(50, 8)
+    before = _state(gaussians)
+    grad_norm = torch.zeros(50)
+    grad_norm[[3, 17, 40]] = 1.0
+    source = gaussians.densify(grad_norm, threshold=0.5, size_split=10.0, generator=torch.Generator())
+    assert torch.equal(source, torch.cat([torch.arange(50), torch.tensor([3, 17, 40])]))
+    after = _state(gaussians)
+    for name, value in before.items():
+        added = torch.zeros_like(value[[3, 17, 40]]) if "." in name else value[[3, 17, 40]]
+        assert torch.equal(after[name], torch.cat([value, added])), name

@@ -66,9 +66,10 @@ class DensityControl:
             max_scale = gaussians.scales.detach().max(dim=1).values
             keep = (gaussians.opacities.detach() > config.prune_opacity) & (
                 max_scale < config.prune_max_scale * self.extent)
-            if not bool(keep.all()):
-                gaussians.prune(keep)
-                source = source[keep]
+            kept = torch.nonzero(keep).squeeze(1)  # the round's one host read of which Gaussians stay
+            if kept.shape[0] < keep.shape[0]:
+                gaussians.prune(kept)
+                source = source.index_select(0, kept)
             self.reset(gaussians.count, source.device)
             for extension in extensions:
                 extension.on_gaussians_renumbered(source)
