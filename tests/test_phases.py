@@ -208,3 +208,14 @@ def test_densify_without_splits_appends_the_clones():
     for name, value in before.items():
         added = torch.zeros_like(value[[3, 17, 40]]) if "." in name else value[[3, 17, 40]]
         assert torch.equal(after[name], torch.cat([value, added])), name
+
+
+def test_log_record_reads_every_term_as_its_own_read_gave(demo_video, tmp_path):
+    trainer = Trainer(demo_video, _small_config(), tmp_path / "fit")
+    trainer.fit(progress=False, stop_at=7)  # the field trains from step 6: its bone term is in the record
+    step, terms = trainer.train_step()
+    record = trainer._log_record(step, terms)
+    assert {"loss", "l1", "bone"} <= set(terms)
+    for name, term in terms.items():
+        assert record[name] == float(term.value), name
+    assert record["loss"] > 0 and record["gaussians"] == trainer.gaussians.count

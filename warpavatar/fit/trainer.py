@@ -281,7 +281,9 @@ class Trainer:
         return step, terms
 
     def _log_record(self, step: StepContext, terms: dict[str, LossTerm]) -> dict:
-        record = {name: float(term.value.detach()) for name, term in terms.items()}
+        # every term read in one transfer (a host read per term would wait on the device once each)
+        values = torch.stack([term.value.detach().reshape(()) for term in terms.values()]).tolist()
+        record = dict(zip(terms, values))
         for extension in self.extensions:
             record.update(extension.log_values())
         record.update(psnr=psnr(step.image.detach(), step.target), gaussians=self.gaussians.count)
