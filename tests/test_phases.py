@@ -48,22 +48,38 @@ def test_phase_clock_adds_up_each_phase():
     assert rounded["total"] == pytest.approx(sum(clock.seconds.values()), abs=2e-3)
 
 
+def test_phase_clock_stops_the_outer_phase_while_an_inner_one_runs():
+    clock = PhaseClock("cpu")
+    start = time.perf_counter()
+    with clock.phase("outer"):
+        time.sleep(0.02)
+        for _ in range(2):
+            with clock.phase("inner"):
+                time.sleep(0.05)
+        time.sleep(0.02)
+    wall = time.perf_counter() - start
+    assert 0.1 <= clock.seconds["inner"] < 0.1 + 0.05
+    assert 0.04 <= clock.seconds["outer"] < 0.04 + 0.05  # without the inner phases' 0.1 s
+    assert clock.seconds["inner"] + clock.seconds["outer"] == pytest.approx(wall, abs=5e-3)
+
+
 def test_fit_logs_its_phases(demo_video, tmp_path):
     clock = PhaseClock("cpu")
     with clock.phase("load"):
         time.sleep(0.01)  # stands for reading the folder, timed by the caller on the same clock
     start = time.perf_counter()
-    trainer = Trainer(demo_video, _small_config(), tmp_path / "fit", phases=clock)
+    trainer = Trainer(demo_video, _small_config(checkpoint_every=5), tmp_path / "fit", phases=clock)
     trainer.fit(progress=False)
     wall = time.perf_counter() - start
     log = [json.loads(line) for line in (tmp_path / "fit" / "train_log.jsonl").read_text().splitlines()]
     assert log[-1]["stage"] == "phases" and log[-1]["step"] == 12
     seconds = log[-1]["phase_seconds"]
-    assert list(seconds) == ["load", "init", "warmup", "first_step", "steps", "extensions_finish", "avatar.pt",
-                             "canonical.ply", "training_poses.npz", "extension_outputs", "checkpoint.pt",
-                             "previews", "total"]
+    assert list(seconds) == ["load", "init", "warmup", "first_step", "steps", "densify", "checkpoints",
+                             "extensions_finish", "avatar.pt", "canonical.ply", "training_poses.npz",
+                             "extension_outputs", "checkpoint.pt", "previews", "total"]
     assert all(value >= 0 for value in seconds.values())
     assert seconds["load"] >= 0.01 and seconds["steps"] > 0 and seconds["previews"] > 0
+    assert seconds["densify"] > 0 and seconds["checkpoints"] > 0  # rounds after steps 4 and 8, saves at 5 and 10
     # the phases cover the fit: their sum is its wall time, less the moments between them
     assert 0.9 * wall <= seconds["total"] - seconds["load"] <= wall + 1e-3
     # an interrupted fit logs its phases too, its last checkpoint as one

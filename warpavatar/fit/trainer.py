@@ -10,6 +10,7 @@ sum of ``weight * value`` over the terms that the core and each extension return
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -53,8 +54,9 @@ class Trainer:
             one that timed loading the folder to see that phase too); default: a new one.
 
     Attributes:
-        phases: wall seconds of this trainer's phases (``init``, ``warmup``, ``first_step``, ``steps``, one per
-            output file), logged as the last line of ``train_log.jsonl`` (``"stage": "phases"``).
+        phases: wall seconds of this trainer's phases (``init``, ``warmup``, ``first_step``, ``steps``; within the
+            steps, ``densify`` (the rounds) and ``checkpoints``, not counted in ``steps``; then one per output
+            file), logged as the last line of ``train_log.jsonl`` (``"stage": "phases"``).
     """
 
     def __init__(self, video, config: FitConfig, output_dir: str | os.PathLike, *, device="cpu",
@@ -271,7 +273,8 @@ class Trainer:
             self._log({"step": number, "note": "CUDA graph capture failed, the fit goes on eagerly"})
         step.image, step.alpha = image, alpha
         count = self.gaussians.count
-        self.density.after_step(number, self.gaussians, self.extensions)
+        with self.phases.phase("densify") if self.density.round_due(number) else contextlib.nullcontext():
+            self.density.after_step(number, self.gaussians, self.extensions)
         if self.capacity.value is None:
             self.check_rasterizer()
         elif self.gaussians.count != count:  # new Gaussians: the next step counts their pairs with exact buffers
@@ -389,7 +392,8 @@ class Trainer:
                 self._log({**record, "step": self.step, "seconds": round(time.time() - start_time, 2)})
                 bar.set_postfix(loss=f"{record['loss']:.4f}", psnr=f"{record['psnr']:.2f}", n=record["gaussians"])
             if self.step % config.checkpoint_every == 0 and self.step < config.iterations:
-                self.save_checkpoint()
+                with self.phases.phase("checkpoints"):
+                    self.save_checkpoint()
 
     def _log(self, record: dict) -> None:
         with open(self.log_path, "a", encoding="utf-8") as f:
