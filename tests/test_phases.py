@@ -1,6 +1,7 @@
 """The seconds of a fit outside its training steps: the phases a fit logs, and the cheaper paths of its warm-up and
 previews giving what the plain ones gave."""
 
+import copy
 import json
 import math
 import time
@@ -13,6 +14,7 @@ import torch
 from warpavatar import data
 from warpavatar._src.cuda_graph import adam_options
 from warpavatar.fit import Trainer, preset
+from warpavatar.fit.checkpoint import CHECKPOINT_FORMAT, CheckpointWriter
 from warpavatar.fit.outputs import write_previews
 from warpavatar.fit.phases import PhaseClock
 from warpavatar.geometry import quat_to_matrix
@@ -235,3 +237,49 @@ def test_log_record_reads_every_term_as_its_own_read_gave(demo_video, tmp_path):
     for name, term in terms.items():
         assert record[name] == float(term.value), name
     assert record["loss"] > 0 and record["gaussians"] == trainer.gaussians.count
+
+
+def _assert_same_tree(value, expected, where="state"):
+    assert type(value) is type(expected), where
+    if isinstance(expected, torch.Tensor):
+        assert value.device.type == "cpu" and torch.equal(value, expected), where
+    elif isinstance(expected, dict):
+        assert value.keys() == expected.keys(), where
+        assert getattr(value, "_metadata", None) == getattr(expected, "_metadata", None), where
+        for key in expected:
+            _assert_same_tree(value[key], expected[key], f"{where}[{key!r}]")
+    elif isinstance(expected, (list, tuple)):
+        assert len(value) == len(expected), where
+        for index, (item, expected_item) in enumerate(zip(value, expected)):
+            _assert_same_tree(item, expected_item, f"{where}[{index}]")
+    else:
+        assert value == expected, where
+
+
+def test_background_checkpoint_holds_the_state_when_it_was_saved(demo_video, tmp_path):
+    """A checkpoint written while training goes on is the state of its step, not of a later one."""
+    trainer = Trainer(demo_video, _small_config(iterations=20), tmp_path / "fit")
+    trainer.fit(progress=False, stop_at=5)
+    expected = copy.deepcopy(trainer.checkpoint_state())
+    path = trainer.save_checkpoint(background=True)
+    for _ in range(4):  # moves the Gaussians and a densification round renumbers them, while the file is written
+        trainer.train_step()
+    trainer._checkpoints.wait()
+    saved = torch.load(path, map_location="cpu", weights_only=False)
+    assert saved.pop("format") == CHECKPOINT_FORMAT and saved["step"] == 5
+    _assert_same_tree(saved, expected)
+    assert not torch.equal(saved["gaussians"]["means"], trainer.gaussians.means.detach()[:saved["gaussians"]["means"]
+                                                                                       .shape[0]])
+    # a fit resumed from it goes on as the one that wrote it
+    resumed = Trainer(demo_video, _small_config(iterations=20), tmp_path / "fit")
+    resumed.load_checkpoint(path)
+    assert resumed.step == 5 and resumed.gaussians.count == saved["gaussians"]["means"].shape[0]
+
+
+def test_failed_background_checkpoint_raises_at_the_next_save(tmp_path):
+    writer = CheckpointWriter()
+    writer.save(tmp_path / "missing" / "checkpoint.pt", {"step": 1, "values": torch.arange(3.0)})
+    with pytest.raises(RuntimeError, match="does not exist"):  # torch's error for a missing folder
+        writer.wait()
+    writer.save(tmp_path / "checkpoint.pt", {"step": 2, "values": torch.arange(3.0)}, wait=True)
+    assert torch.load(tmp_path / "checkpoint.pt", weights_only=False)["step"] == 2

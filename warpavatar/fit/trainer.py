@@ -22,7 +22,7 @@ import tqdm
 
 from warpavatar._src.precision import matmul_precision, mlp_precision
 from warpavatar.extensions import FitContext, LossTerm, StepContext, get_extension
-from warpavatar.fit.checkpoint import CHECKPOINT_NAME, read_checkpoint, save_checkpoint
+from warpavatar.fit.checkpoint import CHECKPOINT_NAME, CheckpointWriter, read_checkpoint
 from warpavatar.fit.config import FitConfig, changed_options
 from warpavatar.fit.density import DensityControl
 from warpavatar.fit.frames import TrainingFrames
@@ -102,6 +102,7 @@ class Trainer:
         self.step = 0
         self.frame_order: list[int] = []
         self._stop_requested = False
+        self._checkpoints = CheckpointWriter()  # the loop's checkpoints are written while training goes on
         #: the steady step captured and replayed as a CUDA graph (``cuda_graph``: auto, on, off)
         self.step_graph = StepGraph(self.device, cuda_graph)
         #: the rasterizer's sort capacity in (Gaussian, tile) pairs (``value`` None: the next step counts them)
@@ -306,8 +307,12 @@ class Trainer:
             "extensions": {extension.name: extension.state_dict() for extension in self.extensions},
         }
 
-    def save_checkpoint(self) -> Path:
-        return save_checkpoint(self.output_dir / CHECKPOINT_NAME, self.checkpoint_state())
+    def save_checkpoint(self, *, background: bool = False) -> Path:
+        """Write ``checkpoint.pt`` (a write still under way in the background finishes first); with ``background``
+        only the copy of the state to host memory happens before returning, the file is written meanwhile."""
+        path = self.output_dir / CHECKPOINT_NAME
+        self._checkpoints.save(path, self.checkpoint_state(), wait=not background)
+        return path
 
     def load_checkpoint(self, path: str | os.PathLike) -> None:
         state = read_checkpoint(path)
@@ -370,6 +375,8 @@ class Trainer:
         with self.phases.phase("steps"):
             self._run_steps(end, start_time, bar)
         bar.close()
+        with self.phases.phase("checkpoints"):
+            self._checkpoints.wait()  # the loop's last checkpoint, should its write still be under way
         if self.step >= config.iterations:
             self.write_outputs()
         else:
@@ -393,7 +400,7 @@ class Trainer:
                 bar.set_postfix(loss=f"{record['loss']:.4f}", psnr=f"{record['psnr']:.2f}", n=record["gaussians"])
             if self.step % config.checkpoint_every == 0 and self.step < config.iterations:
                 with self.phases.phase("checkpoints"):
-                    self.save_checkpoint()
+                    self.save_checkpoint(background=True)
 
     def _log(self, record: dict) -> None:
         with open(self.log_path, "a", encoding="utf-8") as f:
