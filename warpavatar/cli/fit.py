@@ -21,7 +21,8 @@ DESCRIPTION = """Fit an animatable 3D Gaussian avatar to a video folder (see doc
 
 Outputs in the output folder: avatar.pt (the avatar: Gaussians, skinning field, skeleton, its optional parts,
 config; loads back with warpavatar.model.Avatar.load), canonical.ply (the canonical Gaussians with the 3DGS
-attribute names), config.json, train_log.jsonl (one JSON line per logged step: every loss term by name),
+attribute names), config.json, train_log.jsonl (one JSON line per logged step: every loss term by name;
+the last line: the wall seconds of the fit's phases, from loading the folder to each output written),
 training_poses.npz (the poses fitted on, as a poses.npz: warpavatar-view plays it), checkpoint.pt (to resume)
 and previews/ (render | ground truth for a few training frames).
 A non-empty output folder is refused unless --resume continues its fit or --overwrite starts over in it.
