@@ -74,7 +74,7 @@ def test_fit_logs_its_phases(demo_video, tmp_path):
     trainer.fit(progress=False)
     wall = time.perf_counter() - start
     log = [json.loads(line) for line in (tmp_path / "fit" / "train_log.jsonl").read_text().splitlines()]
-    assert log[-1]["stage"] == "phases" and log[-1]["step"] == 12
+    assert log[-1]["stage"] == "phases" and log[-1]["steps_done"] == 12 and "step" not in log[-1]
     seconds = log[-1]["phase_seconds"]
     assert list(seconds) == ["load", "init", "warmup", "first_step", "steps", "densify", "checkpoints",
                              "extensions_finish", "avatar.pt", "canonical.ply", "training_poses.npz",
@@ -88,7 +88,7 @@ def test_fit_logs_its_phases(demo_video, tmp_path):
     stopped = Trainer(demo_video, _small_config(), tmp_path / "stopped")
     stopped.fit(progress=False, stop_at=5)
     last = json.loads((tmp_path / "stopped" / "train_log.jsonl").read_text().splitlines()[-1])
-    assert last["step"] == 5 and "checkpoint.pt" in last["phase_seconds"] and "previews" not in last["phase_seconds"]
+    assert last["steps_done"] == 5 and "checkpoint.pt" in last["phase_seconds"] and "previews" not in last["phase_seconds"]
 
 
 def test_warmup_draws_the_same_grid_points_as_one_draw_a_step(demo_video, tmp_path):

@@ -382,7 +382,8 @@ class Trainer:
         else:
             with self.phases.phase("checkpoint.pt"):
                 self.save_checkpoint()
-        self._log({"stage": "phases", "step": self.step, "phase_seconds": self.phases.rounded()})
+        # no "step" key: readers of the log take the lines with one for the training steps
+        self._log({"stage": "phases", "steps_done": self.step, "phase_seconds": self.phases.rounded()})
         return self.avatar
 
     def _run_steps(self, end: int, start_time: float, bar) -> None:
