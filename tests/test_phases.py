@@ -88,7 +88,8 @@ def test_fit_logs_its_phases(demo_video, tmp_path):
     stopped = Trainer(demo_video, _small_config(), tmp_path / "stopped")
     stopped.fit(progress=False, stop_at=5)
     last = json.loads((tmp_path / "stopped" / "train_log.jsonl").read_text().splitlines()[-1])
-    assert last["steps_done"] == 5 and "checkpoint.pt" in last["phase_seconds"] and "previews" not in last["phase_seconds"]
+    assert last["steps_done"] == 5
+    assert "checkpoint.pt" in last["phase_seconds"] and "previews" not in last["phase_seconds"]
 
 
 def test_warmup_draws_the_same_grid_points_as_one_draw_a_step(demo_video, tmp_path):
