@@ -4,9 +4,7 @@
 
 SUBJECT holds train/, novel_view/* and novel_pose/* (docs/FORMAT.md). Any other flag is passed to warpavatar-fit's
 configuration (e.g. --iterations 8000 --sh-degree 1). Prints one markdown row per held-out folder (masked and
-full-frame PSNR/SSIM, fit time, Gaussian count) and writes OUT/benchmark.json, with the wall seconds of the fit's
-phases (``phase_seconds``: loading the training folder, initialization, warm-up, first step, the other steps, each
-output file; ``evaluate``: the held-out evaluations after the fit).
+full-frame PSNR/SSIM, fit time, Gaussian count) and writes OUT/benchmark.json.
 """
 
 from __future__ import annotations
@@ -22,7 +20,6 @@ from warpavatar import data
 from warpavatar.evaluate import evaluate_avatar, write_json_atomic
 from warpavatar.fit import Trainer
 from warpavatar.fit.arguments import add_config_arguments, config_from_arguments
-from warpavatar.fit.phases import PhaseClock
 
 
 def main(argv=None) -> int:
@@ -37,11 +34,9 @@ def main(argv=None) -> int:
     config = config_from_arguments(args, args.preset)
     label = args.label or args.subject.name
 
-    phases = PhaseClock(args.device)
+    subject = data.load_subject(args.subject, scale=config.image_scale)
     start = time.time()
-    with phases.phase("load"):
-        subject = data.load_subject(args.subject, scale=config.image_scale)
-    trainer = Trainer(subject.train, config, args.output, device=args.device, phases=phases)
+    trainer = Trainer(subject.train, config, args.output, device=args.device)
     trainer.fit(progress=False)
     if args.device.startswith("cuda"):
         torch.cuda.synchronize()
@@ -51,19 +46,14 @@ def main(argv=None) -> int:
     held_out = [("train", "", full_scale.train)]  # the fit itself, for comparison with the held-out folders
     for kind, folders in (("novel_view", full_scale.novel_view), ("novel_pose", full_scale.novel_pose)):
         held_out += [(kind, name, folders[name]) for name in folders]
-    evaluation = PhaseClock(args.device)
     for kind, name, folder in held_out:
-        with evaluation.phase("evaluate"):
-            result = evaluate_avatar(trainer.avatar, folder, progress=False)
+        result = evaluate_avatar(trainer.avatar, folder, progress=False)
         rows.append({"run": label, "folder": f"{kind}/{name}".rstrip("/"), "psnr_masked": result["psnr_masked"],
                      "psnr": result["psnr"], "ssim_masked": result["ssim_masked"], "ssim": result["ssim"],
                      "fit_min": fit_minutes, "gaussians": trainer.gaussians.count,
                      "render_ms": 1000 * result["seconds_per_frame"]})
     write_json_atomic(args.output / "benchmark.json", {"config": config.to_dict(), "device": args.device,
-                                                       "phase_seconds": phases.rounded(),
-                                                       "evaluate_seconds": evaluation.rounded()["total"],
                                                        "rows": rows})
-    print("phases [s]: " + ", ".join(f"{name} {value:.2f}" for name, value in phases.rounded().items()))
     for row in rows:
         print("| " + " | ".join(f"{v:.3f}" if isinstance(v, float) else str(v) for v in row.values()) + " |")
     return 0

@@ -21,8 +21,7 @@ DESCRIPTION = """Fit an animatable 3D Gaussian avatar to a video folder (see doc
 
 Outputs in the output folder: avatar.pt (the avatar: Gaussians, skinning field, skeleton, its optional parts,
 config; loads back with warpavatar.model.Avatar.load), canonical.ply (the canonical Gaussians with the 3DGS
-attribute names), config.json, train_log.jsonl (one JSON line per logged step: every loss term by name;
-the last line: the wall seconds of the fit's phases, from loading the folder to each output written),
+attribute names), config.json, train_log.jsonl (one JSON line per logged step: every loss term by name),
 training_poses.npz (the poses fitted on, as a poses.npz: warpavatar-view plays it), checkpoint.pt (to resume)
 and previews/ (render | ground truth for a few training frames).
 A non-empty output folder is refused unless --resume continues its fit or --overwrite starts over in it.
@@ -92,7 +91,6 @@ def fit_and_report(args: argparse.Namespace, device, argv) -> int:
     from warpavatar import data
     from warpavatar.evaluate import evaluate_held_out, write_json_atomic
     from warpavatar.fit import Trainer
-    from warpavatar.fit.phases import PhaseClock
 
     preset_name = args.preset or ("demo" if args.demo else "default" if device.type == "cuda" else "quick")
     config = config_from_arguments(args, preset_name)
@@ -108,15 +106,13 @@ def fit_and_report(args: argparse.Namespace, device, argv) -> int:
             folder = folder / "train"
     output = args.output or Path("warpavatar-out") / ((subject_root or folder).name if not args.demo else "demo")
     check_output_folder(output, resume=args.resume, overwrite=args.overwrite)
-    phases = PhaseClock(device)  # the fit's phases, logged at the end of train_log.jsonl
-    with phases.phase("load"):
-        video = data.load_video_folder(folder, scale=config.image_scale)
+    video = data.load_video_folder(folder, scale=config.image_scale)
     print(f"fitting {folder} ({video.frame_count} frames, {video.width}x{video.height}, "
           f"{video.skeleton.joint_count} joints) on {device} with preset '{preset_name}' -> {output}")
     if args.overwrite:
         remove_fit_outputs(output)
     start = time.time()
-    trainer = Trainer(video, config, output, device=device, cuda_graph=args.cuda_graph, phases=phases)
+    trainer = Trainer(video, config, output, device=device, cuda_graph=args.cuda_graph)
     if args.resume and not (output / "checkpoint.pt").is_file():
         print(f"no checkpoint.pt in {output}: the fit starts from the beginning")
     with stop_on_interrupt(trainer):

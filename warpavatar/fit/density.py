@@ -43,17 +43,13 @@ class DensityControl:
         self.grad_accum += grad_out * self._pixel_to_ndc[size]
         self.visible_count += (radii > 0).any(dim=-1).float()
 
-    def round_due(self, step: int) -> bool:
-        """Whether a densification round runs after step ``step``."""
-        config = self.config
-        return config.densify_from <= step <= config.densify_until and step > 0 and step % config.densify_every == 0
-
     @torch.no_grad()
     def after_step(self, step: int, gaussians, extensions) -> None:
-        """Run a round when one is due after step ``step`` (:meth:`round_due`; then ``before_densify`` and
+        """Run a round when one is due after step ``step`` (then ``before_densify`` and
         ``on_gaussians_renumbered`` of each extension), and the opacity reset."""
         config = self.config
-        if self.round_due(step):
+        in_window = config.densify_from <= step <= config.densify_until
+        if in_window and step > 0 and step % config.densify_every == 0:
             count = gaussians.count
             threshold = config.densify_grad_threshold
             budget = config.max_gaussians
@@ -70,10 +66,9 @@ class DensityControl:
             max_scale = gaussians.scales.detach().max(dim=1).values
             keep = (gaussians.opacities.detach() > config.prune_opacity) & (
                 max_scale < config.prune_max_scale * self.extent)
-            kept = torch.nonzero(keep).squeeze(1)  # the round's one host read of which Gaussians stay
-            if kept.shape[0] < keep.shape[0]:
-                gaussians.prune(kept)
-                source = source.index_select(0, kept)
+            if not bool(keep.all()):
+                gaussians.prune(keep)
+                source = source[keep]
             self.reset(gaussians.count, source.device)
             for extension in extensions:
                 extension.on_gaussians_renumbered(source)

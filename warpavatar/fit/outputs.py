@@ -40,10 +40,9 @@ def write_previews(avatar, frames, folder: str | Path, *, count: int) -> None:
 
     folder = Path(folder)
     folder.mkdir(exist_ok=True)
-    grid = avatar.field.grid_weights()  # the whole skinning grid, evaluated once for every preview
     for index in frames.spread(count):
         image, _, _ = avatar.render(frames.cameras[index], frames.bone_transforms[index],
-                                    background=frames.background, grid=grid)
+                                    background=frames.background)
         target, _ = frames.target(index)
         row = torch.cat([image, target], dim=1).clamp(0, 1).cpu().numpy()
         path = folder / f"{frames.frame_id(index):06d}.png"

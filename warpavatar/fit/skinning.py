@@ -10,9 +10,6 @@ from warpavatar.model.skinning_field import VoxelSkinningField, bone_distance_pr
 
 __all__ = ["SkinningStage"]
 
-_WARMUP_DRAWS_PER_COPY = 100
-"""Warm-up steps whose random grid points are copied to the device together (100 x 32768 indices: 26 MB)."""
-
 
 class SkinningStage:
     """Trains the avatar's skinning field: TAGA appendix C's warm-up distils a rigid bone-distance prior, then the
@@ -57,16 +54,10 @@ class SkinningStage:
         cells = self.field.cell_count
         batch = self.config.field_warmup_batch
         generator = torch.Generator().manual_seed(self.config.seed)
-        drawn = None
-        for number in range(steps):
-            if 0 < batch < cells and number % _WARMUP_DRAWS_PER_COPY == 0:
-                # the grid points of the next steps drawn together (the same numbers, in the same order, as one
-                # draw a step) and copied to the device at once: a copy from pageable host memory waits for the
-                # device to finish its queue, so one a step would hold every step's launches back
-                rows = min(_WARMUP_DRAWS_PER_COPY, steps - number)
-                drawn = torch.randint(cells, (rows, batch), generator=generator).to(self.prior.device)
+        for _ in range(steps):
             self.optimizer.zero_grad(set_to_none=True)
-            chosen = None if drawn is None else drawn[number % _WARMUP_DRAWS_PER_COPY]
+            chosen = (torch.randint(cells, (batch,), generator=generator).to(self.prior.device)
+                      if 0 < batch < cells else None)
             loss = self.field.distillation_loss(self.prior, chosen)
             loss.backward()
             self.optimizer.step()

@@ -10,7 +10,6 @@ sum of ``weight * value`` over the terms that the core and each extension return
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
@@ -22,13 +21,12 @@ import tqdm
 
 from warpavatar._src.precision import matmul_precision, mlp_precision
 from warpavatar.extensions import FitContext, LossTerm, StepContext, get_extension
-from warpavatar.fit.checkpoint import CHECKPOINT_NAME, CheckpointWriter, read_checkpoint
+from warpavatar.fit.checkpoint import CHECKPOINT_NAME, read_checkpoint, save_checkpoint
 from warpavatar.fit.config import FitConfig, changed_options
 from warpavatar.fit.density import DensityControl
 from warpavatar.fit.frames import TrainingFrames
 from warpavatar.fit.init import initial_gaussians
 from warpavatar.fit.outputs import TRAINING_MOTION_NAME, write_canonical_ply, write_previews, write_training_motion
-from warpavatar.fit.phases import PhaseClock
 from warpavatar.fit.skinning import SkinningStage
 from warpavatar.fit.step_graph import StepGraph
 from warpavatar.metrics import image_loss_terms, psnr
@@ -50,26 +48,13 @@ class Trainer:
             capture fail, the fit logs it and goes on eagerly), ``on`` (the same, CUDA required, a failed capture
             raises) or ``off`` (every step eager). The results are the same either way, up to the rounding of
             atomic additions, which differs from run to run anyway.
-        phases: the clock the fit's phases are timed on (:class:`~warpavatar.fit.phases.PhaseClock`; give the
-            one that timed loading the folder to see that phase too); default: a new one.
-
-    Attributes:
-        phases: wall seconds of this trainer's phases (``init``, ``warmup``, ``first_step``, ``steps``; within the
-            steps, ``densify`` (the rounds) and ``checkpoints``, not counted in ``steps``; then one per output
-            file), logged as the last line of ``train_log.jsonl`` (``"stage": "phases"``).
     """
 
     def __init__(self, video, config: FitConfig, output_dir: str | os.PathLike, *, device="cpu",
-                 cuda_graph: str = "auto", phases: PhaseClock | None = None):
-        self.device = torch.device(device)
-        self.phases = PhaseClock(self.device) if phases is None else phases
-        with self.phases.phase("init"):
-            self._initialize(video, config, output_dir, cuda_graph)
-
-    def _initialize(self, video, config: FitConfig, output_dir, cuda_graph: str) -> None:
-        """The fit's state before its warm-up: training frames, initial (carved) Gaussians, field, extensions."""
+                 cuda_graph: str = "auto"):
         self.config = config
         self.output_dir = Path(output_dir)
+        self.device = torch.device(device)
         self.output_dir.mkdir(parents=True, exist_ok=True)
         self.log_path = self.output_dir / "train_log.jsonl"
         torch.manual_seed(config.seed)
@@ -102,7 +87,6 @@ class Trainer:
         self.step = 0
         self.frame_order: list[int] = []
         self._stop_requested = False
-        self._checkpoints = CheckpointWriter()  # the loop's checkpoints are written while training goes on
         #: the steady step captured and replayed as a CUDA graph (``cuda_graph``: auto, on, off)
         self.step_graph = StepGraph(self.device, cuda_graph)
         #: the rasterizer's sort capacity in (Gaussian, tile) pairs (``value`` None: the next step counts them)
@@ -274,8 +258,7 @@ class Trainer:
             self._log({"step": number, "note": "CUDA graph capture failed, the fit goes on eagerly"})
         step.image, step.alpha = image, alpha
         count = self.gaussians.count
-        with self.phases.phase("densify") if self.density.round_due(number) else contextlib.nullcontext():
-            self.density.after_step(number, self.gaussians, self.extensions)
+        self.density.after_step(number, self.gaussians, self.extensions)
         if self.capacity.value is None:
             self.check_rasterizer()
         elif self.gaussians.count != count:  # new Gaussians: the next step counts their pairs with exact buffers
@@ -285,9 +268,7 @@ class Trainer:
         return step, terms
 
     def _log_record(self, step: StepContext, terms: dict[str, LossTerm]) -> dict:
-        # every term read in one transfer (a host read per term would wait on the device once each)
-        values = torch.stack([term.value.detach().reshape(()) for term in terms.values()]).tolist()
-        record = dict(zip(terms, values))
+        record = {name: float(term.value.detach()) for name, term in terms.items()}
         for extension in self.extensions:
             record.update(extension.log_values())
         record.update(psnr=psnr(step.image.detach(), step.target), gaussians=self.gaussians.count)
@@ -307,12 +288,8 @@ class Trainer:
             "extensions": {extension.name: extension.state_dict() for extension in self.extensions},
         }
 
-    def save_checkpoint(self, *, background: bool = False) -> Path:
-        """Write ``checkpoint.pt`` (a write still under way in the background finishes first); with ``background``
-        only the copy of the state to host memory happens before returning, the file is written meanwhile."""
-        path = self.output_dir / CHECKPOINT_NAME
-        self._checkpoints.save(path, self.checkpoint_state(), wait=not background)
-        return path
+    def save_checkpoint(self) -> Path:
+        return save_checkpoint(self.output_dir / CHECKPOINT_NAME, self.checkpoint_state())
 
     def load_checkpoint(self, path: str | os.PathLike) -> None:
         state = read_checkpoint(path)
@@ -361,35 +338,12 @@ class Trainer:
         else:
             self.log_path.unlink(missing_ok=True)
             (self.output_dir / "config.json").write_text(config.to_json())
-            with self.phases.phase("warmup"), mlp_precision(config.matmul_precision), \
-                    matmul_precision(config.matmul_precision, self.device):
+            with mlp_precision(config.matmul_precision), matmul_precision(config.matmul_precision, self.device):
                 warm = self.skinning.warmup(config.field_warmup_steps)  # the field's MLP alone
             self._log({"stage": "warmup", "distillation_loss": warm, "gaussians": self.gaussians.count})
         start_time = time.time()
         end = config.iterations if stop_at is None else min(stop_at, config.iterations)
         bar = tqdm.tqdm(total=config.iterations, initial=self.step, disable=not progress, desc="fit", unit="step")
-        # the session's first step (Warp kernels loaded, buffers sized, the rasterizer's pairs counted) is timed
-        # on its own, the others together: no synchronization between steps
-        with self.phases.phase("first_step"):
-            self._run_steps(min(end, self.step + 1), start_time, bar)
-        with self.phases.phase("steps"):
-            self._run_steps(end, start_time, bar)
-        bar.close()
-        with self.phases.phase("checkpoints"):
-            self._checkpoints.wait()  # the loop's last checkpoint, should its write still be under way
-        if self.step >= config.iterations:
-            self.write_outputs()
-        else:
-            with self.phases.phase("checkpoint.pt"):
-                self.save_checkpoint()
-        # no "step" key: readers of the log take the lines with one for the training steps
-        self._log({"stage": "phases", "steps_done": self.step, "phase_seconds": self.phases.rounded()})
-        return self.avatar
-
-    def _run_steps(self, end: int, start_time: float, bar) -> None:
-        """Train until step ``end`` (or a stop request), logging every ``log_every`` steps (``seconds``: since
-        ``start_time``) and checkpointing every ``checkpoint_every``."""
-        config = self.config
         while self.step < end and not self._stop_requested:
             step, terms = self.train_step()
             bar.update(1)
@@ -400,8 +354,13 @@ class Trainer:
                 self._log({**record, "step": self.step, "seconds": round(time.time() - start_time, 2)})
                 bar.set_postfix(loss=f"{record['loss']:.4f}", psnr=f"{record['psnr']:.2f}", n=record["gaussians"])
             if self.step % config.checkpoint_every == 0 and self.step < config.iterations:
-                with self.phases.phase("checkpoints"):
-                    self.save_checkpoint(background=True)
+                self.save_checkpoint()
+        bar.close()
+        if self.step >= config.iterations:
+            self.write_outputs()
+        else:
+            self.save_checkpoint()
+        return self.avatar
 
     def _log(self, record: dict) -> None:
         with open(self.log_path, "a", encoding="utf-8") as f:
@@ -414,21 +373,13 @@ class Trainer:
     def write_outputs(self) -> None:
         """Avatar file, canonical .ply, the training motion, previews of a few training frames; the last checkpoint
         stays."""
-        phase = self.phases.phase
-        with phase("extensions_finish"):
-            for extension in self.extensions:
-                extension.finish()
-        with phase("avatar.pt"):
-            self.avatar.save(self.output_dir / "avatar.pt", config=self.config.to_dict())
-        with phase("canonical.ply"):
-            write_canonical_ply(self.gaussians, self.output_dir / "canonical.ply")
-        with phase(TRAINING_MOTION_NAME):
-            write_training_motion(self.frames, self.output_dir / TRAINING_MOTION_NAME)
-        with phase("extension_outputs"):
-            for extension in self.extensions:
-                extension.write_outputs(self.output_dir)
-        with phase("checkpoint.pt"):
-            self.save_checkpoint()
-        with phase("previews"):
-            write_previews(self.avatar, self.frames, self.output_dir / "previews", count=self.config.preview_frames)
+        for extension in self.extensions:
+            extension.finish()
+        self.avatar.save(self.output_dir / "avatar.pt", config=self.config.to_dict())
+        write_canonical_ply(self.gaussians, self.output_dir / "canonical.ply")
+        write_training_motion(self.frames, self.output_dir / TRAINING_MOTION_NAME)
+        for extension in self.extensions:
+            extension.write_outputs(self.output_dir)
+        self.save_checkpoint()
+        write_previews(self.avatar, self.frames, self.output_dir / "previews", count=self.config.preview_frames)
 

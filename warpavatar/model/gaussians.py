@@ -130,12 +130,8 @@ class GaussianModel(torch.nn.Module):
 
     # ------------------------------------------------------------------------------- adaptive density control
     def prune(self, keep: torch.Tensor) -> None:
-        """Keep the Gaussians where the boolean mask ``keep`` [N] is true, or those whose indices ``keep`` [K]
-        lists (ascending), in that order.
-
-        A mask is turned into indices once (one host read) rather than once per parameter and moment."""
-        index = torch.nonzero(keep).squeeze(1) if keep.dtype == torch.bool else keep
-        self._replace_parameters(lambda name, tensor: tensor.index_select(0, index))
+        """Keep the Gaussians where the boolean mask ``keep`` [N] is true."""
+        self._replace_parameters(lambda name, tensor: tensor[keep])
 
     def append(self, values: dict[str, torch.Tensor]) -> None:
         """Add Gaussians given raw parameter values (same names as the parameters); their Adam moments start at 0."""
@@ -162,36 +158,33 @@ class GaussianModel(torch.nn.Module):
         """
         selected = grad_norm >= threshold
         max_scale = self.scales.detach().max(dim=1).values
-        split = selected & (max_scale > size_split)
         clone_index = torch.nonzero(selected & (max_scale <= size_split)).squeeze(1)
-        split_index = torch.nonzero(split).squeeze(1)
+        split_index = torch.nonzero(selected & (max_scale > size_split)).squeeze(1)
 
         new_values = [self.raw_parameters(clone_index)]
         if split_index.numel():
-            parents = self.raw_parameters(split_index)
-            stds = parents["log_scales"].exp()
-            quats = parents["quats"]
+            split = self.raw_parameters(split_index)
+            samples = []
+            stds = split["log_scales"].exp()
+            quats = split["quats"]
             rotations = quat_to_matrix(quats / quats.norm(dim=-1, keepdim=True))
-            # both samples' noise drawn on the host as two draws were, and copied to the device in one go
-            noise = torch.stack([torch.randn(stds.shape, generator=generator, device="cpu")
-                                 for _ in range(2)]).to(stds.device)
-            samples = [parents["means"] + torch.einsum("nij,nj->ni", rotations, noise[i] * stds) for i in range(2)]
-            two = {name: torch.cat([value, value], dim=0) for name, value in parents.items()}
+            for _ in range(2):
+                noise = torch.randn(stds.shape, generator=generator, device="cpu").to(stds.device) * stds
+                samples.append(split["means"] + torch.einsum("nij,nj->ni", rotations, noise))
+            two = {name: torch.cat([value, value], dim=0) for name, value in split.items()}
             two["means"] = torch.cat(samples, dim=0)
             two["log_scales"] = two["log_scales"] - math.log(1.6)
             new_values.append(two)
         merged = {name: torch.cat([values[name] for values in new_values], dim=0) for name in _PARAMETER_NAMES}
-        if not split_index.numel():
-            self.append(merged)
-            return torch.cat([torch.arange(self.count - clone_index.shape[0], device=self.means.device),
-                              clone_index])
-        # the split Gaussians give way to their samples: the others, then the clones, then the samples, with
-        # their parameters and moments rebuilt once (appending, then pruning the split ones, rebuilt them twice)
-        kept = torch.nonzero(~split).squeeze(1)
-        self._replace_parameters(lambda name, tensor: torch.cat([tensor.index_select(0, kept), merged[name]]),
-                                 lambda name, moment: torch.cat([moment.index_select(0, kept),
-                                                                 torch.zeros_like(merged[name])]))
-        return torch.cat([kept, clone_index, split_index, split_index])
+        source = torch.cat([torch.arange(self.count, device=self.means.device), clone_index, split_index,
+                            split_index])
+        self.append(merged)
+        if split_index.numel():
+            keep = torch.ones(self.count, dtype=torch.bool, device=self.means.device)
+            keep[split_index] = False
+            self.prune(keep)
+            source = source[keep]
+        return source
 
     def reset_opacity(self, value: float = 0.01) -> None:
         """Clamp every opacity to at most ``value`` and clear the opacity moments (3DGS opacity reset)."""
