@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from warpavatar._src.cuda_graph import adam_options
+from warpavatar._src.precision import matmul_precision
 from warpavatar.extensions.base import LossTerm
 from warpavatar.model.skinning_field import VoxelSkinningField, bone_distance_prior, bone_sample_points
 
@@ -54,13 +55,15 @@ class SkinningStage:
         cells = self.field.cell_count
         batch = self.config.field_warmup_batch
         generator = torch.Generator().manual_seed(self.config.seed)
-        for _ in range(steps):
-            self.optimizer.zero_grad(set_to_none=True)
-            chosen = (torch.randint(cells, (batch,), generator=generator).to(self.prior.device)
-                      if 0 < batch < cells else None)
-            loss = self.field.distillation_loss(self.prior, chosen)
-            loss.backward()
-            self.optimizer.step()
+        # the field's MLP alone, forward and backward: every GEMM in --matmul-precision
+        with matmul_precision(self.config.matmul_precision, self.prior.device):
+            for _ in range(steps):
+                self.optimizer.zero_grad(set_to_none=True)
+                chosen = (torch.randint(cells, (batch,), generator=generator).to(self.prior.device)
+                          if 0 < batch < cells else None)
+                loss = self.field.distillation_loss(self.prior, chosen)
+                loss.backward()
+                self.optimizer.step()
         self._frozen = self._current = None
         return float(loss.detach())
 

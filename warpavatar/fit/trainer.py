@@ -215,10 +215,8 @@ class Trainer:
         The step's device work (:meth:`_step_work`) reads nothing from the device. On CUDA (``cuda_graph``) it is
         captured as a graph once shapes and parameters settle and replayed while they stay, unless an extension
         says the step cannot be (:meth:`~warpavatar.extensions.Extension.step_capturable`).
-
-        The MLPs run in ``--matmul-precision`` (:mod:`warpavatar._src.precision`), and so do the GEMMs of the
-        backward pass, nearly all of them the MLPs' gradients: in eager steps and in the capture alike (a graph
-        replays the kernels chosen when it was captured).
+        The MLPs and the backward's GEMMs run in ``--matmul-precision`` (:mod:`warpavatar._src.precision`), eager
+        or captured alike.
         """
         with mlp_precision(self.config.matmul_precision):
             return self._train_step()
@@ -338,8 +336,7 @@ class Trainer:
         else:
             self.log_path.unlink(missing_ok=True)
             (self.output_dir / "config.json").write_text(config.to_json())
-            with mlp_precision(config.matmul_precision), matmul_precision(config.matmul_precision, self.device):
-                warm = self.skinning.warmup(config.field_warmup_steps)  # the field's MLP alone
+            warm = self.skinning.warmup(config.field_warmup_steps)
             self._log({"stage": "warmup", "distillation_loss": warm, "gaussians": self.gaussians.count})
         start_time = time.time()
         end = config.iterations if stop_at is None else min(stop_at, config.iterations)
