@@ -47,6 +47,7 @@ __all__ = [
     "TILE_SIZE",
     "PIXELS_PER_TILE",
     "GRAD_RECORD_FLOATS",
+    "screen_grad_floats",
     "NEAR_PLANE",
     "FAR_PLANE",
     "BAD_MEANS",
@@ -97,8 +98,15 @@ GRAD_RECORD_FLOATS = 12
 
 The buffer is structure-of-arrays, ``[12 * gaussian_count]`` float32, segments in this order:
 ``d mean2d`` (vec2), ``d conic`` (vec3: a, b, c of ``a dx^2/2 + b dx dy + c dy^2/2``), ``d opacity``,
-``d colour`` (vec3), ``d depth``, ``sum |d mean2d|`` per axis (vec2).
+``d colour`` (vec3), ``d depth``, ``sum |d mean2d|`` per axis (vec2). Without the sums (no densification
+statistics asked for) the buffer may end before them: :func:`screen_grad_floats`.
 """
+
+
+def screen_grad_floats(with_abs: bool) -> int:
+    """Floats per Gaussian the compositing backward's buffer needs: :data:`GRAD_RECORD_FLOATS`, less the two
+    ``sum |d mean2d|`` floats when ``with_abs`` is False (they are then never written)."""
+    return GRAD_RECORD_FLOATS if with_abs else GRAD_RECORD_FLOATS - 2
 
 # Bits of the non-finite-input flag written by the projection kernel.
 BAD_MEANS = wp.constant(1)
@@ -458,6 +466,13 @@ def launch_block_dim(device) -> int:
     return 1
 
 
+def _device_of(array):
+    """The device a launch with ``array`` runs on: a ``wp.array``'s own, or, for a launch descriptor
+    (``warp_utils.warp_descriptor``, which carries no device), Warp's current device, where ``wp.launch`` runs
+    it."""
+    return getattr(array, "device", None)
+
+
 def launch_project(
     means, quats, scales, opacities, coefficients, intrinsics, world_to_camera, *, width: int, height: int,
     sh_degree: int, used_coefficients: int, xy_opacity, conics, color_depth, radii, tiles_touched,
@@ -486,7 +501,7 @@ def launch_project(
         inputs=[means, quats, scales, opacities, coefficients, intrinsics, world_to_camera, width, height, tiles_x,
                 tiles_y, sh_degree, used_coefficients],
         outputs=[xy_opacity, conics, color_depth, radii, tiles_touched, bad_input_flags],
-        block_dim=launch_block_dim(means.device),
+        block_dim=launch_block_dim(_device_of(means)),
     )
 
 
@@ -598,7 +613,7 @@ def launch_emit_tile_keys(xy_opacity, depth_bits, radii, tile_ends, *, width: in
         dim=gaussian_count,
         inputs=[xy_opacity, conics, depth_bits, radii, tile_ends, width, height, tiles_x, tiles_y],
         outputs=[keys, gaussian_ids],
-        block_dim=launch_block_dim(keys.device),
+        block_dim=launch_block_dim(_device_of(keys)),
     )
 
 
@@ -634,7 +649,7 @@ def launch_tile_ranges(sorted_keys, pair_count: int, tile_ranges) -> None:
     if pair_count == 0:
         return
     wp.launch(tile_ranges_kernel, dim=pair_count, inputs=[sorted_keys, pair_count], outputs=[tile_ranges],
-              block_dim=launch_block_dim(sorted_keys.device))
+              block_dim=launch_block_dim(_device_of(sorted_keys)))
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -773,7 +788,7 @@ def launch_composite_forward(tile_ranges, sorted_ids, xy_opacity, conics, color_
         dim=(tiles_x * tiles_y, int(PIXELS_PER_TILE)),
         inputs=[tile_ranges, sorted_ids, xy_opacity, conics, color_depth, background, width, height, tiles_x],
         outputs=[image, alpha, depth, final_transmittance, last_index],
-        block_dim=launch_block_dim(image.device),
+        block_dim=launch_block_dim(_device_of(image)),
     )
 
 
@@ -963,15 +978,17 @@ def composite_backward_kernel(
 def launch_composite_backward(tile_ranges, sorted_ids, xy_opacity, conics, color_depth, background, *, width: int,
                               height: int, final_transmittance, last_index, grad_image, grad_alpha, grad_depth,
                               with_abs: bool, grads) -> None:
-    """Launch :data:`composite_backward_kernel`; ``grads`` is a zeroed float32 array of ``12 * gaussian_count``."""
+    """Launch :data:`composite_backward_kernel`; ``grads`` is a zeroed float32 array of
+    ``screen_grad_floats(with_abs) * gaussian_count``."""
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
     tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
     if tile_ranges.shape[0] != tiles_x * tiles_y:
         raise ValueError(f"tile_ranges has {tile_ranges.shape[0]} rows, expected {tiles_x * tiles_y} tiles")
     _check_pixel_arrays(width, height, final_transmittance=final_transmittance, last_index=last_index,
                         grad_image=grad_image, grad_alpha=grad_alpha, grad_depth=grad_depth)
-    if grads.shape[0] != GRAD_RECORD_FLOATS * xy_opacity.shape[0]:
-        raise ValueError(f"grads has {grads.shape[0]} entries, expected {GRAD_RECORD_FLOATS} * gaussian_count")
+    floats = screen_grad_floats(with_abs)
+    if grads.shape[0] != floats * xy_opacity.shape[0]:
+        raise ValueError(f"grads has {grads.shape[0]} entries, expected {floats} * gaussian_count")
     if width * height == 0 or xy_opacity.shape[0] == 0:
         return
     wp.launch(
@@ -980,7 +997,7 @@ def launch_composite_backward(tile_ranges, sorted_ids, xy_opacity, conics, color
         inputs=[tile_ranges, sorted_ids, xy_opacity, conics, color_depth, background, width, height, tiles_x,
                 final_transmittance, last_index, grad_image, grad_alpha, grad_depth, int(bool(with_abs))],
         outputs=[grads],
-        block_dim=launch_block_dim(grads.device),
+        block_dim=launch_block_dim(_device_of(grads)),
     )
 
 
@@ -1037,8 +1054,9 @@ def launch_project_backward(
 
     ``grad_mean2d``/``grad_conic``/``grad_depth``/``grad_color`` are the incoming per-Gaussian gradients; the
     ``grad_means``/``grad_quats``/``grad_scales``/``grad_coefficients`` arrays (zeroed by the caller) receive
-    the result. ``scratch_*`` arrays (same shapes as the incoming gradients, contents ignored) are written by
-    the forward replay of the adjoint kernel.
+    the result. ``scratch_*`` arrays (``gaussian_count`` long, contents ignored) are written by the forward
+    replay of the adjoint kernel and never read: ``warp_utils.write_only_descriptor`` lets them share one
+    element.
     """
     gaussian_count = means.shape[0]
     for name, array in (("quats", quats), ("scales", scales), ("coefficients", coefficients), ("radii", radii),
@@ -1059,7 +1077,7 @@ def launch_project_backward(
         adj_inputs=[grad_means, grad_quats, grad_scales, grad_coefficients, None, None, None, 0, 0, 0],
         adj_outputs=[grad_mean2d, grad_conic, grad_depth, grad_color],
         adjoint=True,
-        block_dim=launch_block_dim(means.device),
+        block_dim=launch_block_dim(_device_of(means)),
     )
 
 
@@ -1105,7 +1123,7 @@ def launch_tile_ranges_padded(sorted_keys, key_count: int, tile_ranges) -> None:
     if key_count == 0:
         return
     wp.launch(tile_ranges_padded_kernel, dim=key_count, inputs=[sorted_keys, key_count], outputs=[tile_ranges],
-              block_dim=launch_block_dim(sorted_keys.device))
+              block_dim=launch_block_dim(_device_of(sorted_keys)))
 
 
 __all__ += ["padding_key", "tile_ranges_padded_kernel", "launch_tile_ranges_padded"]

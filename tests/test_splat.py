@@ -592,3 +592,27 @@ def test_tile_ranges_skip_padding_keys_and_emission_stays_in_its_buffer():
     kernel_emit(projection, sizes, keys[:capacity], ids[:capacity])
     assert capacity > 20 and torch.all(keys[:capacity] >= 0) and torch.all(ids[:capacity] >= 0)
     assert torch.all(keys[capacity:] == -1) and torch.all(ids[capacity:] == -1)
+
+
+def test_backward_keeps_one_sorted_id_per_pair_and_no_per_gaussian_scratch(device):
+    # What the forward saves for the backward: one sorted Gaussian id per (Gaussian, tile) pair (the sort's
+    # double buffer is released), and per-Gaussian records of 48 bytes; the gradients come out of one
+    # allocation sized without the |d mean2d| sums when no densification statistic is asked for.
+    scene, sizes = make_scene(5, device=device, gaussian_count=160)
+    scene = {name: value.requires_grad_(name in DIFFERENTIABLE) for name, value in scene.items()}
+    image, alpha, depth, info = render(ops.rasterize_gaussians, scene, sizes, return_info=True)
+    pair_count = int(info["status"][0])
+    assert pair_count > 100
+    saved = image.grad_fn.saved_tensors
+    sorted_ids = saved[12]
+    assert sorted_ids.dtype == torch.int32 and sorted_ids.shape == (pair_count,)
+    assert sorted_ids.untyped_storage().nbytes() == 4 * pair_count
+    n = scene["means"].shape[0]
+    per_gaussian = sum(t.untyped_storage().nbytes() for t in saved[7:11])
+    assert per_gaussian == 48 * n
+    grads = torch.autograd.grad((image, alpha, depth), [scene["means"], scene["opacities"]],
+                                random_cotangents(sizes, device, 5))
+    # means' and opacities' gradients share the one zeroed buffer: 10 screen-space floats, 13 parameter floats.
+    assert grads[0].untyped_storage().data_ptr() == grads[1].untyped_storage().data_ptr()
+    assert grads[0].untyped_storage().nbytes() == (10 + 13) * 4 * n
+    assert grads[0].abs().sum() > 0 and grads[1].abs().sum() > 0

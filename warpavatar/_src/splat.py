@@ -1,11 +1,16 @@
 """Differentiable Gaussian-splatting rasterizer: torch autograd bridge to the Warp kernels of ``kernels/splat.py``.
 
 One forward pass makes four Warp kernel launches (projection, key emission, tile ranges, compositing) plus the
-prefix sum and radix sort of ``warp.utils``, two small torch fills, and one host synchronization: reading the
-number of (Gaussian, tile) pairs to size the sort buffers (an upper bound would cost far more memory, as any
-Gaussian may cover the whole image). The same read fetches the non-finite-input flag, so checking the inputs
-costs no extra synchronization. One backward pass makes two Warp launches (compositing backward, projection
-adjoint), two torch fills and no synchronization.
+prefix sum and radix sort of ``warp.utils``, two small torch fills, a copy of the sorted ids (the backward keeps
+4 bytes a pair, not the sort's double buffer), and one host synchronization: reading the number of
+(Gaussian, tile) pairs to size the sort buffers (an upper bound would cost far more memory, as any Gaussian may
+cover the whole image). The same read fetches the non-finite-input flag, so checking the inputs costs no extra
+synchronization. One backward pass makes two Warp launches (compositing backward, projection adjoint), one torch
+fill and no synchronization.
+
+Host work per call is kept small: kernel arguments are Warp launch descriptors
+(:func:`~warpavatar._src.warp_utils.warp_descriptor`), not ``wp.array`` objects, and only the scan and the sort
+get arrays. Memory a pass holds, per Gaussian / pair / pixel, is listed in ``docs/rasterizer_memory.md``.
 
 With ``intersection_capacity`` the sort buffers have that fixed size instead: unused slots get a padding key that
 sorts last, the key kernel drops pairs past the capacity, and nothing is read from the device, so the pass can
@@ -18,7 +23,8 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from warpavatar._src.warp_utils import check_tensor, to_warp, torch_stream_scope
+from warpavatar._src.warp_utils import (check_tensor, to_warp, torch_stream_scope, warp_descriptor,
+                                        write_only_descriptor)
 from warpavatar.kernels import splat as splat_kernels
 
 __all__ = ["rasterize_gaussians", "rasterizer_status"]
@@ -33,6 +39,21 @@ _BAD_INPUT_NAMES = (
 )
 
 
+_BLACK_BACKGROUNDS: dict[torch.device, torch.Tensor] = {}
+
+
+def _black_background(device: torch.device) -> torch.Tensor:
+    """A black background [3] on ``device``, made once per device (no allocation and fill a call): the kernels
+    only read it and it needs no gradient. Inside a CUDA graph capture a fresh one, captured with its fill (a
+    tensor made during a capture holds its zeros only once the graph replays)."""
+    if device.type == "cuda" and torch.cuda.is_current_stream_capturing():
+        return torch.zeros(3, device=device, dtype=torch.float32)
+    background = _BLACK_BACKGROUNDS.get(device)
+    if background is None:
+        background = _BLACK_BACKGROUNDS[device] = torch.zeros(3, device=device, dtype=torch.float32)
+    return background
+
+
 def _tile_grid(width: int, height: int) -> tuple[int, int]:
     tile = int(splat_kernels.TILE_SIZE)
     return (width + tile - 1) // tile, (height + tile - 1) // tile
@@ -40,7 +61,7 @@ def _tile_grid(width: int, height: int) -> tuple[int, int]:
 
 def _bin(status, capacity, w_xy_opacity, w_conics, color_depth, w_radii, w_tile_ends, tile_ranges, *, width,
          height):
-    """Sort the (Gaussian, tile) pairs; returns the sorted Gaussian ids.
+    """Sort the (Gaussian, tile) pairs; returns the sorted Gaussian ids (one per pair, or per capacity slot).
 
     Without a ``capacity`` the buffers have the exact size: ``status`` ([pair count, flags]) is read from the
     device (the one host synchronization) and non-finite input raises. With one, nothing is read: unused slots
@@ -60,17 +81,20 @@ def _bin(status, capacity, w_xy_opacity, w_conics, color_depth, w_radii, w_tile_
     if count:
         if capacity is not None:
             sort_keys[:count].fill_(splat_kernels.padding_key(tiles_x * tiles_y))
-        w_sort_keys, w_sorted_ids = to_warp(sort_keys), to_warp(sorted_ids)
         splat_kernels.launch_emit_tile_keys(
-            w_xy_opacity, to_warp(color_depth.view(torch.int32)), w_radii, w_tile_ends, width=width, height=height,
-            keys=w_sort_keys[:count], gaussian_ids=w_sorted_ids[:count], conics=w_conics)
-        wp.utils.radix_sort_pairs(w_sort_keys, w_sorted_ids, count, begin_bit=0,
+            w_xy_opacity, warp_descriptor(color_depth.view(torch.int32)), w_radii, w_tile_ends, width=width,
+            height=height, keys=warp_descriptor(sort_keys[:count]), gaussian_ids=warp_descriptor(sorted_ids[:count]),
+            conics=w_conics)
+        wp.utils.radix_sort_pairs(to_warp(sort_keys), to_warp(sorted_ids), count, begin_bit=0,
                                   end_bit=splat_kernels.sort_key_bits(tiles_x * tiles_y))
         if capacity is None:
-            splat_kernels.launch_tile_ranges(w_sort_keys, count, to_warp(tile_ranges))
+            splat_kernels.launch_tile_ranges(warp_descriptor(sort_keys), count, warp_descriptor(tile_ranges))
         else:
-            splat_kernels.launch_tile_ranges_padded(w_sort_keys, count, to_warp(tile_ranges))
-    return sorted_ids
+            splat_kernels.launch_tile_ranges_padded(warp_descriptor(sort_keys), count, warp_descriptor(tile_ranges))
+    # The sort's second halves were its scratch: the backward keeps only the sorted ids (4 bytes a pair, not
+    # the 8 of the double buffer), copied once the keys' 16 bytes a pair are released.
+    del sort_keys
+    return sorted_ids[:count].clone()
 
 class _RasterizeGaussians(torch.autograd.Function):
     """Autograd wrapper; inputs are already validated, float32 and contiguous (see :func:`rasterize_gaussians`)."""
@@ -88,45 +112,50 @@ class _RasterizeGaussians(torch.autograd.Function):
         conics = torch.empty(gaussian_count, 3, **f32)
         color_depth = torch.empty(gaussian_count, 4, **f32)
         radii = torch.empty(gaussian_count, 2, **i32)
-        tiles_touched = torch.empty(gaussian_count, **i32)
-        # A zero, the inclusive prefix sum of tiles_touched, then the non-finite-input flag: the last two are the
-        # pair count and the flag (one read fetches both; 0 pairs without Gaussians).
-        tile_ends_and_flag = torch.zeros(gaussian_count + 2, **i32)
+        # One zeroed int32 allocation: the tile counts, then a zero, their inclusive prefix sum and the
+        # non-finite-input flag; the last two are the pair count and the flag (one read fetches both; 0 pairs
+        # without Gaussians).
+        tile_counts = torch.zeros(2 * gaussian_count + 2, **i32)
+        tiles_touched = tile_counts[:gaussian_count]
+        tile_ends_and_flag = tile_counts[gaussian_count:]
         tile_ranges = torch.zeros(tiles_x * tiles_y, 2, **i32)
         image = torch.empty(height, width, 3, **f32)
         alpha = torch.empty(height, width, **f32)
         depth = torch.empty(height, width, **f32)
-        final_transmittance = torch.empty(height, width, **f32)
-        last_index = torch.empty(height, width, **i32)
+        # What the backward reads per pixel, in one allocation: the final transmittance and the last index.
+        pixel_state = torch.empty(2, height, width, **i32)
+        final_transmittance = pixel_state[0].view(torch.float32)
+        last_index = pixel_state[1]
 
         with torch_stream_scope(device):
-            w_means = to_warp(means, wp.vec3)
-            w_coefficients = to_warp(coefficients, wp.vec3)
-            w_K = to_warp(K.reshape(1, 3, 3), wp.mat33)
-            w_view = to_warp(world_to_camera.reshape(1, 4, 4), wp.mat44)
-            w_xy_opacity = to_warp(xy_opacity, wp.vec3)
-            w_conics = to_warp(conics, wp.vec3)
-            w_color_depth = to_warp(color_depth, wp.vec4)
-            w_radii = to_warp(radii, wp.vec2i)
-            w_tiles_touched = to_warp(tiles_touched)
-            w_tile_ends = to_warp(tile_ends_and_flag[1:gaussian_count + 1])
+            # Kernel arguments as launch descriptors (a fraction of a wp.array's host cost); the scan and the sort
+            # of warp.utils take wp.arrays.
+            w_xy_opacity = warp_descriptor(xy_opacity, wp.vec3)
+            w_conics = warp_descriptor(conics, wp.vec3)
+            w_color_depth = warp_descriptor(color_depth, wp.vec4)
+            w_radii = warp_descriptor(radii, wp.vec2i)
+            tile_ends = tile_ends_and_flag[1:gaussian_count + 1]
             splat_kernels.launch_project(
-                w_means, to_warp(quats, wp.vec4), to_warp(scales, wp.vec3), to_warp(opacities), w_coefficients,
-                w_K, w_view, width=width, height=height, sh_degree=sh_degree, used_coefficients=used_coefficients,
+                warp_descriptor(means, wp.vec3), warp_descriptor(quats, wp.vec4), warp_descriptor(scales, wp.vec3),
+                warp_descriptor(opacities), warp_descriptor(coefficients, wp.vec3),
+                warp_descriptor(K.view(1, 3, 3), wp.mat33), warp_descriptor(world_to_camera.view(1, 4, 4), wp.mat44),
+                width=width, height=height, sh_degree=sh_degree, used_coefficients=used_coefficients,
                 xy_opacity=w_xy_opacity, conics=w_conics, color_depth=w_color_depth, radii=w_radii,
-                tiles_touched=w_tiles_touched, bad_input_flags=to_warp(tile_ends_and_flag[gaussian_count + 1:]),
+                tiles_touched=warp_descriptor(tiles_touched),
+                bad_input_flags=warp_descriptor(tile_ends_and_flag[gaussian_count + 1:]),
             )
             if gaussian_count:
-                wp.utils.array_scan(w_tiles_touched, w_tile_ends, inclusive=True)
+                wp.utils.array_scan(to_warp(tiles_touched), to_warp(tile_ends), inclusive=True)
             sorted_ids = _bin(tile_ends_and_flag[gaussian_count:], intersection_capacity, w_xy_opacity, w_conics,
-                              color_depth, w_radii, w_tile_ends, tile_ranges, width=width, height=height)
-            w_sorted_ids = to_warp(sorted_ids)
-            w_background = to_warp(background.reshape(1, 3), wp.vec3)
+                              color_depth, w_radii, warp_descriptor(tile_ends), tile_ranges, width=width,
+                              height=height)
             splat_kernels.launch_composite_forward(
-                to_warp(tile_ranges), w_sorted_ids, w_xy_opacity, w_conics, w_color_depth, w_background, width=width,
-                height=height, image=to_warp(image.view(-1, 3), wp.vec3), alpha=to_warp(alpha.view(-1)),
-                depth=to_warp(depth.view(-1)), final_transmittance=to_warp(final_transmittance.view(-1)),
-                last_index=to_warp(last_index.view(-1)),
+                warp_descriptor(tile_ranges), warp_descriptor(sorted_ids), w_xy_opacity, w_conics, w_color_depth,
+                warp_descriptor(background.view(1, 3), wp.vec3), width=width, height=height,
+                image=warp_descriptor(image.view(-1, 3), wp.vec3), alpha=warp_descriptor(alpha.view(-1)),
+                depth=warp_descriptor(depth.view(-1)),
+                final_transmittance=warp_descriptor(final_transmittance.view(-1)),
+                last_index=warp_descriptor(last_index.view(-1)),
             )
 
         ctx.save_for_backward(means, quats, scales, coefficients, background, K, world_to_camera, xy_opacity, conics,
@@ -158,40 +187,48 @@ class _RasterizeGaussians(torch.autograd.Function):
         grad_depth = as_grad(grad_depth, (height, width))
 
         n = gaussian_count
-        screen_grads = torch.zeros(splat_kernels.GRAD_RECORD_FLOATS * n, device=device, dtype=torch.float32)
+        # One zeroed allocation (one fill) for the screen-space gradients (the |d mean2d| sums only when asked
+        # for) and the parameters' gradients, which the kernels add into.
+        screen_floats = splat_kernels.screen_grad_floats(densify_grad_out is not None)
         coefficient_count = coefficients.shape[1]
-        param_grads = torch.zeros((10 + 3 * coefficient_count) * n, device=device, dtype=torch.float32)
+        gradients = torch.zeros((screen_floats + 10 + 3 * coefficient_count) * n, device=device, dtype=torch.float32)
+        screen_grads = gradients[: screen_floats * n]
+        param_grads = gradients[screen_floats * n:]
         grad_means = param_grads[: 3 * n].view(n, 3)
         grad_quats = param_grads[3 * n: 7 * n].view(n, 4)
         grad_scales = param_grads[7 * n: 10 * n].view(n, 3)
         grad_coefficients = param_grads[10 * n:].view(n, coefficient_count, 3)
         with torch_stream_scope(device):
-            w_screen = to_warp(screen_grads)
-            w_background = to_warp(background.reshape(1, 3), wp.vec3)
             splat_kernels.launch_composite_backward(
-                to_warp(tile_ranges), to_warp(sorted_ids), to_warp(xy_opacity, wp.vec3), to_warp(conics, wp.vec3),
-                to_warp(color_depth, wp.vec4), w_background, width=width, height=height,
-                final_transmittance=to_warp(final_transmittance.view(-1)), last_index=to_warp(last_index.view(-1)),
-                grad_image=to_warp(grad_image.view(-1, 3), wp.vec3), grad_alpha=to_warp(grad_alpha.view(-1)),
-                grad_depth=to_warp(grad_depth.view(-1)), with_abs=densify_grad_out is not None, grads=w_screen,
+                warp_descriptor(tile_ranges), warp_descriptor(sorted_ids), warp_descriptor(xy_opacity, wp.vec3),
+                warp_descriptor(conics, wp.vec3), warp_descriptor(color_depth, wp.vec4),
+                warp_descriptor(background.view(1, 3), wp.vec3), width=width, height=height,
+                final_transmittance=warp_descriptor(final_transmittance.view(-1)),
+                last_index=warp_descriptor(last_index.view(-1)),
+                grad_image=warp_descriptor(grad_image.view(-1, 3), wp.vec3),
+                grad_alpha=warp_descriptor(grad_alpha.view(-1)), grad_depth=warp_descriptor(grad_depth.view(-1)),
+                with_abs=densify_grad_out is not None, grads=warp_descriptor(screen_grads),
             )
             if any(ctx.needs_input_grad[i] for i in (0, 1, 2, 4)):
-                scratch = torch.empty(9 * n, device=device, dtype=torch.float32)
+                # The adjoint launch replays the projection's outputs, which nothing reads: they all land on one
+                # vec3 (write_only_descriptor) instead of a buffer of 9 floats a Gaussian.
+                sink = torch.empty(3, device=device, dtype=torch.float32)
                 splat_kernels.launch_project_backward(
-                    to_warp(means, wp.vec3), to_warp(quats, wp.vec4), to_warp(scales, wp.vec3),
-                    to_warp(coefficients, wp.vec3), to_warp(K.reshape(1, 3, 3), wp.mat33),
-                    to_warp(world_to_camera.reshape(1, 4, 4), wp.mat44), to_warp(radii, wp.vec2i), width=width,
-                    height=height, sh_degree=sh_degree,
-                    scratch_mean2d=to_warp(scratch[: 2 * n].view(n, 2), wp.vec2),
-                    scratch_conic=to_warp(scratch[2 * n: 5 * n].view(n, 3), wp.vec3),
-                    scratch_depth=to_warp(scratch[5 * n: 6 * n]),
-                    scratch_color=to_warp(scratch[6 * n:].view(n, 3), wp.vec3),
-                    grad_mean2d=to_warp(screen_grads[: 2 * n].view(n, 2), wp.vec2),
-                    grad_conic=to_warp(screen_grads[2 * n: 5 * n].view(n, 3), wp.vec3),
-                    grad_depth=to_warp(screen_grads[9 * n: 10 * n]),
-                    grad_color=to_warp(screen_grads[6 * n: 9 * n].view(n, 3), wp.vec3),
-                    grad_means=to_warp(grad_means, wp.vec3), grad_quats=to_warp(grad_quats, wp.vec4),
-                    grad_scales=to_warp(grad_scales, wp.vec3), grad_coefficients=to_warp(grad_coefficients, wp.vec3),
+                    warp_descriptor(means, wp.vec3), warp_descriptor(quats, wp.vec4), warp_descriptor(scales, wp.vec3),
+                    warp_descriptor(coefficients, wp.vec3), warp_descriptor(K.view(1, 3, 3), wp.mat33),
+                    warp_descriptor(world_to_camera.view(1, 4, 4), wp.mat44), warp_descriptor(radii, wp.vec2i),
+                    width=width, height=height, sh_degree=sh_degree,
+                    scratch_mean2d=write_only_descriptor(sink, n, wp.vec2),
+                    scratch_conic=write_only_descriptor(sink, n, wp.vec3),
+                    scratch_depth=write_only_descriptor(sink, n, wp.float32),
+                    scratch_color=write_only_descriptor(sink, n, wp.vec3),
+                    grad_mean2d=warp_descriptor(screen_grads[: 2 * n].view(n, 2), wp.vec2),
+                    grad_conic=warp_descriptor(screen_grads[2 * n: 5 * n].view(n, 3), wp.vec3),
+                    grad_depth=warp_descriptor(screen_grads[9 * n: 10 * n]),
+                    grad_color=warp_descriptor(screen_grads[6 * n: 9 * n].view(n, 3), wp.vec3),
+                    grad_means=warp_descriptor(grad_means, wp.vec3), grad_quats=warp_descriptor(grad_quats, wp.vec4),
+                    grad_scales=warp_descriptor(grad_scales, wp.vec3),
+                    grad_coefficients=warp_descriptor(grad_coefficients, wp.vec3),
                 )
         if densify_grad_out is not None:
             densify_grad_out.add_(screen_grads[10 * n:].view(n, 2))
@@ -292,7 +329,7 @@ def rasterize_gaussians(
         coefficients = colors
         kernel_degree = sh_degree
     if background is None:
-        background = torch.zeros(3, device=device, dtype=torch.float32)
+        background = _black_background(device)
     else:
         check_tensor("background", background, (3,), device=device)
     if densify_grad_out is not None:

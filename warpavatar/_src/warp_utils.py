@@ -1,8 +1,12 @@
 """Glue between torch tensors and Warp arrays, shared by every op of :mod:`warpavatar.ops`.
 
 Rules every bridge follows:
-    * tensors are handed to Warp as ``wp.from_torch(tensor.detach().contiguous())``, never with Warp's own
-      gradient tracking: backward passes are explicit kernels called from ``torch.autograd.Function``;
+    * tensors are handed to Warp without a copy and never with Warp's own gradient tracking (backward passes
+      are explicit kernels called from ``torch.autograd.Function``): as ``wp.array`` views (:func:`to_warp`,
+      what ``wp.from_torch`` makes, for about 70 % of its host cost), or, for kernel arguments on a hot path,
+      as the
+      launch descriptors Warp passes to kernels (:func:`warp_descriptor`, a fifth of ``wp.from_torch``'s
+      cost);
     * kernels run on the device of their inputs and, on CUDA, on torch's current stream
       (:func:`torch_stream_scope`), so they order correctly with the surrounding torch work;
     * Warp is initialized lazily and quietly the first time an op runs.
@@ -10,7 +14,7 @@ Rules every bridge follows:
 
 from __future__ import annotations
 
-import contextlib
+import ctypes
 import functools
 
 import torch
@@ -24,6 +28,8 @@ __all__ = [
     "init_warp",
     "warp_device",
     "to_warp",
+    "warp_descriptor",
+    "write_only_descriptor",
     "torch_stream_scope",
     "warp_stream_of",
     "available_devices",
@@ -48,20 +54,166 @@ def warp_device(device: torch.device | str) -> str:
     raise ValueError(f"warpavatar kernels run on CPU or CUDA tensors, got a tensor on {device}")
 
 
+# Scalar Warp dtypes a torch dtype's memory may be read as (integers as signed or unsigned); the first is the
+# default view.
+_WARP_SCALARS_OF_TORCH = {
+    torch.float32: (wp.float32,),
+    torch.float64: (wp.float64,),
+    torch.float16: (wp.float16,),
+    torch.bfloat16: (wp.bfloat16,),
+    torch.int32: (wp.int32, wp.uint32),
+    torch.int64: (wp.int64, wp.uint64),
+    torch.int16: (wp.int16, wp.uint16),
+    torch.int8: (wp.int8, wp.uint8),
+    torch.uint8: (wp.uint8, wp.int8),
+    torch.bool: (wp.bool, wp.uint8, wp.int8),
+}
+
+
+@functools.lru_cache(maxsize=None)
+def _element_layout(torch_dtype: torch.dtype, dtype) -> tuple[object, tuple[int, ...], int]:
+    """(Warp dtype, trailing tensor dimensions one element takes, its size in bytes) of a tensor of
+    ``torch_dtype`` read as elements of ``dtype`` (None: the default scalar); raises when they do not fit."""
+    scalars = _WARP_SCALARS_OF_TORCH.get(torch_dtype)
+    if scalars is None:
+        raise TypeError(f"Warp kernels cannot read {torch_dtype} tensors")
+    if dtype is None:
+        dtype = scalars[0]
+    if getattr(dtype, "_wp_scalar_type_", dtype) not in scalars:
+        raise TypeError(f"cannot view a {torch_dtype} tensor as Warp {dtype.__name__}")
+    return dtype, tuple(getattr(dtype, "_shape_", ())), _item_bytes(dtype)
+
+
+def _item_bytes(dtype) -> int:
+    """Bytes of one element of a Warp scalar, vector or matrix dtype."""
+    item_bytes = ctypes.sizeof(dtype._type_)
+    for size in getattr(dtype, "_shape_", ()):
+        item_bytes *= size
+    return item_bytes
+
+
+_LAYOUTS: dict[tuple, tuple[object, tuple[int, ...], tuple[int, ...]]] = {}
+_LAYOUTS_KEPT = 4096  # distinct (dtype, shape) entries kept before the table starts over
+
+
+def _array_layout(tensor: torch.Tensor, dtype) -> tuple[object, tuple[int, ...], tuple[int, ...]]:
+    """(Warp dtype, Warp shape, contiguous byte strides) of a contiguous ``tensor`` read as elements of
+    ``dtype`` (vector and matrix dtypes take the last dimensions); remembered per torch dtype, dtype and shape,
+    as a kernel's bridge sees the same few every call."""
+    key = (tensor.dtype, dtype, tensor.shape)
+    layout = _LAYOUTS.get(key)
+    if layout is not None:
+        return layout
+    dtype, inner_shape, item_bytes = _element_layout(tensor.dtype, dtype)
+    shape = tuple(tensor.shape)
+    if inner_shape:
+        if shape[len(shape) - len(inner_shape):] != inner_shape:
+            raise ValueError(f"cannot view a tensor of shape {list(shape)} as Warp {dtype.__name__} "
+                             f"(its last dimensions must be {list(inner_shape)})")
+        shape = shape[: len(shape) - len(inner_shape)] or (1,)
+    elif not shape:
+        shape = (1,)
+    strides = [item_bytes] * len(shape)
+    for axis in range(len(shape) - 1, 0, -1):
+        strides[axis - 1] = strides[axis] * shape[axis]
+    if len(_LAYOUTS) >= _LAYOUTS_KEPT:
+        _LAYOUTS.clear()
+    layout = _LAYOUTS[key] = (dtype, shape, tuple(strides))
+    return layout
+
+
+_WARP_DEVICES: dict[torch.device, object] = {}
+
+
+def _warp_device_object(device: torch.device):
+    found = _WARP_DEVICES.get(device)
+    if found is None:
+        init_warp()
+        found = _WARP_DEVICES[device] = wp.get_device(warp_device(device))
+    return found
+
+
+
 def to_warp(tensor: torch.Tensor, dtype=None) -> wp.array:
     """View a torch tensor as a Warp array without copying (a contiguous copy is made only if needed).
 
     Args:
         tensor: any torch tensor on CPU or CUDA; it is detached first, so Warp never records it.
         dtype: Warp dtype of one element (e.g. ``wp.vec3``); by default inferred from the tensor's dtype.
+
+    Returns:
+        A ``wp.array`` over the tensor's memory (without gradient), which keeps the tensor alive.
     """
-    init_warp()
     tensor = tensor.detach()
     if not tensor.is_contiguous():
         tensor = tensor.contiguous()
-    if dtype is None:
-        return wp.from_torch(tensor, requires_grad=False)
-    return wp.from_torch(tensor, dtype=dtype, requires_grad=False)
+    dtype, shape, strides = _array_layout(tensor, dtype)
+    # The pointer constructor costs half of wp.from_torch (which also resolves gradients and the storage's capacity).
+    array = wp.array(ptr=tensor.data_ptr(), dtype=dtype, shape=shape, strides=strides,
+                     device=_warp_device_object(tensor.device), copy=False)
+    array._tensor = tensor
+    return array
+
+
+@functools.lru_cache(maxsize=None)
+def _array_descriptor_type() -> type:
+    """The ctypes structure Warp passes to a kernel for an array (what ``wp.from_torch(..., return_ctype=True)``
+    builds)."""
+    init_warp()
+    return type(wp.from_torch(torch.zeros(1), return_ctype=True))
+
+
+def warp_descriptor(tensor: torch.Tensor, dtype=None):
+    """The launch-argument descriptor of a contiguous torch tensor: what ``wp.launch`` passes to the kernel for
+    a ``wp.array`` argument, made without building the array (about 1.5 us on the host against 5-10 us).
+
+    Use it for kernel arguments only (``wp.launch`` and launchers that read ``shape``/``ndim``); the
+    ``warp.utils`` algorithms (scan, sort) need :func:`to_warp`'s arrays. The launch runs on Warp's current
+    device (:func:`torch_stream_scope`), which must be the tensor's.
+
+    Args:
+        tensor: a contiguous torch tensor on CPU or CUDA (not copied, not detached: Warp never records it).
+        dtype: Warp dtype of one element (e.g. ``wp.vec3``, taking the tensor's last dimension); by default
+            the scalar of the tensor's dtype.
+
+    Returns:
+        A ``warp.types.array_t`` (``shape[i]``, ``ndim``) that keeps the tensor alive.
+
+    Raises:
+        ValueError: the tensor is not contiguous, or its last dimensions do not make elements of ``dtype``.
+        TypeError: its scalar type is not ``dtype``'s.
+    """
+    if not tensor.is_contiguous():
+        raise ValueError(f"warp_descriptor needs a contiguous tensor, got strides {tensor.stride()}")
+    dtype, shape, strides = _array_layout(tensor, dtype)
+    descriptor = _array_descriptor_type()(tensor.data_ptr(), 0, len(shape), shape, strides)
+    descriptor._tensor = tensor
+    return descriptor
+
+
+def write_only_descriptor(sink: torch.Tensor, element_count: int, dtype):
+    """A launch descriptor of ``element_count`` elements of ``dtype`` that all lie at the start of ``sink``
+    (stride 0), for an output a kernel must be given but whose values nobody reads: the forward outputs that an
+    adjoint launch (``wp.launch(..., adjoint=True)``) writes again while it computes the gradients, whose
+    adjoints read only the gradient arrays. Every thread writes the same bytes, so they hold no meaning; the
+    buffer costs one element instead of ``element_count``.
+
+    Args:
+        sink: a contiguous tensor of at least one element of ``dtype`` (its bytes), on the launch's device; kept
+            alive by the descriptor.
+        element_count: the length the kernel sees (``shape[0]``).
+        dtype: Warp dtype of one element (e.g. ``wp.vec3``).
+
+    Raises:
+        ValueError: ``sink`` is not contiguous or smaller than one element.
+    """
+    item_bytes = _item_bytes(dtype)
+    if not sink.is_contiguous() or sink.numel() * sink.element_size() < item_bytes:
+        raise ValueError(f"the sink of a write-only {dtype.__name__} array must be a contiguous tensor of at least "
+                         f"{item_bytes} bytes, got {sink.numel() * sink.element_size()}")
+    descriptor = _array_descriptor_type()(sink.data_ptr(), 0, 1, (element_count,), (0,))
+    descriptor._tensor = sink
+    return descriptor
 
 
 _WARP_STREAMS: dict[tuple[str, int], wp.Stream] = {}
@@ -83,22 +235,37 @@ def warp_stream_of(stream: torch.cuda.Stream) -> wp.Stream:
     return wrapper
 
 
-@contextlib.contextmanager
-def torch_stream_scope(device: torch.device | str):
+class torch_stream_scope:
     """Run the Warp launches inside this block on torch's current stream of ``device``.
 
-    On CPU it only selects the Warp device.
+    On CPU it only selects the Warp device. ``with torch_stream_scope(device) as name:`` gives Warp's name of the
+    device. The Warp device of a torch device with an index is looked up once; the stream is torch's current
+    one at entry.
     """
-    init_warp()
-    device = torch.device(device)
-    name = warp_device(device)
-    if device.type == "cuda":
-        stream = warp_stream_of(torch.cuda.current_stream(device))
-        with wp.ScopedDevice(name), wp.ScopedStream(stream, sync_enter=False):
-            yield name
-    else:
-        with wp.ScopedDevice(name):
-            yield name
+
+    __slots__ = ("_device", "_scopes")
+
+    def __init__(self, device: torch.device | str):
+        self._device = device if isinstance(device, torch.device) else torch.device(device)
+        self._scopes = ()
+
+    def __enter__(self) -> str:
+        device = self._device
+        warp_device_object = _warp_device_object(device) if device.index is not None or device.type == "cpu" else (
+            _warp_device_object(torch.device("cuda", torch.cuda.current_device())))
+        if device.type == "cuda":
+            stream = warp_stream_of(torch.cuda.current_stream(device))
+            self._scopes = (wp.ScopedDevice(warp_device_object), wp.ScopedStream(stream, sync_enter=False))
+        else:
+            self._scopes = (wp.ScopedDevice(warp_device_object),)
+        for scope in self._scopes:
+            scope.__enter__()
+        return warp_device_object.alias
+
+    def __exit__(self, *exc) -> None:
+        for scope in reversed(self._scopes):
+            scope.__exit__(*exc)
+        self._scopes = ()
 
 
 def available_devices() -> list[str]:
