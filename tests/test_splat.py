@@ -12,6 +12,7 @@ import torch
 import warp as wp
 
 from warpavatar import ops
+from warpavatar._src import splat as splat_bridge
 from warpavatar._src.warp_utils import to_warp
 from warpavatar._torch_impl import splat as reference
 from warpavatar.kernels import splat as kernels
@@ -594,10 +595,12 @@ def test_tile_ranges_skip_padding_keys_and_emission_stays_in_its_buffer():
     assert torch.all(keys[capacity:] == -1) and torch.all(ids[capacity:] == -1)
 
 
-def test_backward_keeps_one_sorted_id_per_pair_and_no_per_gaussian_scratch(device):
+def test_backward_keeps_one_sorted_id_per_pair_and_no_per_gaussian_scratch(device, monkeypatch):
     # What the forward saves for the backward: one sorted Gaussian id per (Gaussian, tile) pair (the sort's
     # double buffer is released), and per-Gaussian records of 48 bytes; the gradients come out of one
-    # allocation sized without the |d mean2d| sums when no densification statistic is asked for.
+    # allocation sized without the |d mean2d| sums when no densification statistic is asked for. (The exact
+    # mode: with no recent calls to guess from; the speculative mode's buffers are in test_splat_speculative.)
+    monkeypatch.setattr(splat_bridge, "_RECENT_PAIRS", {})
     scene, sizes = make_scene(5, device=device, gaussian_count=160)
     scene = {name: value.requires_grad_(name in DIFFERENTIABLE) for name, value in scene.items()}
     image, alpha, depth, info = render(ops.rasterize_gaussians, scene, sizes, return_info=True)

@@ -2,23 +2,36 @@
 
 One forward pass makes four Warp kernel launches (projection, key emission, tile ranges, compositing) plus the
 prefix sum and radix sort of ``warp.utils``, two small torch fills, a copy of the sorted ids (the backward keeps
-4 bytes a pair, not the sort's double buffer), and one host synchronization: reading the number of
-(Gaussian, tile) pairs to size the sort buffers (an upper bound would cost far more memory, as any Gaussian may
-cover the whole image). The same read fetches the non-finite-input flag, so checking the inputs costs no extra
-synchronization. One backward pass makes two Warp launches (compositing backward, projection adjoint), one torch
-fill and no synchronization.
+4 bytes a pair, not the sort's double buffer), and one host synchronization. One backward pass makes two Warp
+launches (compositing backward, projection adjoint), one torch fill and no synchronization.
+
+The sort buffers must hold every (Gaussian, tile) pair, a number known only on the device once the projection
+has run (an upper bound would cost far more memory, as any Gaussian may cover the whole image). Three modes:
+
+* **Speculative** (CUDA, the default once a call of the same image size and Gaussian count has been seen): the
+  buffers get a capacity of :data:`SPECULATIVE_HEADROOM` times the most pairs of the last
+  :data:`SPECULATIVE_HISTORY` such calls, and the whole pass is queued without waiting; the pair count and the
+  non-finite-input flag are read once at the end (the one synchronization). When the pairs did not fit, the
+  binning and compositing run again with exact buffers, so the result is always exact. The host thus queues
+  every kernel while the GPU works, instead of waiting for the projection half-way.
+* **Exact** (CPU, and the first call of a size on CUDA): the pair count is read after the projection and the
+  buffers get exactly that size.
+* **Fixed** (``intersection_capacity``): the buffers have that size, unused slots get a padding key that sorts
+  last, the key kernel drops pairs past the capacity, and nothing is read from the device, so the pass can be
+  captured in a CUDA graph; the pair count and the input flags stay on the device (``info["status"]``) for
+  the caller to check when it reads other values anyway (:func:`rasterizer_status`).
+
+In every mode non-finite inputs raise a ``ValueError`` (fixed mode: when the caller checks the status).
 
 Host work per call is kept small: kernel arguments are Warp launch descriptors
 (:func:`~warpavatar._src.warp_utils.warp_descriptor`), not ``wp.array`` objects, and only the scan and the sort
 get arrays. Memory a pass holds, per Gaussian / pair / pixel, is listed in ``docs/rasterizer_memory.md``.
-
-With ``intersection_capacity`` the sort buffers have that fixed size instead: unused slots get a padding key that
-sorts last, the key kernel drops pairs past the capacity, and nothing is read from the device, so the pass can
-be captured in a CUDA graph; the pair count and the input flags stay on the device (``info["status"]``) for
-the caller to check when it reads other values anyway (:func:`rasterizer_status`).
 """
 
 from __future__ import annotations
+
+import math
+from collections import deque
 
 import torch
 import warp as wp
@@ -27,7 +40,20 @@ from warpavatar._src.warp_utils import (check_tensor, to_warp, torch_stream_scop
                                         write_only_descriptor)
 from warpavatar.kernels import splat as splat_kernels
 
-__all__ = ["rasterize_gaussians", "rasterizer_status"]
+__all__ = ["rasterize_gaussians", "rasterizer_status", "SPECULATIVE_HEADROOM", "SPECULATIVE_HISTORY"]
+
+SPECULATIVE_HEADROOM = 1.2
+"""Speculative capacity as a multiple of the most pairs of recent calls of the same size (see the module doc)."""
+
+SPECULATIVE_HISTORY = 8
+"""How many recent calls of one (device, image size, Gaussian count) the speculative capacity looks back on."""
+
+_SPECULATIVE_MINIMUM = 1024  # slots; the capacity never goes below it
+_SPECULATE_ON_CPU = False  # CPU kernels run synchronously: the exact mode costs no wait there (tests set this)
+
+# Pair counts of recent calls, per (device, width, height, Gaussian count).
+_RECENT_PAIRS: dict[tuple, deque] = {}
+_RECENT_PAIRS_KEPT = 256  # distinct keys kept before the table starts over
 
 _BAD_INPUT_NAMES = (
     (splat_kernels.BAD_MEANS, "means"),
@@ -59,6 +85,35 @@ def _tile_grid(width: int, height: int) -> tuple[int, int]:
     return (width + tile - 1) // tile, (height + tile - 1) // tile
 
 
+def _raise_on_bad_inputs(flags: int) -> None:
+    if flags:
+        bad = [name for bit, name in _BAD_INPUT_NAMES if flags & bit]
+        raise ValueError(f"rasterize_gaussians: non-finite values in {', '.join(bad)}")
+
+
+def _speculative_capacity(key: tuple) -> int | None:
+    """The speculative capacity for a call of ``key`` (see the module doc), or None: no call of it seen yet, or
+    speculation is off on this device."""
+    device = key[0]
+    if device.type != "cuda" and not _SPECULATE_ON_CPU:
+        return None
+    if device.type == "cuda" and torch.cuda.is_current_stream_capturing():
+        return None  # a capture cannot read the device; callers give a fixed capacity there
+    recent = _RECENT_PAIRS.get(key)
+    if not recent:
+        return None
+    return max(_SPECULATIVE_MINIMUM, math.ceil(SPECULATIVE_HEADROOM * max(recent)))
+
+
+def _remember_pairs(key: tuple, count: int) -> None:
+    recent = _RECENT_PAIRS.get(key)
+    if recent is None:
+        if len(_RECENT_PAIRS) >= _RECENT_PAIRS_KEPT:
+            _RECENT_PAIRS.clear()
+        recent = _RECENT_PAIRS[key] = deque(maxlen=SPECULATIVE_HISTORY)
+    recent.append(int(count))
+
+
 def _bin(status, capacity, w_xy_opacity, w_conics, color_depth, w_radii, w_tile_ends, tile_ranges, *, width,
          height):
     """Sort the (Gaussian, tile) pairs; returns the sorted Gaussian ids (one per pair, or per capacity slot).
@@ -71,9 +126,7 @@ def _bin(status, capacity, w_xy_opacity, w_conics, color_depth, w_radii, w_tile_
     tiles_x, tiles_y = _tile_grid(width, height)
     if capacity is None:
         count, flags = status.tolist()  # the one host sync
-        if flags:
-            bad = [name for bit, name in _BAD_INPUT_NAMES if flags & bit]
-            raise ValueError(f"rasterize_gaussians: non-finite values in {', '.join(bad)}")
+        _raise_on_bad_inputs(flags)
     else:
         count = capacity
     sort_keys = torch.empty(2 * count, device=device, dtype=torch.int64)
@@ -146,25 +199,43 @@ class _RasterizeGaussians(torch.autograd.Function):
             )
             if gaussian_count:
                 wp.utils.array_scan(to_warp(tiles_touched), to_warp(tile_ends), inclusive=True)
-            sorted_ids = _bin(tile_ends_and_flag[gaussian_count:], intersection_capacity, w_xy_opacity, w_conics,
-                              color_depth, w_radii, warp_descriptor(tile_ends), tile_ranges, width=width,
-                              height=height)
-            splat_kernels.launch_composite_forward(
-                warp_descriptor(tile_ranges), warp_descriptor(sorted_ids), w_xy_opacity, w_conics, w_color_depth,
-                warp_descriptor(background.view(1, 3), wp.vec3), width=width, height=height,
-                image=warp_descriptor(image.view(-1, 3), wp.vec3), alpha=warp_descriptor(alpha.view(-1)),
-                depth=warp_descriptor(depth.view(-1)),
-                final_transmittance=warp_descriptor(final_transmittance.view(-1)),
-                last_index=warp_descriptor(last_index.view(-1)),
-            )
+            status = tile_ends_and_flag[gaussian_count:]
+            speculation_key = (device, width, height, gaussian_count)
+            capacity = intersection_capacity
+            speculative = capacity is None and (capacity := _speculative_capacity(speculation_key)) is not None
+            w_tile_ends = warp_descriptor(tile_ends)
+            w_background = warp_descriptor(background.view(1, 3), wp.vec3)
+            w_pixels = dict(image=warp_descriptor(image.view(-1, 3), wp.vec3), alpha=warp_descriptor(alpha.view(-1)),
+                            depth=warp_descriptor(depth.view(-1)),
+                            final_transmittance=warp_descriptor(final_transmittance.view(-1)),
+                            last_index=warp_descriptor(last_index.view(-1)))
+
+            def bin_and_composite(capacity):
+                sorted_ids = _bin(status, capacity, w_xy_opacity, w_conics, color_depth, w_radii, w_tile_ends,
+                                  tile_ranges, width=width, height=height)
+                splat_kernels.launch_composite_forward(
+                    warp_descriptor(tile_ranges), warp_descriptor(sorted_ids), w_xy_opacity, w_conics, w_color_depth,
+                    w_background, width=width, height=height, **w_pixels)
+                return sorted_ids
+
+            sorted_ids = bin_and_composite(capacity)
+            if speculative:
+                count, flags = status.tolist()  # the one host sync, once the whole pass is queued
+                _raise_on_bad_inputs(flags)
+                if count > capacity:  # the guess was short: again with exact buffers
+                    tile_ranges.zero_()
+                    sorted_ids = bin_and_composite(count)
+            elif intersection_capacity is None:
+                count = int(sorted_ids.shape[0])  # the exact mode's buffers hold the pair count
+            if intersection_capacity is None:
+                _remember_pairs(speculation_key, count)
 
         ctx.save_for_backward(means, quats, scales, coefficients, background, K, world_to_camera, xy_opacity, conics,
                               color_depth, radii, tile_ranges, sorted_ids, final_transmittance, last_index)
         ctx.width, ctx.height, ctx.sh_degree = width, height, sh_degree
         ctx.densify_grad_out = densify_grad_out
-        # The per-Gaussian buffers are returned as-is for the info dict (built only when asked for).
-        # [pair count, bad-input flags] on the device, for a caller that checks them off the hot path
-        status = tile_ends_and_flag[gaussian_count:]
+        # The per-Gaussian buffers are returned as-is for the info dict (built only when asked for), with the
+        # [pair count, bad-input flags] on the device, for a caller that checks them off the hot path.
         ctx.mark_non_differentiable(radii, xy_opacity, color_depth, status)
         return image, alpha, depth, radii, xy_opacity, color_depth, status
 
@@ -371,7 +442,5 @@ def rasterizer_status(info: dict) -> int:
         ValueError: the inputs held non-finite values.
     """
     pair_count, flags = info["status"].tolist()
-    if flags:
-        bad = [name for bit, name in _BAD_INPUT_NAMES if flags & bit]
-        raise ValueError(f"rasterize_gaussians: non-finite values in {', '.join(bad)}")
+    _raise_on_bad_inputs(flags)
     return int(pair_count)

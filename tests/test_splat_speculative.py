@@ -1,0 +1,109 @@
+"""The rasterizer's speculative mode: the sort buffers sized from recent calls, one read at the end of the pass.
+
+On CUDA a call of an image size and Gaussian count seen before queues the whole pass with a guessed capacity and
+reads the pair count once at the end; when the guess was short it bins and composites again with exact buffers.
+These tests switch the mode on for CPU too and hold it to the exact mode: same images, same gradients, the
+same errors, whatever the guess.
+"""
+
+import pytest
+import torch
+
+from warpavatar import ops
+from warpavatar._src import splat as splat_bridge
+
+from test_splat import DIFFERENTIABLE, random_cotangents, make_scene, render_and_grad
+
+
+@pytest.fixture
+def speculation(monkeypatch):
+    """Speculation on every device, with an empty table of recent pair counts."""
+    monkeypatch.setattr(splat_bridge, "_SPECULATE_ON_CPU", True)
+    monkeypatch.setattr(splat_bridge, "_RECENT_PAIRS", {})
+    return splat_bridge
+
+
+def _key(scene, sizes):
+    return (scene["means"].device, sizes["width"], sizes["height"], scene["means"].shape[0])
+
+
+def _saved_sorted_ids(scene, sizes):
+    scene = {name: value.detach().requires_grad_(name in DIFFERENTIABLE) for name, value in scene.items()}
+    image, *_ , info = ops.rasterize_gaussians(
+        scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["colors"], scene["K"],
+        scene["world_to_camera"], sizes["width"], sizes["height"], background=scene["background"], return_info=True)
+    return image.grad_fn.saved_tensors[12], int(info["status"][0])
+
+
+def _assert_same_pass(first, second):
+    (outputs_a, grads_a, _), (outputs_b, grads_b, _) = first, second
+    for a, b in zip(outputs_a, outputs_b):
+        assert torch.equal(a, b)
+    for name in grads_a:
+        torch.testing.assert_close(grads_b[name], grads_a[name], rtol=1e-5, atol=1e-6, msg=name)
+
+
+def test_a_repeated_call_speculates_and_matches_the_exact_pass(device, speculation):
+    scene, sizes = make_scene(11, device=device, gaussian_count=240)
+    cotangents = random_cotangents(sizes, device, 11)
+    key = _key(scene, sizes)
+    assert speculation._speculative_capacity(key) is None  # nothing seen: the first call is exact
+    exact = render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents, densify=True)
+    capacity = speculation._speculative_capacity(key)
+    pairs = int(speculation._RECENT_PAIRS[key][-1])
+    assert pairs > 200 and capacity == max(1024, -(-pairs * 12 // 10))
+    speculative = render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents, densify=True)
+    _assert_same_pass(exact, speculative)
+    torch.testing.assert_close(speculative[2], exact[2], rtol=1e-5, atol=1e-6)
+    # The speculative pass sorted in buffers of the guessed size (padding slots sort after every tile).
+    sorted_ids, pair_count = _saved_sorted_ids(scene, sizes)
+    assert pair_count == pairs and sorted_ids.shape[0] == capacity > pairs
+
+
+def test_a_short_guess_bins_again_with_exact_buffers(device, speculation):
+    # Many small Gaussians first, then the same count made large: far more pairs than the guess allows.
+    scene, sizes = make_scene(12, device=device, gaussian_count=1200, awkward=False)
+    small = dict(scene, scales=scene["scales"] * 0.05)
+    cotangents = random_cotangents(sizes, device, 12)
+    render_and_grad(ops.rasterize_gaussians, small, sizes, cotangents)
+    key = _key(scene, sizes)
+    guess = speculation._speculative_capacity(key)
+    speculative = render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents)
+    needed = speculation._RECENT_PAIRS[key][-1]
+    assert needed > guess, "the scene must outgrow the guess, or the test proves nothing"
+    speculation._RECENT_PAIRS.clear()
+    exact = render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents)
+    _assert_same_pass(exact, speculative)
+    # The guess grows to cover the largest recent call.
+    assert speculation._speculative_capacity(key) >= needed
+
+
+@pytest.mark.parametrize("name", ["means", "opacities", "colors"])
+def test_non_finite_inputs_raise_in_the_speculative_mode_too(device, speculation, name):
+    scene, sizes = make_scene(13, device=device, gaussian_count=120)
+    cotangents = random_cotangents(sizes, device, 13)
+    render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents)
+    assert speculation._speculative_capacity(_key(scene, sizes)) is not None
+    bad = dict(scene)
+    bad[name] = scene[name].clone()
+    bad[name].view(-1)[7] = float("nan")
+    with pytest.raises(ValueError, match=f"non-finite values in {name}"):
+        render_and_grad(ops.rasterize_gaussians, bad, sizes, cotangents)
+
+
+def test_a_fixed_capacity_neither_speculates_nor_records(device, speculation):
+    scene, sizes = make_scene(14, device=device, gaussian_count=120)
+    args = [scene[name] for name in ("means", "quats", "scales", "opacities", "colors", "K", "world_to_camera")]
+    ops.rasterize_gaussians(*args, sizes["width"], sizes["height"], intersection_capacity=4096)
+    assert speculation._RECENT_PAIRS == {}
+    ops.rasterize_gaussians(*args, sizes["width"], sizes["height"])
+    assert list(speculation._RECENT_PAIRS) == [_key(scene, sizes)]
+
+
+def test_the_history_looks_back_a_fixed_number_of_calls(speculation):
+    key = (torch.device("cpu"), 8, 8, 1)
+    for count in [50_000] + [2_000] * speculation.SPECULATIVE_HISTORY:
+        speculation._remember_pairs(key, count)
+    assert speculation._speculative_capacity(key) == 2_400  # the 50k call has left the window
+    speculation._remember_pairs(key, 10)
+    assert speculation._speculative_capacity(key) == 2_400
