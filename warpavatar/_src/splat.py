@@ -1,19 +1,21 @@
 """Differentiable Gaussian-splatting rasterizer: torch autograd bridge to the Warp kernels of ``kernels/splat.py``.
 
-One forward pass makes four Warp kernel launches (projection, key emission, tile ranges, compositing) plus the
-prefix sum and radix sort of ``warp.utils``, two small torch fills, a copy of the sorted ids (the backward keeps
-4 bytes a pair, not the sort's double buffer), and one host synchronization: reading the number of
-(Gaussian, tile) pairs to size the sort buffers (an upper bound would cost far more memory, as any Gaussian may
-cover the whole image). The same read fetches the non-finite-input flag, so checking the inputs costs no extra
-synchronization. One backward pass makes two Warp launches (compositing backward, projection adjoint), one torch
+One forward pass makes four Warp kernel launches (projection, key emission, tile ranges, compositing) plus
+three ``warp.utils`` calls (the depth sort of the Gaussians, the prefix sum of their tile counts in depth order,
+the sort of the (Gaussian, tile) pairs by tile: two radix sorts over 4-byte keys that give the order of one
+over 8-byte (tile, depth) keys, see ``kernels/splat.py``), two small torch fills, a copy of the sorted ids (the
+backward keeps 4 bytes a pair, not the sort's double buffer), and one host synchronization: reading the number
+of (Gaussian, tile) pairs to size the sort buffers (an upper bound would cost far more memory, as any Gaussian
+may cover the whole image). The same read fetches the non-finite-input flag, so checking the inputs costs no
+extra synchronization. One backward pass makes two Warp launches (compositing backward, projection adjoint), one torch
 fill and no synchronization.
 
 Host work per call is kept small: kernel arguments are Warp launch descriptors
 (:func:`~warpavatar._src.warp_utils.warp_descriptor`), not ``wp.array`` objects, and only the scan and the sort
 get arrays. Memory a pass holds, per Gaussian / pair / pixel, is listed in ``docs/rasterizer_memory.md``.
 
-With ``intersection_capacity`` the sort buffers have that fixed size instead: unused slots get a padding key that
-sorts last, the key kernel drops pairs past the capacity, and nothing is read from the device, so the pass can
+With ``intersection_capacity`` the sort buffers have that fixed size instead: the key kernel gives unused slots
+a padding key that sorts last and drops pairs past the capacity, and nothing is read from the device, so the pass can
 be captured in a CUDA graph; the pair count and the input flags stay on the device (``info["status"]``) for
 the caller to check when it reads other values anyway (:func:`rasterizer_status`).
 """
@@ -59,16 +61,34 @@ def _tile_grid(width: int, height: int) -> tuple[int, int]:
     return (width + tile - 1) // tile, (height + tile - 1) // tile
 
 
-def _bin(status, capacity, w_xy_opacity, w_conics, color_depth, w_radii, w_tile_ends, tile_ranges, *, width,
-         height):
+def _depth_sort_buffers(gaussian_count: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The depth sort's double buffers, in one allocation (24 bytes a Gaussian): float32 keys [2 N] and the
+    records (Gaussian, tile count) as int32 [2 N, 2]. The projection fills their first halves."""
+    buffers = torch.empty(6 * gaussian_count, device=device, dtype=torch.int32)
+    return buffers[4 * gaussian_count:].view(torch.float32), buffers[: 4 * gaussian_count].view(-1, 2)
+
+
+def _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radii, tile_ranges, *, width, height):
     """Sort the (Gaussian, tile) pairs; returns the sorted Gaussian ids (one per pair, or per capacity slot).
 
-    Without a ``capacity`` the buffers have the exact size: ``status`` ([pair count, flags]) is read from the
-    device (the one host synchronization) and non-finite input raises. With one, nothing is read: unused slots
-    hold a padding key that sorts last and belongs to no tile, and pairs past the capacity are dropped.
+    ``depth_sort`` holds :func:`_depth_sort_buffers` as the projection filled them; ``tile_ends`` [N] receives
+    the inclusive prefix sum of the tile counts in depth order, ``status`` ([pair count, flags]) is a view that
+    ends with its last entry. Without a ``capacity`` the buffers have the exact size: ``status`` is read from
+    the device (the one host synchronization) and non-finite input raises. With one, nothing is read: unused
+    slots hold a padding key that sorts last and belongs to no tile, and pairs past the capacity are dropped.
     """
-    device = color_depth.device
+    device = tile_ranges.device
     tiles_x, tiles_y = _tile_grid(width, height)
+    gaussian_count = tile_ends.shape[0]
+    depth_keys, depth_order = depth_sort
+    if gaussian_count:
+        # Stable: equal depths keep the index order. The scan reads the counts in place, from the sorted records.
+        wp.utils.radix_sort_pairs(to_warp(depth_keys), to_warp(depth_order, wp.vec2i), gaussian_count, begin_bit=0,
+                                  end_bit=splat_kernels.DEPTH_SORT_BITS)
+        w_tile_ends = to_warp(tile_ends)
+        counts = wp.array(ptr=depth_order.data_ptr() + 4, dtype=wp.int32, shape=(gaussian_count,), strides=(8,),
+                          device=w_tile_ends.device, copy=False)
+        wp.utils.array_scan(counts, w_tile_ends, inclusive=True)
     if capacity is None:
         count, flags = status.tolist()  # the one host sync
         if flags:
@@ -76,23 +96,22 @@ def _bin(status, capacity, w_xy_opacity, w_conics, color_depth, w_radii, w_tile_
             raise ValueError(f"rasterize_gaussians: non-finite values in {', '.join(bad)}")
     else:
         count = capacity
-    sort_keys = torch.empty(2 * count, device=device, dtype=torch.int64)
+    sort_keys = torch.empty(2 * count, device=device, dtype=torch.int32)
     sorted_ids = torch.empty(2 * count, device=device, dtype=torch.int32)
-    if count:
-        if capacity is not None:
-            sort_keys[:count].fill_(splat_kernels.padding_key(tiles_x * tiles_y))
+    if count and gaussian_count:
         splat_kernels.launch_emit_tile_keys(
-            w_xy_opacity, warp_descriptor(color_depth.view(torch.int32)), w_radii, w_tile_ends, width=width,
-            height=height, keys=warp_descriptor(sort_keys[:count]), gaussian_ids=warp_descriptor(sorted_ids[:count]),
-            conics=w_conics)
+            w_xy_opacity, w_conics, w_radii, warp_descriptor(depth_order[:gaussian_count], wp.vec2i),
+            warp_descriptor(tile_ends), width=width, height=height, keys=warp_descriptor(sort_keys[:count]),
+            gaussian_ids=warp_descriptor(sorted_ids[:count]))
         wp.utils.radix_sort_pairs(to_warp(sort_keys), to_warp(sorted_ids), count, begin_bit=0,
-                                  end_bit=splat_kernels.sort_key_bits(tiles_x * tiles_y))
+                                  end_bit=splat_kernels.tile_key_bits(tiles_x * tiles_y))
         if capacity is None:
             splat_kernels.launch_tile_ranges(warp_descriptor(sort_keys), count, warp_descriptor(tile_ranges))
         else:
             splat_kernels.launch_tile_ranges_padded(warp_descriptor(sort_keys), count, warp_descriptor(tile_ranges))
     # The sort's second halves were its scratch: the backward keeps only the sorted ids (4 bytes a pair, not
-    # the 8 of the double buffer), copied once the keys' 16 bytes a pair are released.
+    # the 8 of the double buffer), copied once the keys' 8 bytes a pair are released. Without Gaussians no
+    # tile has a range, and the ids (of a capacity) are never read.
     del sort_keys
     return sorted_ids[:count].clone()
 
@@ -112,12 +131,11 @@ class _RasterizeGaussians(torch.autograd.Function):
         conics = torch.empty(gaussian_count, 3, **f32)
         color_depth = torch.empty(gaussian_count, 4, **f32)
         radii = torch.empty(gaussian_count, 2, **i32)
-        # One zeroed int32 allocation: the tile counts, then a zero, their inclusive prefix sum and the
-        # non-finite-input flag; the last two are the pair count and the flag (one read fetches both; 0 pairs
-        # without Gaussians).
-        tile_counts = torch.zeros(2 * gaussian_count + 2, **i32)
-        tiles_touched = tile_counts[:gaussian_count]
-        tile_ends_and_flag = tile_counts[gaussian_count:]
+        # One zeroed int32 allocation: a zero, the inclusive prefix sum of the tile counts in depth order and
+        # the non-finite-input flag; the last two are the pair count and the flag (one read fetches both; 0
+        # pairs without Gaussians).
+        tile_ends_and_flag = torch.zeros(gaussian_count + 2, **i32)
+        depth_sort = _depth_sort_buffers(gaussian_count, device)
         tile_ranges = torch.zeros(tiles_x * tiles_y, 2, **i32)
         image = torch.empty(height, width, 3, **f32)
         alpha = torch.empty(height, width, **f32)
@@ -141,14 +159,12 @@ class _RasterizeGaussians(torch.autograd.Function):
                 warp_descriptor(K.view(1, 3, 3), wp.mat33), warp_descriptor(world_to_camera.view(1, 4, 4), wp.mat44),
                 width=width, height=height, sh_degree=sh_degree, used_coefficients=used_coefficients,
                 xy_opacity=w_xy_opacity, conics=w_conics, color_depth=w_color_depth, radii=w_radii,
-                tiles_touched=warp_descriptor(tiles_touched),
+                depth_keys=warp_descriptor(depth_sort[0][:gaussian_count]),
+                depth_order=warp_descriptor(depth_sort[1][:gaussian_count], wp.vec2i),
                 bad_input_flags=warp_descriptor(tile_ends_and_flag[gaussian_count + 1:]),
             )
-            if gaussian_count:
-                wp.utils.array_scan(to_warp(tiles_touched), to_warp(tile_ends), inclusive=True)
             sorted_ids = _bin(tile_ends_and_flag[gaussian_count:], intersection_capacity, w_xy_opacity, w_conics,
-                              color_depth, w_radii, warp_descriptor(tile_ends), tile_ranges, width=width,
-                              height=height)
+                              depth_sort, tile_ends, w_radii, tile_ranges, width=width, height=height)
             splat_kernels.launch_composite_forward(
                 warp_descriptor(tile_ranges), warp_descriptor(sorted_ids), w_xy_opacity, w_conics, w_color_depth,
                 warp_descriptor(background.view(1, 3), wp.vec3), width=width, height=height,
