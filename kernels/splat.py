@@ -551,6 +551,7 @@ def emit_tile_keys_kernel(
     tiles_y: int,
     keys: wp.array(dtype=wp.int32),
     gaussian_ids: wp.array(dtype=wp.int32),
+    tile_ranges: wp.array2d(dtype=wp.int32),
 ):
     """Thread ``j`` writes the tile id (key) and the Gaussian of every pair of the ``j``-th Gaussian in depth
     order into its slots ``[tile_ends[j] - count, tile_ends[j])``, its tiles in increasing id.
@@ -563,6 +564,8 @@ def emit_tile_keys_kernel(
     ignores; more are never written. Nothing is written past the end of ``keys`` (buffers sized by a capacity
     below the pair count), and the slots past the pair count (buffers of a larger capacity) get the padding
     key ``tiles_x * tiles_y`` and Gaussian -1, shared out over the threads (slot ``pair count + j + k N``).
+    The threads also clear ``tile_ranges`` ([tiles, 2], for :data:`tile_ranges_kernel`, which writes only the
+    tiles present), in the same way: one torch fill less a pass.
     """
     j = wp.tid()
     gaussian_count = depth_order.shape[0]
@@ -573,6 +576,11 @@ def emit_tile_keys_kernel(
         keys[padding] = tile_count
         gaussian_ids[padding] = -1
         padding += gaussian_count
+    tile = j
+    while tile < tile_count:
+        tile_ranges[tile, 0] = 0
+        tile_ranges[tile, 1] = 0
+        tile += gaussian_count
     record = depth_order[j]
     i = record[0]
     slot = tile_ends[j] - record[1]
@@ -598,7 +606,7 @@ def emit_tile_keys_kernel(
 
 
 def launch_emit_tile_keys(xy_opacity, conics, radii, depth_order, tile_ends, *, width: int, height: int, keys,
-                          gaussian_ids) -> None:
+                          gaussian_ids, tile_ranges) -> None:
     """Launch :data:`emit_tile_keys_kernel` over the depth-ordered Gaussians.
 
     ``xy_opacity``, ``conics`` and ``radii`` are :data:`project_kernel`'s outputs (indexed by Gaussian),
@@ -606,6 +614,8 @@ def launch_emit_tile_keys(xy_opacity, conics, radii, depth_order, tile_ends, *, 
     prefix sum of its counts (both indexed by depth rank). ``keys`` / ``gaussian_ids`` (int32, the first
     halves of the tile sort's double buffers) hold the pair count (``tile_ends[-1]``) or a fixed capacity:
     pairs beyond their length are dropped, not written out of bounds, and slots past the pair count padded.
+    ``tile_ranges`` ([tiles, 2] int32) is cleared; without Gaussians or slots nothing is launched and the
+    caller clears it.
     """
     gaussian_count = xy_opacity.shape[0]
     for name, array in (("conics", conics), ("radii", radii), ("depth_order", depth_order),
@@ -614,15 +624,17 @@ def launch_emit_tile_keys(xy_opacity, conics, radii, depth_order, tile_ends, *, 
             raise ValueError(f"{name} has {array.shape[0]} entries, expected {gaussian_count}")
     if keys.shape[0] != gaussian_ids.shape[0]:
         raise ValueError("keys and gaussian_ids must have the same length")
-    if gaussian_count == 0 or keys.shape[0] == 0:
-        return
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
     tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    if tile_ranges.ndim != 2 or tile_ranges.shape[0] != tiles_x * tiles_y or tile_ranges.shape[1] != 2:
+        raise ValueError(f"tile_ranges must be an int32 array of shape [{tiles_x * tiles_y}, 2]")
+    if gaussian_count == 0 or keys.shape[0] == 0:
+        return
     wp.launch(
         emit_tile_keys_kernel,
         dim=gaussian_count,
         inputs=[xy_opacity, conics, radii, depth_order, tile_ends, width, height, tiles_x, tiles_y],
-        outputs=[keys, gaussian_ids],
+        outputs=[keys, gaussian_ids, tile_ranges],
         block_dim=launch_block_dim(_device_of(keys)),
     )
 

@@ -348,6 +348,32 @@ def test_empty_and_fully_culled_scenes(device):
         assert torch.all(densify == 0)
 
 
+def test_capacity_buffers_without_pairs_or_with_fewer_gaussians_than_tiles(device):
+    # The tile ranges are cleared by the key emission (its threads stride over the tiles: 6 Gaussians, 80 tiles
+    # here), or by a fill when there is no pair to emit; the image must be the reference's either way.
+    scene, sizes = make_scene(25, gaussian_count=6, width=160, height=128, device=device, awkward=False)
+    kernel_tile_pairs(scene, dict(sizes, sh_degree=None))  # the emission clears all 80 ranges (kernel_emit checks)
+    names = ("means", "quats", "scales", "opacities", "colors")
+    for count, shift, capacity in ((0, 0.0, 64), (6, -10.0, 64), (6, 0.0, None), (6, 0.0, 500), (6, 0.0, 7)):
+        local = {name: value[:count] if name in names else value for name, value in scene.items()}
+        local["means"] = local["means"] + shift * scene["world_to_camera"][2, :3]
+        garbage = torch.full((4 * 80 * 2,), -3, dtype=torch.int32, device=device)  # for the allocator to hand out
+        del garbage
+        args = [local[name] for name in names + ("K", "world_to_camera")]
+        image, alpha, depth, info = ops.rasterize_gaussians(*args, sizes["width"], sizes["height"],
+                                                            background=local["background"], return_info=True,
+                                                            intersection_capacity=capacity)
+        pair_count = int(info["status"][0])
+        assert (pair_count > 7) == (count > 0 and shift == 0.0), pair_count
+        expected = render(reference.rasterize_gaussians, {k: v.double() for k, v in local.items()},
+                          dict(sizes, sh_degree=None))
+        if capacity is None or capacity >= pair_count:
+            for actual, wanted, name in zip((image, alpha, depth), expected, ("image", "alpha", "depth")):
+                assert_images_close(actual, wanted.float(), name)
+        else:  # pairs dropped: only the shallowest pairs composited, still a finite image over the background
+            assert torch.isfinite(image).all() and 0 < int((alpha > 0).sum()) < int((expected[1] > 0).sum())
+
+
 def test_rejects_bad_inputs(device):
     scene, sizes = make_scene(14, gaussian_count=8, width=16, height=16, device=device)
 
@@ -465,12 +491,17 @@ def kernel_depth_sort(projection):
 
 
 def kernel_emit(projection, records, ends, sizes, keys, ids):
-    """The key emission over ``records`` (the Gaussians in some order, with their counts) into ``keys``/``ids``."""
+    """The key emission over ``records`` (the Gaussians in some order, with their counts) into ``keys``/``ids``;
+    asserts that it cleared a tile-ranges buffer full of garbage."""
+    tile_count = math.ceil(sizes["width"] / 16) * math.ceil(sizes["height"] / 16)
+    ranges = torch.full((tile_count, 2), -5, dtype=torch.int32, device=keys.device)
     with torch_stream_scope(keys.device):
         kernels.launch_emit_tile_keys(to_warp(projection["xy_opacity"], wp.vec3),
                                       to_warp(projection["conics"], wp.vec3), to_warp(projection["radii"], wp.vec2i),
                                       to_warp(records, wp.vec2i), to_warp(ends), width=sizes["width"],
-                                      height=sizes["height"], keys=to_warp(keys), gaussian_ids=to_warp(ids))
+                                      height=sizes["height"], keys=to_warp(keys), gaussian_ids=to_warp(ids),
+                                      tile_ranges=to_warp(ranges))
+    assert torch.all(ranges == 0)
 
 
 def kernel_tile_pairs(scene, sizes):

@@ -3,8 +3,9 @@
 One forward pass makes four Warp kernel launches (projection, key emission, tile ranges, compositing) plus
 three ``warp.utils`` calls (the depth sort of the Gaussians, the prefix sum of their tile counts in depth order,
 the sort of the (Gaussian, tile) pairs by tile: two radix sorts over 4-byte keys that give the order of one
-over 8-byte (tile, depth) keys, see ``kernels/splat.py``), two small torch fills, a copy of the sorted ids (the
-backward keeps 4 bytes a pair, not the sort's double buffer), and one host synchronization: reading the number
+over 8-byte (tile, depth) keys, see ``kernels/splat.py``), one small torch fill (the prefix sum's buffer with the
+pair count and the flags; the key emission clears the tile ranges), a copy of the sorted ids (the backward keeps
+4 bytes a pair, not the sort's double buffer), and one host synchronization: reading the number
 of (Gaussian, tile) pairs to size the sort buffers (an upper bound would cost far more memory, as any Gaussian
 may cover the whole image). The same read fetches the non-finite-input flag, so checking the inputs costs no
 extra synchronization. One backward pass makes two Warp launches (compositing backward, projection adjoint), one torch
@@ -76,6 +77,7 @@ def _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radi
     ends with its last entry. Without a ``capacity`` the buffers have the exact size: ``status`` is read from
     the device (the one host synchronization) and non-finite input raises. With one, nothing is read: unused
     slots hold a padding key that sorts last and belongs to no tile, and pairs past the capacity are dropped.
+    ``tile_ranges`` [tiles, 2] need not be cleared: the emission kernel (or, without pairs, a fill) does it.
     """
     device = tile_ranges.device
     tiles_x, tiles_y = _tile_grid(width, height)
@@ -102,13 +104,15 @@ def _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radi
         splat_kernels.launch_emit_tile_keys(
             w_xy_opacity, w_conics, w_radii, warp_descriptor(depth_order[:gaussian_count], wp.vec2i),
             warp_descriptor(tile_ends), width=width, height=height, keys=warp_descriptor(sort_keys[:count]),
-            gaussian_ids=warp_descriptor(sorted_ids[:count]))
+            gaussian_ids=warp_descriptor(sorted_ids[:count]), tile_ranges=warp_descriptor(tile_ranges))
         wp.utils.radix_sort_pairs(to_warp(sort_keys), to_warp(sorted_ids), count, begin_bit=0,
                                   end_bit=splat_kernels.tile_key_bits(tiles_x * tiles_y))
         if capacity is None:
             splat_kernels.launch_tile_ranges(warp_descriptor(sort_keys), count, warp_descriptor(tile_ranges))
         else:
             splat_kernels.launch_tile_ranges_padded(warp_descriptor(sort_keys), count, warp_descriptor(tile_ranges))
+    else:
+        tile_ranges.zero_()  # no pair: every tile's range is empty (the emission clears them otherwise)
     # The sort's second halves were its scratch: the backward keeps only the sorted ids (4 bytes a pair, not
     # the 8 of the double buffer), copied once the keys' 8 bytes a pair are released. Without Gaussians no
     # tile has a range, and the ids (of a capacity) are never read.
@@ -136,7 +140,7 @@ class _RasterizeGaussians(torch.autograd.Function):
         # pairs without Gaussians).
         tile_ends_and_flag = torch.zeros(gaussian_count + 2, **i32)
         depth_sort = _depth_sort_buffers(gaussian_count, device)
-        tile_ranges = torch.zeros(tiles_x * tiles_y, 2, **i32)
+        tile_ranges = torch.empty(tiles_x * tiles_y, 2, **i32)  # cleared by _bin
         image = torch.empty(height, width, 3, **f32)
         alpha = torch.empty(height, width, **f32)
         depth = torch.empty(height, width, **f32)
