@@ -16,9 +16,10 @@ The pipeline of one forward pass (conventions in ``docs/conventions.md``):
    the index order); an inclusive prefix sum of their tile counts in that order (``wp.utils.array_scan``,
    read in place from the records) gives every Gaussian its slots; :func:`launch_emit_tile_keys` (one
    thread per depth-ordered Gaussian) writes an int32 key, the tile id, and the Gaussian of each reached
-   (Gaussian, tile) pair into them, so the slots are in (depth, index) order; the keys are sorted on their
-   :func:`tile_key_bits` low bits, which keeps that order within each tile, and :func:`launch_tile_ranges`
-   finds each tile's ``[start, end)`` range in the sorted list.
+   (Gaussian, tile) pair into them, so the slots are in (depth, index) order (its threads also pad the
+   unused slots of a fixed capacity and clear the tile ranges); the keys are sorted on their
+   :func:`tile_key_bits` low bits (two 8-bit CUB passes up to 65k tiles), which keeps that order within each
+   tile, and :func:`launch_tile_ranges` finds each tile's ``[start, end)`` range in the sorted list.
 3. :func:`launch_composite_forward` (one 256-thread block per tile, one thread per pixel): front-to-back
    alpha compositing; the block loads batches of 256 Gaussian records into shared memory, every thread
    walks them for its pixel, and the block stops once all of its pixels are saturated. It stores the final
