@@ -8,12 +8,18 @@ The pipeline of one forward pass (conventions in ``docs/conventions.md``):
    bounds the ellipse where the Gaussian's alpha can reach 1/255 (:func:`reach_sigma`; Gaussians of opacity
    below 1/255 are culled), and of the box's tiles only those whose pixel centres that ellipse meets count
    (:func:`row_tile_span`, exact, O(1) per tile row), so thin diagonal Gaussians skip most of their box.
-2. Tile binning: an inclusive prefix sum of the tile counts (``wp.utils.array_scan``), then
-   :func:`launch_emit_tile_keys` writes one 64-bit key ``tile_id << 29 | depth key`` per reached
-   (Gaussian, tile) pair (the depth key is the float bits of the depth, which order like the positive
-   depths, less those of 2^-7: 29 bits span the depth range, see :data:`DEPTH_KEY_BITS`),
-   ``wp.utils.radix_sort_pairs`` sorts the :func:`sort_key_bits` low bits of them and
-   :func:`launch_tile_ranges` finds each tile's ``[start, end)`` range in the sorted list.
+   The projection also writes the inputs of the depth sort: a float32 key per Gaussian (its depth, or
+   ``FAR_PLANE`` when it reaches no tile) and a record (Gaussian, tile count).
+2. Tile binning in two stable radix sorts (``wp.utils.radix_sort_pairs``, CUB's on CUDA) that together give
+   the order (tile, depth, Gaussian index) of one sort of 64-bit ``tile | depth`` keys, with 4-byte keys:
+   the records are sorted by their depth keys (:data:`DEPTH_SORT_BITS` bits, N entries; equal depths keep
+   the index order); an inclusive prefix sum of their tile counts in that order (``wp.utils.array_scan``,
+   read in place from the records) gives every Gaussian its slots; :func:`launch_emit_tile_keys` (one
+   thread per depth-ordered Gaussian) writes an int32 key, the tile id, and the Gaussian of each reached
+   (Gaussian, tile) pair into them, so the slots are in (depth, index) order (its threads also pad the
+   unused slots of a fixed capacity and clear the tile ranges); the keys are sorted on their
+   :func:`tile_key_bits` low bits (two 8-bit CUB passes up to 65k tiles), which keeps that order within each
+   tile, and :func:`launch_tile_ranges` finds each tile's ``[start, end)`` range in the sorted list.
 3. :func:`launch_composite_forward` (one 256-thread block per tile, one thread per pixel): front-to-back
    alpha compositing; the block loads batches of 256 Gaussian records into shared memory, every thread
    walks them for its pixel, and the block stops once all of its pixels are saturated. It stores the final
@@ -70,8 +76,7 @@ __all__ = [
     "launch_composite_backward",
     "launch_project_backward",
     "tile_key_bits",
-    "sort_key_bits",
-    "DEPTH_KEY_BITS",
+    "DEPTH_SORT_BITS",
 ]
 
 TILE_SIZE = wp.constant(16)
@@ -375,13 +380,16 @@ def project_kernel(
     conics: wp.array(dtype=wp.vec3),
     color_depth: wp.array(dtype=wp.vec4),
     radii: wp.array(dtype=wp.vec2i),
-    tiles_touched: wp.array(dtype=wp.int32),
+    depth_keys: wp.array(dtype=wp.float32),
+    depth_order: wp.array(dtype=wp.vec2i),
     bad_input_flags: wp.array(dtype=wp.int32),
 ):
     """Project every Gaussian; culled ones get radius (0, 0), no tiles and zero mean2d, conic and colour.
 
     Outputs per Gaussian: ``xy_opacity`` (pixel x, y with pixel centres at half-integers, opacity),
-    ``conics`` (a, b, c), ``color_depth`` (r, g, b, camera z), ``radii`` [px], ``tiles_touched``.
+    ``conics`` (a, b, c), ``color_depth`` (r, g, b, camera z), ``radii`` [px], and the depth sort's inputs:
+    ``depth_keys`` (the camera z [world units] of a Gaussian that reaches a tile, else ``FAR_PLANE``, which
+    sorts after every kept depth) and ``depth_order`` (the record (Gaussian index, tiles touched)).
     ``bad_input_flags[0]`` gets the ``BAD_*`` bits of the inputs holding non-finite values.
     """
     i = wp.tid()
@@ -455,7 +463,11 @@ def project_kernel(
     conics[i] = conic
     color_depth[i] = wp.vec4(color[0], color[1], color[2], depth)
     radii[i] = radius
-    tiles_touched[i] = touched
+    if touched > 0:
+        depth_keys[i] = depth
+    else:
+        depth_keys[i] = FAR_PLANE
+    depth_order[i] = wp.vec2i(i, touched)
 
 
 def launch_block_dim(device) -> int:
@@ -475,18 +487,19 @@ def _device_of(array):
 
 def launch_project(
     means, quats, scales, opacities, coefficients, intrinsics, world_to_camera, *, width: int, height: int,
-    sh_degree: int, used_coefficients: int, xy_opacity, conics, color_depth, radii, tiles_touched,
+    sh_degree: int, used_coefficients: int, xy_opacity, conics, color_depth, radii, depth_keys, depth_order,
     bad_input_flags,
 ) -> None:
     """Launch :data:`project_kernel` over ``len(means)`` Gaussians (see the kernel for the arrays).
 
     ``coefficients`` is ``[gaussian_count, coefficient_count]`` of vec3 (coefficient_count is 1 for RGB with
-    ``sh_degree=-1``); ``intrinsics`` and ``world_to_camera`` hold one mat33 / mat44 each.
+    ``sh_degree=-1``); ``intrinsics`` and ``world_to_camera`` hold one mat33 / mat44 each. ``depth_keys``
+    (float32) and ``depth_order`` (vec2i) are the first halves of the depth sort's double buffers.
     """
     gaussian_count = means.shape[0]
     for name, array in (("quats", quats), ("scales", scales), ("opacities", opacities), ("xy_opacity", xy_opacity),
                         ("conics", conics), ("color_depth", color_depth), ("radii", radii),
-                        ("tiles_touched", tiles_touched)):
+                        ("depth_keys", depth_keys), ("depth_order", depth_order)):
         if array.shape[0] != gaussian_count:
             raise ValueError(f"{name} has {array.shape[0]} entries, expected {gaussian_count}")
     if coefficients.shape[0] != gaussian_count or coefficients.shape[1] < used_coefficients:
@@ -500,7 +513,7 @@ def launch_project(
         dim=gaussian_count,
         inputs=[means, quats, scales, opacities, coefficients, intrinsics, world_to_camera, width, height, tiles_x,
                 tiles_y, sh_degree, used_coefficients],
-        outputs=[xy_opacity, conics, color_depth, radii, tiles_touched, bad_input_flags],
+        outputs=[xy_opacity, conics, color_depth, radii, depth_keys, depth_order, bad_input_flags],
         block_dim=launch_block_dim(_device_of(means)),
     )
 
@@ -510,132 +523,142 @@ def launch_project(
 # ----------------------------------------------------------------------------------------------------------
 
 
-DEPTH_KEY_BITS = 29
-"""Low bits of a sort key holding the depth: its float32 bits less ``DEPTH_KEY_OFFSET`` (the bits of 2^-7).
+DEPTH_SORT_BITS = 31
+"""Low bits of the depth sort's float32 keys to radix-sort (``end_bit`` of ``wp.utils.radix_sort_pairs``).
 
-Kept depths lie in (NEAR_PLANE, FAR_PLANE) = (0.01, 1e10), float bits (0x3C23D70A, 0x501502F9); less the offset
-0x3C000000 that is (0x0023D70A, 0x141502F9), below 2^29 = 0x20000000. Subtracting keeps the order, so the
-sorted lists and the image are those of the full 32 bits, with 3 bits fewer to sort (at 384x384, 10 tile bits:
-39 bits, five 8-bit radix passes instead of six).
+The keys are positive floats, depths in (NEAR_PLANE, FAR_PLANE] = (0.01, 1e10]: their sign bit is clear and
+the other 31 bits order like the values (the sort reads a float's bits as an integer, the sign bit flipped, so
+the high bits it skips are the same for every key). Fewer would not do: the keys' bits span 0x3C23D70A to
+0x501502F9. CUB sorts 31 bits in as many 8-bit digit passes (four) as 29.
 """
-DEPTH_KEY_OFFSET = wp.constant(wp.int64(0x3C000000))
-_DEPTH_KEY_SHIFT = wp.constant(wp.int64(DEPTH_KEY_BITS))
 
 
 def tile_key_bits(tile_count: int) -> int:
-    """Bits a tile id takes above the ``DEPTH_KEY_BITS`` depth bits of a sort key (one more id, the padding
-    tile ``tile_count`` of :data:`emit_tile_keys_kernel`, fits too)."""
+    """Low bits of the tile sort's int32 keys to radix-sort: a tile id, or the padding id ``tile_count`` of
+    :data:`emit_tile_keys_kernel`, which fits too and sorts after every tile."""
     return max(int(tile_count).bit_length(), 1)
-
-
-def sort_key_bits(tile_count: int) -> int:
-    """Low bits of the sort keys to radix-sort (``end_bit`` of ``wp.utils.radix_sort_pairs``)."""
-    return DEPTH_KEY_BITS + tile_key_bits(tile_count)
-
-
-@wp.func
-def tile_ends_count(tile_ends: wp.array(dtype=wp.int32), i: int) -> int:
-    """Entry ``i`` of the array whose inclusive prefix sum is ``tile_ends``."""
-    if i == 0:
-        return tile_ends[0]
-    return tile_ends[i] - tile_ends[i - 1]
 
 
 @wp.kernel(enable_backward=False)
 def emit_tile_keys_kernel(
     xy_opacity: wp.array(dtype=wp.vec3),
     conics: wp.array(dtype=wp.vec3),
-    depth_bits: wp.array2d(dtype=wp.int32),
     radii: wp.array(dtype=wp.vec2i),
+    depth_order: wp.array(dtype=wp.vec2i),
     tile_ends: wp.array(dtype=wp.int32),
     width: int,
     height: int,
     tiles_x: int,
     tiles_y: int,
-    keys: wp.array(dtype=wp.int64),
+    keys: wp.array(dtype=wp.int32),
     gaussian_ids: wp.array(dtype=wp.int32),
+    tile_ranges: wp.array2d(dtype=wp.int32),
 ):
-    """Write the key ``tile << 29 | depth key`` (:data:`DEPTH_KEY_BITS`) and the Gaussian of every pair.
+    """Thread ``j`` writes the tile id (key) and the Gaussian of every pair of the ``j``-th Gaussian in depth
+    order into its slots ``[tile_ends[j] - count, tile_ends[j])``, its tiles in increasing id.
 
-    A pair is emitted for each tile of the radius box in the rows' :func:`row_tile_span`, the spans that
-    :data:`project_kernel` counted with. ``depth_bits`` is the ``color_depth`` buffer viewed as int32
-    ``[gaussian_count, 4]`` (column 3 is the depth); ``tile_ends`` is the inclusive prefix sum of the tile
-    counts. Should the spans ever hold fewer tiles here than when counting (a compiler contracting the
-    arithmetic differently in the two kernels), the rest of the Gaussian's slots get the tile id
-    ``tiles_x * tiles_y``, which sorts last and :data:`tile_ranges_kernel` ignores; more are never written.
-    Nothing is written past the end of ``keys`` (buffers sized by a capacity below the pair count).
+    ``depth_order[j]`` is the depth-sorted record (Gaussian, tile count) and ``tile_ends`` the inclusive prefix
+    sum of those counts. A pair is emitted for each tile of the radius box in the rows' :func:`row_tile_span`,
+    the spans that :data:`project_kernel` counted with. Should the spans ever hold fewer tiles here than when
+    counting (a compiler contracting the arithmetic differently in the two kernels), the rest of the
+    Gaussian's slots get the tile id ``tiles_x * tiles_y``, which sorts last and :data:`tile_ranges_kernel`
+    ignores; more are never written. Nothing is written past the end of ``keys`` (buffers sized by a capacity
+    below the pair count), and the slots past the pair count (buffers of a larger capacity) get the padding
+    key ``tiles_x * tiles_y`` and Gaussian -1, shared out over the threads (slot ``pair count + j + k N``).
+    The threads also clear ``tile_ranges`` ([tiles, 2], for :data:`tile_ranges_kernel`, which writes only the
+    tiles present), in the same way: one torch fill less a pass.
     """
-    i = wp.tid()
-    radius = radii[i]
-    if radius[0] == 0 and radius[1] == 0:
-        return
+    j = wp.tid()
+    gaussian_count = depth_order.shape[0]
+    slot_count = keys.shape[0]
+    tile_count = tiles_x * tiles_y
+    padding = tile_ends[gaussian_count - 1] + j
+    while padding < slot_count:
+        keys[padding] = tile_count
+        gaussian_ids[padding] = -1
+        padding += gaussian_count
+    tile = j
+    while tile < tile_count:
+        tile_ranges[tile, 0] = 0
+        tile_ranges[tile, 1] = 0
+        tile += gaussian_count
+    record = depth_order[j]
+    i = record[0]
+    slot = tile_ends[j] - record[1]
+    end = wp.min(tile_ends[j], slot_count)
+    if slot >= end:
+        return  # no tile, or every slot past the capacity
     xyo = xy_opacity[i]
     center = wp.vec2(xyo[0], xyo[1])
     conic = conics[i]
     max_sigma = reach_sigma(xyo[2])
-    box = tile_box(center, radius, tiles_x, tiles_y)
-    depth_key = wp.int64(depth_bits[i, 3]) - DEPTH_KEY_OFFSET  # positive float: its bits order like the value
-    slot = tile_ends[i] - tile_ends_count(tile_ends, i)
-    end = wp.min(tile_ends[i], keys.shape[0])
+    box = tile_box(center, radii[i], tiles_x, tiles_y)
     for ty in range(box[2], box[3]):
         span = row_tile_span(center, conic, max_sigma, ty, box, width, height)
         for tx in range(span[0], span[1]):
             if slot < end:
-                keys[slot] = (wp.int64(ty * tiles_x + tx) << _DEPTH_KEY_SHIFT) | depth_key
+                keys[slot] = ty * tiles_x + tx
                 gaussian_ids[slot] = i
                 slot += 1
     while slot < end:
-        keys[slot] = (wp.int64(tiles_x * tiles_y) << _DEPTH_KEY_SHIFT) | depth_key
+        keys[slot] = tile_count
         gaussian_ids[slot] = i
         slot += 1
 
 
-def launch_emit_tile_keys(xy_opacity, depth_bits, radii, tile_ends, *, width: int, height: int, keys,
-                          gaussian_ids, conics) -> None:
-    """Launch :data:`emit_tile_keys_kernel`; ``keys``/``gaussian_ids`` should hold the total pair count
-    (``tile_ends[-1]``); pairs beyond their length are dropped, not written out of bounds.
+def launch_emit_tile_keys(xy_opacity, conics, radii, depth_order, tile_ends, *, width: int, height: int, keys,
+                          gaussian_ids, tile_ranges) -> None:
+    """Launch :data:`emit_tile_keys_kernel` over the depth-ordered Gaussians.
 
-    ``conics`` is :data:`project_kernel`'s output (the exact tile test needs it).
+    ``xy_opacity``, ``conics`` and ``radii`` are :data:`project_kernel`'s outputs (indexed by Gaussian),
+    ``depth_order`` the first half of the depth sort's values after the sort and ``tile_ends`` the inclusive
+    prefix sum of its counts (both indexed by depth rank). ``keys`` / ``gaussian_ids`` (int32, the first
+    halves of the tile sort's double buffers) hold the pair count (``tile_ends[-1]``) or a fixed capacity:
+    pairs beyond their length are dropped, not written out of bounds, and slots past the pair count padded.
+    ``tile_ranges`` ([tiles, 2] int32) is cleared; without Gaussians or slots nothing is launched and the
+    caller clears it.
     """
     gaussian_count = xy_opacity.shape[0]
-    for name, array in (("depth_bits", depth_bits), ("radii", radii), ("tile_ends", tile_ends),
-                        ("conics", conics)):
+    for name, array in (("conics", conics), ("radii", radii), ("depth_order", depth_order),
+                        ("tile_ends", tile_ends)):
         if array.shape[0] != gaussian_count:
             raise ValueError(f"{name} has {array.shape[0]} entries, expected {gaussian_count}")
     if keys.shape[0] != gaussian_ids.shape[0]:
         raise ValueError("keys and gaussian_ids must have the same length")
-    if gaussian_count == 0 or keys.shape[0] == 0:
-        return
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
     tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    if tile_ranges.ndim != 2 or tile_ranges.shape[0] != tiles_x * tiles_y or tile_ranges.shape[1] != 2:
+        raise ValueError(f"tile_ranges must be an int32 array of shape [{tiles_x * tiles_y}, 2]")
+    if gaussian_count == 0 or keys.shape[0] == 0:
+        return
     wp.launch(
         emit_tile_keys_kernel,
         dim=gaussian_count,
-        inputs=[xy_opacity, conics, depth_bits, radii, tile_ends, width, height, tiles_x, tiles_y],
-        outputs=[keys, gaussian_ids],
+        inputs=[xy_opacity, conics, radii, depth_order, tile_ends, width, height, tiles_x, tiles_y],
+        outputs=[keys, gaussian_ids, tile_ranges],
         block_dim=launch_block_dim(_device_of(keys)),
     )
 
 
 @wp.kernel(enable_backward=False)
-def tile_ranges_kernel(sorted_keys: wp.array(dtype=wp.int64), pair_count: int, tile_ranges: wp.array2d(dtype=wp.int32)):
-    """Write ``[start, end)`` of every tile present in the sorted keys (``tile_ranges`` starts zeroed)."""
+def tile_ranges_kernel(sorted_keys: wp.array(dtype=wp.int32), pair_count: int, tile_ranges: wp.array2d(dtype=wp.int32)):
+    """Write ``[start, end)`` of every tile present in the sorted tile keys (``tile_ranges`` starts zeroed)."""
     i = wp.tid()
     tile_count = tile_ranges.shape[0]
-    tile = int(sorted_keys[i] >> _DEPTH_KEY_SHIFT)
+    tile = sorted_keys[i]
     if tile >= tile_count:
         return  # padding of emit_tile_keys_kernel, sorted after every real tile
     if i == 0:
         tile_ranges[tile, 0] = 0
     else:
-        previous = int(sorted_keys[i - 1] >> _DEPTH_KEY_SHIFT)
+        previous = sorted_keys[i - 1]
         if previous != tile:
             tile_ranges[tile, 0] = i
             tile_ranges[previous, 1] = i
     if i == pair_count - 1:
         tile_ranges[tile, 1] = pair_count
     else:
-        following = int(sorted_keys[i + 1] >> _DEPTH_KEY_SHIFT)
+        following = sorted_keys[i + 1]
         if following >= tile_count:
             tile_ranges[tile, 1] = i + 1
 
@@ -1086,25 +1109,19 @@ def launch_project_backward(
 # ----------------------------------------------------------------------------------------------------------
 
 
-def padding_key(tile_count: int) -> int:
-    """The sort key of an unused slot of a fixed-capacity key buffer: every bit the sort looks at set, so it
-    sorts after every real key, and its tile field (``2 ** tile_key_bits - 1``) is never a real tile."""
-    return (1 << sort_key_bits(tile_count)) - 1
-
-
 @wp.kernel(enable_backward=False)
-def tile_ranges_padded_kernel(sorted_keys: wp.array(dtype=wp.int64), key_count: int,
+def tile_ranges_padded_kernel(sorted_keys: wp.array(dtype=wp.int32), key_count: int,
                               tile_ranges: wp.array2d(dtype=wp.int32)):
-    """:data:`tile_ranges_kernel` over sorted keys that end with padding keys (tile field past the last tile),
+    """:data:`tile_ranges_kernel` over sorted tile keys that end with padding keys (ids past the last tile),
     which belong to no tile (``tile_ranges`` starts zeroed)."""
     i = wp.tid()
     tile_count = tile_ranges.shape[0]
-    tile = int(sorted_keys[i] >> _DEPTH_KEY_SHIFT)
+    tile = sorted_keys[i]
     if tile >= tile_count:
         tile = -1
     previous = -1
     if i > 0:
-        previous = int(sorted_keys[i - 1] >> _DEPTH_KEY_SHIFT)
+        previous = sorted_keys[i - 1]
         if previous >= tile_count:
             previous = -1
     if i == 0 or previous != tile:
@@ -1126,4 +1143,4 @@ def launch_tile_ranges_padded(sorted_keys, key_count: int, tile_ranges) -> None:
               block_dim=launch_block_dim(_device_of(sorted_keys)))
 
 
-__all__ += ["padding_key", "tile_ranges_padded_kernel", "launch_tile_ranges_padded"]
+__all__ += ["tile_ranges_padded_kernel", "launch_tile_ranges_padded"]

@@ -13,7 +13,7 @@ import warp as wp
 
 from warpavatar import ops
 from warpavatar._src import splat as splat_bridge
-from warpavatar._src.warp_utils import to_warp
+from warpavatar._src.warp_utils import to_warp, torch_stream_scope
 from warpavatar._torch_impl import splat as reference
 from warpavatar.kernels import splat as kernels
 
@@ -349,6 +349,32 @@ def test_empty_and_fully_culled_scenes(device):
         assert torch.all(densify == 0)
 
 
+def test_capacity_buffers_without_pairs_or_with_fewer_gaussians_than_tiles(device):
+    # The tile ranges are cleared by the key emission (its threads stride over the tiles: 6 Gaussians, 80 tiles
+    # here), or by a fill when there is no pair to emit; the image must be the reference's either way.
+    scene, sizes = make_scene(25, gaussian_count=6, width=160, height=128, device=device, awkward=False)
+    kernel_tile_pairs(scene, dict(sizes, sh_degree=None))  # the emission clears all 80 ranges (kernel_emit checks)
+    names = ("means", "quats", "scales", "opacities", "colors")
+    for count, shift, capacity in ((0, 0.0, 64), (6, -10.0, 64), (6, 0.0, None), (6, 0.0, 500), (6, 0.0, 7)):
+        local = {name: value[:count] if name in names else value for name, value in scene.items()}
+        local["means"] = local["means"] + shift * scene["world_to_camera"][2, :3]
+        garbage = torch.full((4 * 80 * 2,), -3, dtype=torch.int32, device=device)  # for the allocator to hand out
+        del garbage
+        args = [local[name] for name in names + ("K", "world_to_camera")]
+        image, alpha, depth, info = ops.rasterize_gaussians(*args, sizes["width"], sizes["height"],
+                                                            background=local["background"], return_info=True,
+                                                            intersection_capacity=capacity)
+        pair_count = int(info["status"][0])
+        assert (pair_count > 7) == (count > 0 and shift == 0.0), pair_count
+        expected = render(reference.rasterize_gaussians, {k: v.double() for k, v in local.items()},
+                          dict(sizes, sh_degree=None))
+        if capacity is None or capacity >= pair_count:
+            for actual, wanted, name in zip((image, alpha, depth), expected, ("image", "alpha", "depth")):
+                assert_images_close(actual, wanted.float(), name)
+        else:  # pairs dropped: only the shallowest pairs composited, still a finite image over the background
+            assert torch.isfinite(image).all() and 0 < int((alpha > 0).sum()) < int((expected[1] > 0).sum())
+
+
 def test_rejects_bad_inputs(device):
     scene, sizes = make_scene(14, gaussian_count=8, width=16, height=16, device=device)
 
@@ -427,56 +453,81 @@ def test_matches_gsplat_when_available(device):
 
 
 def kernel_projection(scene, sizes):
-    """Run the Warp projection kernel and the prefix sum on CPU: (xy_opacity, conics, color_depth, radii, ends)."""
-    n = scene["means"].shape[0]
-    f32 = dict(dtype=torch.float32)
-    xy_opacity, conics, color_depth = torch.empty(n, 3, **f32), torch.empty(n, 3, **f32), torch.empty(n, 4, **f32)
-    radii, touched = torch.empty(n, 2, dtype=torch.int32), torch.empty(n, dtype=torch.int32)
-    ends, flags = torch.empty(n, dtype=torch.int32), torch.zeros(1, dtype=torch.int32)
+    """Run the Warp projection kernel on the scene's device: a dict of its outputs (``depth_keys`` [2 N] and
+    ``records`` [2 N, 2] are the depth sort's double buffers, the first halves written) and ``counts`` (the
+    tile counts, in Gaussian order)."""
+    n, device = scene["means"].shape[0], scene["means"].device
+    f32, i32 = dict(dtype=torch.float32, device=device), dict(dtype=torch.int32, device=device)
+    out = dict(xy_opacity=torch.empty(n, 3, **f32), conics=torch.empty(n, 3, **f32),
+               color_depth=torch.empty(n, 4, **f32), radii=torch.empty(n, 2, **i32),
+               depth_keys=torch.empty(2 * n, **f32), records=torch.empty(2 * n, 2, **i32))
+    flags = torch.zeros(1, **i32)
     degree = -1 if sizes["sh_degree"] is None else sizes["sh_degree"]
     colors = scene["colors"].reshape(n, -1, 3).contiguous()
-    kernels.launch_project(
-        to_warp(scene["means"], wp.vec3), to_warp(scene["quats"], wp.vec4), to_warp(scene["scales"], wp.vec3),
-        to_warp(scene["opacities"]), to_warp(colors, wp.vec3), to_warp(scene["K"].reshape(1, 3, 3), wp.mat33),
-        to_warp(scene["world_to_camera"].reshape(1, 4, 4), wp.mat44), width=sizes["width"], height=sizes["height"],
-        sh_degree=degree, used_coefficients=1 if degree < 0 else (degree + 1) ** 2,
-        xy_opacity=to_warp(xy_opacity, wp.vec3), conics=to_warp(conics, wp.vec3),
-        color_depth=to_warp(color_depth, wp.vec4), radii=to_warp(radii, wp.vec2i), tiles_touched=to_warp(touched),
-        bad_input_flags=to_warp(flags))
-    wp.utils.array_scan(to_warp(touched), to_warp(ends), inclusive=True)
-    return xy_opacity, conics, color_depth, radii, ends
+    with torch_stream_scope(device):
+        kernels.launch_project(
+            to_warp(scene["means"], wp.vec3), to_warp(scene["quats"], wp.vec4), to_warp(scene["scales"], wp.vec3),
+            to_warp(scene["opacities"]), to_warp(colors, wp.vec3), to_warp(scene["K"].reshape(1, 3, 3), wp.mat33),
+            to_warp(scene["world_to_camera"].reshape(1, 4, 4), wp.mat44), width=sizes["width"],
+            height=sizes["height"], sh_degree=degree, used_coefficients=1 if degree < 0 else (degree + 1) ** 2,
+            xy_opacity=to_warp(out["xy_opacity"], wp.vec3), conics=to_warp(out["conics"], wp.vec3),
+            color_depth=to_warp(out["color_depth"], wp.vec4), radii=to_warp(out["radii"], wp.vec2i),
+            depth_keys=to_warp(out["depth_keys"][:n]), depth_order=to_warp(out["records"][:n], wp.vec2i),
+            bad_input_flags=to_warp(flags))
+    out["counts"] = out["records"][:n, 1].clone()
+    return out
 
 
-def kernel_emit(projection, sizes, keys, ids):
-    xy_opacity, conics, color_depth, radii, ends = projection
-    kernels.launch_emit_tile_keys(to_warp(xy_opacity, wp.vec3), to_warp(color_depth.view(torch.int32)),
-                                  to_warp(radii, wp.vec2i), to_warp(ends), width=sizes["width"],
-                                  height=sizes["height"], keys=to_warp(keys), gaussian_ids=to_warp(ids),
-                                  conics=to_warp(conics, wp.vec3))
+def kernel_depth_sort(projection):
+    """The op's depth sort of the projection's records (in place) and the prefix sum of their counts: the
+    depth-ordered records [N, 2] and ``tile_ends`` [N]."""
+    n = projection["counts"].shape[0]
+    keys, records = projection["depth_keys"], projection["records"]
+    ends = torch.empty(n, dtype=torch.int32, device=keys.device)
+    with torch_stream_scope(keys.device):
+        wp.utils.radix_sort_pairs(to_warp(keys), to_warp(records, wp.vec2i), n, begin_bit=0,
+                                  end_bit=kernels.DEPTH_SORT_BITS)
+        wp.utils.array_scan(to_warp(records[:n, 1]), to_warp(ends), inclusive=True)
+    return records[:n], ends
+
+
+def kernel_emit(projection, records, ends, sizes, keys, ids):
+    """The key emission over ``records`` (the Gaussians in some order, with their counts) into ``keys``/``ids``;
+    asserts that it cleared a tile-ranges buffer full of garbage."""
+    tile_count = math.ceil(sizes["width"] / 16) * math.ceil(sizes["height"] / 16)
+    ranges = torch.full((tile_count, 2), -5, dtype=torch.int32, device=keys.device)
+    with torch_stream_scope(keys.device):
+        kernels.launch_emit_tile_keys(to_warp(projection["xy_opacity"], wp.vec3),
+                                      to_warp(projection["conics"], wp.vec3), to_warp(projection["radii"], wp.vec2i),
+                                      to_warp(records, wp.vec2i), to_warp(ends), width=sizes["width"],
+                                      height=sizes["height"], keys=to_warp(keys), gaussian_ids=to_warp(ids),
+                                      tile_ranges=to_warp(ranges))
+    assert torch.all(ranges == 0)
 
 
 def kernel_tile_pairs(scene, sizes):
-    """The (Gaussian, tile) pairs the Warp kernels emit on CPU, as a [N, tiles] bool mask; their count; radii.
+    """The (Gaussian, tile) pairs the Warp kernels emit, as a [N, tiles] bool mask; their count; radii.
 
-    Runs the projection, the prefix sum and the key emission exactly as the op does; asserts that no padding
-    key was needed (the emission accepted as many tiles as the projection counted) and no pair repeats.
+    Runs the projection and the key emission in Gaussian order (the records as the projection wrote them, the
+    prefix sum of the counts); asserts that no padding key was needed (the emission accepted as many tiles as
+    the projection counted), that each Gaussian's slots hold its tiles in increasing id and no pair repeats.
     """
     tiles_x, tiles_y = math.ceil(sizes["width"] / 16), math.ceil(sizes["height"] / 16)
-    n = scene["means"].shape[0]
+    n, device = scene["means"].shape[0], scene["means"].device
     projection = kernel_projection(scene, sizes)
-    color_depth, radii, ends = projection[2:]
-    pair_count = int(ends[-1])
-    keys, ids = torch.empty(pair_count, dtype=torch.int64), torch.empty(pair_count, dtype=torch.int32)
-    kernel_emit(projection, sizes, keys, ids)
-    tiles = keys >> kernels.DEPTH_KEY_BITS
-    depth_keys = keys & ((1 << kernels.DEPTH_KEY_BITS) - 1)
-    depths = color_depth[ids.long(), 3]
-    assert torch.all(depth_keys == depths.view(torch.int32).long() - 0x3C000000), "depth keys keep the float bits"
-    assert torch.all(tiles < tiles_x * tiles_y), "the emission padded: it accepted fewer tiles than counted"
+    counts = projection["counts"]
+    assert torch.equal(projection["records"][:n, 0].cpu(), torch.arange(n, dtype=torch.int32))
+    pair_count = int(counts.sum())
+    keys, ids = (torch.empty(pair_count, dtype=torch.int32, device=device) for _ in range(2))
+    kernel_emit(projection, projection["records"][:n], torch.cumsum(counts, 0).to(torch.int32), sizes, keys, ids)
+    keys, ids = keys.cpu().long(), ids.cpu().long()
+    assert torch.all(keys < tiles_x * tiles_y), "the emission padded: it accepted fewer tiles than counted"
+    assert torch.equal(ids, torch.repeat_interleave(torch.arange(n), counts.cpu().long()))
+    assert torch.all((ids[1:] != ids[:-1]) | (keys[1:] > keys[:-1])), "a Gaussian's tiles in increasing id"
     mask = torch.zeros(n, tiles_x * tiles_y, dtype=torch.bool)
-    mask[ids.long(), tiles] = True
+    mask[ids, keys] = True
     assert int(mask.sum()) == pair_count, "a (Gaussian, tile) pair was emitted twice"
-    return mask, pair_count, radii
+    return mask, pair_count, projection["radii"].cpu()
 
 
 def contributing_tiles(scene, sizes):
@@ -576,23 +627,102 @@ def test_tile_test_lists_fewer_pairs_on_elongated_gaussians():
         assert_images_close(actual, expected.float(), name)
 
 
-def test_tile_ranges_skip_padding_keys_and_emission_stays_in_its_buffer():
-    # Sorted keys of a 3-tile grid: tile 0 twice, tile 2 three times, then two padding keys (tile id 3).
-    shift = kernels.DEPTH_KEY_BITS
-    keys = torch.tensor([(0 << shift) | 5, (0 << shift) | 9, (2 << shift) | 1, (2 << shift) | 2, (2 << shift) | 7,
-                         (3 << shift) | 4, (3 << shift) | 8], dtype=torch.int64)
-    ranges = torch.zeros(3, 2, dtype=torch.int32)
-    kernels.launch_tile_ranges(to_warp(keys), keys.shape[0], to_warp(ranges))
-    assert ranges.tolist() == [[0, 2], [0, 0], [2, 5]]
-    # A key buffer shorter than the pair count: the emission fills it and writes nothing beyond.
-    scene, sizes = make_scene(23, gaussian_count=40, width=48, height=40)
+def scene_with_depth_ties(device):
+    """``make_scene``'s awkward scene with two groups of Gaussians sharing one centre each (so one depth, to
+    the bit), of different shapes: the binning must order them by index."""
+    scene, sizes = make_scene(24, gaussian_count=200, device=device)
+    for first, last in ((150, 156), (170, 174)):
+        scene["means"][first + 1: last] = scene["means"][first]
+    return scene, sizes
+
+
+def test_tile_ranges_match_reference_and_skip_padding(device):
+    # A hand-made list of a 3-tile grid: tile 0 twice, tile 2 three times, then two padding keys (tile id 3).
+    keys = torch.tensor([0, 0, 2, 2, 2, 3, 3], dtype=torch.int32, device=device)
+    for launch in (kernels.launch_tile_ranges, kernels.launch_tile_ranges_padded):
+        ranges = torch.zeros(3, 2, dtype=torch.int32, device=device)
+        with torch_stream_scope(device):
+            launch(to_warp(keys), keys.shape[0], to_warp(ranges))
+        assert ranges.tolist() == [[0, 2], [0, 0], [2, 5]]
+    # Random sorted lists over 40 tiles, some absent, with and without padding, against the reference.
+    generator = torch.Generator().manual_seed(31)
+    present = torch.randperm(40, generator=generator)[:25]
+    for padding in (0, 17):
+        tiles = torch.sort(present[torch.randint(0, 25, (300,), generator=generator)]).values
+        keys = torch.cat([tiles, torch.full((padding,), 40)]).to(device=device, dtype=torch.int32)
+        expected = reference.tile_ranges(keys.cpu(), 40)
+        assert (expected[:, 1] > expected[:, 0]).sum() >= 20 and (expected[:, 1] == 0).sum() >= 10
+        for launch in (kernels.launch_tile_ranges, kernels.launch_tile_ranges_padded):
+            ranges = torch.zeros(40, 2, dtype=torch.int32, device=device)
+            with torch_stream_scope(device):
+                launch(to_warp(keys), keys.shape[0], to_warp(ranges))
+            assert torch.equal(ranges.cpu(), expected)
+
+
+def test_depth_sort_and_emission_match_reference(device):
+    scene, sizes = scene_with_depth_ties(device)
+    n = scene["means"].shape[0]
+    mask, pair_count, _ = kernel_tile_pairs(scene, sizes)  # the pairs, emitted in Gaussian order
     projection = kernel_projection(scene, sizes)
-    pair_count = int(projection[-1][-1])
-    capacity = pair_count // 2
-    keys, ids = torch.full((pair_count,), -1, dtype=torch.int64), torch.full((pair_count,), -1, dtype=torch.int32)
-    kernel_emit(projection, sizes, keys[:capacity], ids[:capacity])
-    assert capacity > 20 and torch.all(keys[:capacity] >= 0) and torch.all(ids[:capacity] >= 0)
-    assert torch.all(keys[capacity:] == -1) and torch.all(ids[capacity:] == -1)
+    depths = projection["color_depth"][:, 3].cpu()
+    counts = projection["counts"].cpu()
+    assert torch.equal(counts, mask.sum(dim=1).to(torch.int32))
+    # The projection's depth-sort inputs.
+    expected_keys, expected_records = reference.depth_sort_keys(depths, counts)
+    assert torch.equal(projection["depth_keys"][:n].cpu(), expected_keys)
+    assert torch.equal(projection["records"][:n].cpu(), expected_records)
+    s64 = {name: value.double().cpu() for name, value in scene.items()}
+    _, _, ref_depths, _ = reference.project_gaussians(s64["means"], s64["quats"], s64["scales"], s64["K"],
+                                                      s64["world_to_camera"], sizes["width"], sizes["height"],
+                                                      opacities=s64["opacities"])
+    torch.testing.assert_close(depths, ref_depths.float(), atol=1e-5, rtol=1e-5)
+    # The depth sort: stable, ties in index order; the prefix sum of the counts in that order.
+    order = torch.argsort(expected_keys, stable=True)
+    kept = counts > 0
+    for first, last in ((150, 156), (170, 174)):
+        assert kept[first:last].sum() >= 2 and len(set(depths[first:last].tolist())) == 1
+    records, ends = kernel_depth_sort(projection)
+    assert torch.equal(records[:, 0].cpu().long(), order)
+    assert torch.equal(ends.cpu(), torch.cumsum(counts[order], 0).to(torch.int32))
+    # The emission in depth order: exact, dropping pairs past a small capacity, padding a large one.
+    for capacity in (None, 2 * pair_count // 3, pair_count + 37):
+        size = pair_count if capacity is None else capacity
+        keys, ids = (torch.full((size + 5,), -7, dtype=torch.int32, device=device) for _ in range(2))
+        kernel_emit(projection, records, ends, sizes, keys[:size], ids[:size])
+        expected_tiles, expected_ids = reference.emit_tile_keys(mask, order, capacity=capacity)
+        assert torch.equal(keys[:size].cpu(), expected_tiles) and torch.equal(ids[:size].cpu(), expected_ids)
+        assert torch.all(keys[size:] == -7) and torch.all(ids[size:] == -7), "written past the buffer"
+
+
+@pytest.mark.parametrize("mode", ["exact", "padded capacity", "small capacity"])
+def test_sorted_pairs_are_ordered_by_tile_depth_and_index(device, mode):
+    scene, sizes = scene_with_depth_ties(device)
+    mask, pair_count, _ = kernel_tile_pairs(scene, sizes)
+    capacity = {"exact": None, "padded capacity": pair_count + 53, "small capacity": 2 * pair_count // 3}[mode]
+    scene = {name: value.requires_grad_(name in DIFFERENTIABLE) for name, value in scene.items()}
+    args = [scene[name] for name in ("means", "quats", "scales", "opacities", "colors", "K", "world_to_camera")]
+    image, _, _, info = ops.rasterize_gaussians(*args, sizes["width"], sizes["height"], background=scene["background"],
+                                                return_info=True, intersection_capacity=capacity)
+    assert int(info["status"][0]) == pair_count
+    saved = image.grad_fn.saved_tensors
+    tile_ranges, sorted_ids = saved[11].cpu(), saved[12].cpu()
+    tile_count = tile_ranges.shape[0]
+    tiles = torch.full(sorted_ids.shape, tile_count, dtype=torch.int32)  # slots in no range: padding
+    for tile, (start, end) in enumerate(tile_ranges.tolist()):
+        tiles[start:end] = tile
+    expected_tiles, expected_ids = reference.sorted_pairs(mask, info["depths"].cpu(), capacity=capacity)
+    assert torch.equal(tiles, expected_tiles)
+    assert torch.equal(sorted_ids, expected_ids)
+    assert torch.equal(tile_ranges, reference.tile_ranges(expected_tiles, tile_count))
+    # Ties: neighbours in one tile at one depth, which only the index orders.
+    real = expected_ids >= 0
+    pair_depths = info["depths"].cpu()[expected_ids[real].long()]
+    same = (expected_tiles[real][1:] == expected_tiles[real][:-1]) & (pair_depths[1:] == pair_depths[:-1])
+    assert same.sum() >= (2 if mode == "small capacity" else 4)  # the small capacity keeps fewer of them
+    if mode == "padded capacity":
+        assert torch.all(sorted_ids[pair_count:] == -1)
+        exact = ops.rasterize_gaussians(*args, sizes["width"], sizes["height"], background=scene["background"])[0]
+        assert torch.equal(image, exact)
 
 
 def test_backward_keeps_one_sorted_id_per_pair_and_no_per_gaussian_scratch(device, monkeypatch):

@@ -10,7 +10,7 @@ repetitions timed with CUDA events), peak memory of one forward + backward above
 (``bench_common.peak_memory_scope``, torch's allocator), the same for ``gsplat.rasterization`` (default
 options, render_mode "RGB+D" so that it also computes depth) on the same inputs, and the ratios ours / gsplat.
 ``launches`` counts the ``wp.launch`` calls of one forward / one backward, plus the ``warp.utils`` scan and
-sort calls (each a few CUB kernels). ``pairs`` is the number of (Gaussian, tile) pairs sorted and walked by the
+sort calls (each a few CUB kernels; a forward makes one scan and two sorts, by depth and by tile). ``pairs`` is the number of (Gaussian, tile) pairs sorted and walked by the
 compositing (ours: the sum of the projection's tile counts; gsplat: the length of its ``isect_ids``).
 """
 
@@ -138,18 +138,19 @@ def _pair_count(scene: dict) -> int:
     xy_opacity, conics = torch.empty(n, 3, device=device), torch.empty(n, 3, device=device)
     color_depth = torch.empty(n, 4, device=device)
     radii = torch.empty(n, 2, device=device, dtype=torch.int32)
-    touched, flags = (torch.zeros(size, device=device, dtype=torch.int32) for size in (n, 1))
+    depth_keys = torch.empty(n, device=device)
+    records, flags = torch.zeros(n, 2, device=device, dtype=torch.int32), torch.zeros(1, device=device, dtype=torch.int32)
     kernels.launch_project(
         to_warp(scene["means"], wp.vec3), to_warp(scene["quats"], wp.vec4), to_warp(scene["scales"], wp.vec3),
         to_warp(scene["opacities"]), to_warp(scene["colors"].reshape(n, 1, 3), wp.vec3),
         to_warp(scene["K"].reshape(1, 3, 3), wp.mat33), to_warp(scene["world_to_camera"].reshape(1, 4, 4), wp.mat44),
         width=scene["width"], height=scene["height"], sh_degree=-1, used_coefficients=1,
         xy_opacity=to_warp(xy_opacity, wp.vec3), conics=to_warp(conics, wp.vec3),
-        color_depth=to_warp(color_depth, wp.vec4), radii=to_warp(radii, wp.vec2i), tiles_touched=to_warp(touched),
-        bad_input_flags=to_warp(flags),
+        color_depth=to_warp(color_depth, wp.vec4), radii=to_warp(radii, wp.vec2i), depth_keys=to_warp(depth_keys),
+        depth_order=to_warp(records, wp.vec2i), bad_input_flags=to_warp(flags),
     )
-    wp.synchronize_device(to_warp(touched).device)
-    return int(touched.sum())
+    wp.synchronize_device(to_warp(records).device)
+    return int(records[:, 1].sum())  # the records (Gaussian, tile count) of the depth sort
 
 
 def _gsplat_pair_count(scene: dict) -> int | None:

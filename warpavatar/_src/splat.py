@@ -1,7 +1,10 @@
 """Differentiable Gaussian-splatting rasterizer: torch autograd bridge to the Warp kernels of ``kernels/splat.py``.
 
-One forward pass makes four Warp kernel launches (projection, key emission, tile ranges, compositing) plus the
-prefix sum and radix sort of ``warp.utils``, two small torch fills, a copy of the sorted ids (the backward keeps
+One forward pass makes four Warp kernel launches (projection, key emission, tile ranges, compositing) plus
+three ``warp.utils`` calls (the depth sort of the Gaussians, the prefix sum of their tile counts in depth order,
+the sort of the (Gaussian, tile) pairs by tile: two radix sorts over 4-byte keys that give the order of one
+over 8-byte (tile, depth) keys, see ``kernels/splat.py``), one small torch fill (the prefix sum's buffer with the
+pair count and the flags; the key emission clears the tile ranges), a copy of the sorted ids (the backward keeps
 4 bytes a pair, not the sort's double buffer), and one host synchronization. One backward pass makes two Warp
 launches (compositing backward, projection adjoint), one torch fill and no synchronization.
 
@@ -12,12 +15,12 @@ has run (an upper bound would cost far more memory, as any Gaussian may cover th
   buffers get a capacity of :data:`SPECULATIVE_HEADROOM` times the most pairs of the last
   :data:`SPECULATIVE_HISTORY` such calls, and the whole pass is queued without waiting; the pair count and the
   non-finite-input flag are read once at the end (the one synchronization). When the pairs did not fit, the
-  binning and compositing run again with exact buffers, so the result is always exact. The host thus queues
-  every kernel while the GPU works, instead of waiting for the projection half-way.
-* **Exact** (CPU, and the first call of a size on CUDA): the pair count is read after the projection and the
-  buffers get exactly that size.
-* **Fixed** (``intersection_capacity``): the buffers have that size, unused slots get a padding key that sorts
-  last, the key kernel drops pairs past the capacity, and nothing is read from the device, so the pass can be
+  tile binning and compositing run again with exact buffers, so the result is always exact. The host thus
+  queues every kernel while the GPU works, instead of waiting for the projection half-way.
+* **Exact** (CPU, and the first call of a size on CUDA): the pair count is read after the depth sort and its
+  prefix sum, and the buffers get exactly that size.
+* **Fixed** (``intersection_capacity``): the buffers have that size, the key kernel gives unused slots a padding
+  key that sorts last and drops pairs past the capacity, and nothing is read from the device, so the pass can be
   captured in a CUDA graph; the pair count and the input flags stay on the device (``info["status"]``) for
   the caller to check when it reads other values anyway (:func:`rasterizer_status`).
 
@@ -114,38 +117,65 @@ def _remember_pairs(key: tuple, count: int) -> None:
     recent.append(int(count))
 
 
-def _bin(status, capacity, w_xy_opacity, w_conics, color_depth, w_radii, w_tile_ends, tile_ranges, *, width,
-         height):
+def _depth_sort_buffers(gaussian_count: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The depth sort's double buffers, in one allocation (24 bytes a Gaussian): float32 keys [2 N] and the
+    records (Gaussian, tile count) as int32 [2 N, 2]. The projection fills their first halves."""
+    buffers = torch.empty(6 * gaussian_count, device=device, dtype=torch.int32)
+    return buffers[4 * gaussian_count:].view(torch.float32), buffers[: 4 * gaussian_count].view(-1, 2)
+
+
+def _sort_by_depth(depth_sort, tile_ends) -> None:
+    """Sort the Gaussians by depth and write ``tile_ends`` [N], the inclusive prefix sum of their tile counts in
+    that order. ``depth_sort`` holds :func:`_depth_sort_buffers` as the projection filled them."""
+    gaussian_count = tile_ends.shape[0]
+    if not gaussian_count:
+        return
+    depth_keys, depth_order = depth_sort
+    # Stable: equal depths keep the index order. The scan reads the counts in place, from the sorted records.
+    wp.utils.radix_sort_pairs(to_warp(depth_keys), to_warp(depth_order, wp.vec2i), gaussian_count, begin_bit=0,
+                              end_bit=splat_kernels.DEPTH_SORT_BITS)
+    w_tile_ends = to_warp(tile_ends)
+    counts = wp.array(ptr=depth_order.data_ptr() + 4, dtype=wp.int32, shape=(gaussian_count,), strides=(8,),
+                      device=w_tile_ends.device, copy=False)
+    wp.utils.array_scan(counts, w_tile_ends, inclusive=True)
+
+
+def _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radii, tile_ranges, *, width, height):
     """Sort the (Gaussian, tile) pairs; returns the sorted Gaussian ids (one per pair, or per capacity slot).
 
-    Without a ``capacity`` the buffers have the exact size: ``status`` ([pair count, flags]) is read from the
-    device (the one host synchronization) and non-finite input raises. With one, nothing is read: unused slots
-    hold a padding key that sorts last and belongs to no tile, and pairs past the capacity are dropped.
+    ``depth_sort`` and ``tile_ends`` [N] are as :func:`_sort_by_depth` left them; ``status`` ([pair count,
+    flags]) is a view that ends with its last entry. Without a ``capacity`` the buffers have the exact size: ``status`` is read from
+    the device (the one host synchronization) and non-finite input raises. With one, nothing is read: unused
+    slots hold a padding key that sorts last and belongs to no tile, and pairs past the capacity are dropped.
+    ``tile_ranges`` [tiles, 2] need not be cleared: the emission kernel (or, without pairs, a fill) does it.
     """
-    device = color_depth.device
+    device = tile_ranges.device
     tiles_x, tiles_y = _tile_grid(width, height)
+    gaussian_count = tile_ends.shape[0]
+    depth_order = depth_sort[1]
     if capacity is None:
         count, flags = status.tolist()  # the one host sync
         _raise_on_bad_inputs(flags)
     else:
         count = capacity
-    sort_keys = torch.empty(2 * count, device=device, dtype=torch.int64)
+    sort_keys = torch.empty(2 * count, device=device, dtype=torch.int32)
     sorted_ids = torch.empty(2 * count, device=device, dtype=torch.int32)
-    if count:
-        if capacity is not None:
-            sort_keys[:count].fill_(splat_kernels.padding_key(tiles_x * tiles_y))
+    if count and gaussian_count:
         splat_kernels.launch_emit_tile_keys(
-            w_xy_opacity, warp_descriptor(color_depth.view(torch.int32)), w_radii, w_tile_ends, width=width,
-            height=height, keys=warp_descriptor(sort_keys[:count]), gaussian_ids=warp_descriptor(sorted_ids[:count]),
-            conics=w_conics)
+            w_xy_opacity, w_conics, w_radii, warp_descriptor(depth_order[:gaussian_count], wp.vec2i),
+            warp_descriptor(tile_ends), width=width, height=height, keys=warp_descriptor(sort_keys[:count]),
+            gaussian_ids=warp_descriptor(sorted_ids[:count]), tile_ranges=warp_descriptor(tile_ranges))
         wp.utils.radix_sort_pairs(to_warp(sort_keys), to_warp(sorted_ids), count, begin_bit=0,
-                                  end_bit=splat_kernels.sort_key_bits(tiles_x * tiles_y))
+                                  end_bit=splat_kernels.tile_key_bits(tiles_x * tiles_y))
         if capacity is None:
             splat_kernels.launch_tile_ranges(warp_descriptor(sort_keys), count, warp_descriptor(tile_ranges))
         else:
             splat_kernels.launch_tile_ranges_padded(warp_descriptor(sort_keys), count, warp_descriptor(tile_ranges))
+    else:
+        tile_ranges.zero_()  # no pair: every tile's range is empty (the emission clears them otherwise)
     # The sort's second halves were its scratch: the backward keeps only the sorted ids (4 bytes a pair, not
-    # the 8 of the double buffer), copied once the keys' 16 bytes a pair are released.
+    # the 8 of the double buffer), copied once the keys' 8 bytes a pair are released. Without Gaussians no
+    # tile has a range, and the ids (of a capacity) are never read.
     del sort_keys
     return sorted_ids[:count].clone()
 
@@ -165,13 +195,12 @@ class _RasterizeGaussians(torch.autograd.Function):
         conics = torch.empty(gaussian_count, 3, **f32)
         color_depth = torch.empty(gaussian_count, 4, **f32)
         radii = torch.empty(gaussian_count, 2, **i32)
-        # One zeroed int32 allocation: the tile counts, then a zero, their inclusive prefix sum and the
-        # non-finite-input flag; the last two are the pair count and the flag (one read fetches both; 0 pairs
-        # without Gaussians).
-        tile_counts = torch.zeros(2 * gaussian_count + 2, **i32)
-        tiles_touched = tile_counts[:gaussian_count]
-        tile_ends_and_flag = tile_counts[gaussian_count:]
-        tile_ranges = torch.zeros(tiles_x * tiles_y, 2, **i32)
+        # One zeroed int32 allocation: a zero, the inclusive prefix sum of the tile counts in depth order and
+        # the non-finite-input flag; the last two are the pair count and the flag (one read fetches both; 0
+        # pairs without Gaussians).
+        tile_ends_and_flag = torch.zeros(gaussian_count + 2, **i32)
+        depth_sort = _depth_sort_buffers(gaussian_count, device)
+        tile_ranges = torch.empty(tiles_x * tiles_y, 2, **i32)  # cleared by _bin
         image = torch.empty(height, width, 3, **f32)
         alpha = torch.empty(height, width, **f32)
         depth = torch.empty(height, width, **f32)
@@ -194,16 +223,15 @@ class _RasterizeGaussians(torch.autograd.Function):
                 warp_descriptor(K.view(1, 3, 3), wp.mat33), warp_descriptor(world_to_camera.view(1, 4, 4), wp.mat44),
                 width=width, height=height, sh_degree=sh_degree, used_coefficients=used_coefficients,
                 xy_opacity=w_xy_opacity, conics=w_conics, color_depth=w_color_depth, radii=w_radii,
-                tiles_touched=warp_descriptor(tiles_touched),
+                depth_keys=warp_descriptor(depth_sort[0][:gaussian_count]),
+                depth_order=warp_descriptor(depth_sort[1][:gaussian_count], wp.vec2i),
                 bad_input_flags=warp_descriptor(tile_ends_and_flag[gaussian_count + 1:]),
             )
-            if gaussian_count:
-                wp.utils.array_scan(to_warp(tiles_touched), to_warp(tile_ends), inclusive=True)
+            _sort_by_depth(depth_sort, tile_ends)
             status = tile_ends_and_flag[gaussian_count:]
             speculation_key = (device, width, height, gaussian_count)
             capacity = intersection_capacity
             speculative = capacity is None and (capacity := _speculative_capacity(speculation_key)) is not None
-            w_tile_ends = warp_descriptor(tile_ends)
             w_background = warp_descriptor(background.view(1, 3), wp.vec3)
             w_pixels = dict(image=warp_descriptor(image.view(-1, 3), wp.vec3), alpha=warp_descriptor(alpha.view(-1)),
                             depth=warp_descriptor(depth.view(-1)),
@@ -211,7 +239,7 @@ class _RasterizeGaussians(torch.autograd.Function):
                             last_index=warp_descriptor(last_index.view(-1)))
 
             def bin_and_composite(capacity):
-                sorted_ids = _bin(status, capacity, w_xy_opacity, w_conics, color_depth, w_radii, w_tile_ends,
+                sorted_ids = _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radii,
                                   tile_ranges, width=width, height=height)
                 splat_kernels.launch_composite_forward(
                     warp_descriptor(tile_ranges), warp_descriptor(sorted_ids), w_xy_opacity, w_conics, w_color_depth,
@@ -222,8 +250,7 @@ class _RasterizeGaussians(torch.autograd.Function):
             if speculative:
                 count, flags = status.tolist()  # the one host sync, once the whole pass is queued
                 _raise_on_bad_inputs(flags)
-                if count > capacity:  # the guess was short: again with exact buffers
-                    tile_ranges.zero_()
+                if count > capacity:  # the guess was short: again with exact buffers (the emission clears the ranges)
                     sorted_ids = bin_and_composite(count)
             elif intersection_capacity is None:
                 count = int(sorted_ids.shape[0])  # the exact mode's buffers hold the pair count

@@ -16,7 +16,8 @@ import torch
 
 from warpavatar.geometry import quat_to_matrix, sh_basis
 
-__all__ = ["rasterize_gaussians", "project_gaussians", "reached_tiles"]
+__all__ = ["rasterize_gaussians", "project_gaussians", "reached_tiles", "depth_sort_keys", "emit_tile_keys",
+           "sorted_pairs", "tile_ranges"]
 
 TILE_SIZE = 16
 NEAR_PLANE = 0.01
@@ -149,6 +150,80 @@ def reached_tiles(means2d, conics, opacities, radii, width: int, height: int) ->
               & (tile_y[None] >= boxes[:, 2:3]) & (tile_y[None] < boxes[:, 3:4]))  # fmt: skip
     in_span = (span_ok[:, tile_y] & (tile_x[None] >= tile_first[:, tile_y]) & (tile_x[None] <= tile_last[:, tile_y]))
     return kept[:, None] & in_box & in_span
+
+
+def depth_sort_keys(depths: torch.Tensor, tile_counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The depth sort's inputs the projection kernel writes: float32 keys [N] (the depth of a Gaussian that
+    reaches a tile, else ``FAR_PLANE``) and int32 records [N, 2] (Gaussian index, tile count)."""
+    keys = torch.where(tile_counts > 0, depths.float(), torch.full_like(depths, FAR_PLANE, dtype=torch.float32))
+    index = torch.arange(depths.shape[0], device=depths.device)
+    return keys, torch.stack([index, tile_counts.long()], dim=-1).to(torch.int32)
+
+
+def emit_tile_keys(reached: torch.Tensor, order: torch.Tensor, *, capacity: int | None = None):
+    """The key emission's slots: the Gaussians in ``order`` (depth order), each its reached tiles in increasing
+    id, as (tile ids, Gaussian ids), int32 [S]: S is the pair count, or ``capacity``, which drops the pairs past
+    it and pads the slots past the pairs with tile ``tiles`` and Gaussian -1.
+
+    Args:
+        reached: [N, tiles] bool, the (Gaussian, tile) pairs (:func:`reached_tiles`).
+        order: [N] the Gaussians in depth order (a permutation of ``arange(N)``).
+        capacity: None, or the fixed number of slots.
+    """
+    tile_count = reached.shape[1]
+    gaussian_ids, tile_ids = torch.nonzero(reached[order], as_tuple=True)  # row-major: rank, then tile
+    gaussian_ids = order[gaussian_ids]
+    if capacity is not None:
+        gaussian_ids, tile_ids = gaussian_ids[:capacity], tile_ids[:capacity]
+        padding = capacity - tile_ids.shape[0]
+        tile_ids = torch.cat([tile_ids, tile_ids.new_full((padding,), tile_count)])
+        gaussian_ids = torch.cat([gaussian_ids, gaussian_ids.new_full((padding,), -1)])
+    return tile_ids.to(torch.int32), gaussian_ids.to(torch.int32)
+
+
+def sorted_pairs(reached: torch.Tensor, depths: torch.Tensor, *, capacity: int | None = None):
+    """The binning's result, by definition: the (Gaussian, tile) pairs in lexicographic order of (tile, depth,
+    Gaussian index), as (tile ids, Gaussian ids), int32 [S].
+
+    With a ``capacity`` the pairs the emission keeps are the first ``capacity`` in (depth, index, tile) order,
+    and the list is padded to ``capacity`` with tile ``tiles`` and Gaussian -1 (:func:`emit_tile_keys`).
+
+    Args:
+        reached: [N, tiles] bool, the (Gaussian, tile) pairs.
+        depths: [N] the Gaussians' depths (their order only matters; equal ones are ordered by index).
+        capacity: None, or the fixed number of slots.
+    """
+    tile_count = reached.shape[1]
+    gaussian_ids, tile_ids = torch.nonzero(reached, as_tuple=True)  # by index, then tile
+    pair_depths = depths[gaussian_ids]
+
+    def lexsort(*keys):  # the first key is the most significant; stable sorts from the least significant
+        order = torch.arange(gaussian_ids.shape[0], device=reached.device)
+        for key in reversed(keys):
+            order = order[torch.argsort(key[order], stable=True)]
+        return order
+
+    if capacity is not None:
+        kept = lexsort(pair_depths, gaussian_ids, tile_ids)[:capacity]
+        gaussian_ids, tile_ids, pair_depths = gaussian_ids[kept], tile_ids[kept], pair_depths[kept]
+    order = lexsort(tile_ids, pair_depths, gaussian_ids)
+    tile_ids, gaussian_ids = tile_ids[order], gaussian_ids[order]
+    if capacity is not None:
+        padding = capacity - tile_ids.shape[0]
+        tile_ids = torch.cat([tile_ids, tile_ids.new_full((padding,), tile_count)])
+        gaussian_ids = torch.cat([gaussian_ids, gaussian_ids.new_full((padding,), -1)])
+    return tile_ids.to(torch.int32), gaussian_ids.to(torch.int32)
+
+
+def tile_ranges(sorted_tiles: torch.Tensor, tile_count: int) -> torch.Tensor:
+    """[tile_count, 2] int32 ``[start, end)`` of each tile in a sorted list of tile ids (ids of ``tile_count``
+    and more are padding and belong to no tile; an absent tile gets [0, 0])."""
+    tiles = sorted_tiles.long()
+    real = tiles < tile_count
+    counts = torch.bincount(tiles[real], minlength=tile_count)
+    ends = torch.cumsum(counts, dim=0)
+    ranges = torch.stack([ends - counts, ends], dim=-1)
+    return torch.where((counts > 0)[:, None], ranges, torch.zeros_like(ranges)).to(torch.int32)
 
 
 def rasterize_gaussians(means, quats, scales, opacities, colors, K, world_to_camera, width: int, height: int, *,
