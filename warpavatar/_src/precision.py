@@ -29,12 +29,14 @@ from typing import Iterator
 
 import torch
 
-__all__ = ["MATMUL_PRECISIONS", "check_matmul_precision", "matmul_precision", "mlp_precision", "mlp_matmuls"]
+__all__ = ["MATMUL_PRECISIONS", "check_matmul_precision", "matmul_precision", "mlp_precision", "mlp_matmuls",
+           "float32_sums", "mlp_dtype", "current_mlp_dtype"]
 
 MATMUL_PRECISIONS = ("tf32", "fp32")
 """The accepted precisions of float32 GEMMs: ``tf32`` (TF32 tensor cores on CUDA) or ``fp32`` (full float32)."""
 
 _mlp_precision: contextvars.ContextVar[str | None] = contextvars.ContextVar("warpavatar_mlp_precision", default=None)
+_mlp_dtype: contextvars.ContextVar[torch.dtype] = contextvars.ContextVar("warpavatar_mlp_dtype", default=torch.float32)
 
 
 def check_matmul_precision(precision: str) -> str:
@@ -95,3 +97,39 @@ def mlp_matmuls(device) -> contextlib.AbstractContextManager:
     enclosing :func:`mlp_precision` chose; outside any, nothing changes."""
     precision = _mlp_precision.get()
     return contextlib.nullcontext() if precision is None else matmul_precision(precision, device)
+
+
+@contextlib.contextmanager
+def float32_sums(device) -> Iterator[None]:
+    """Float16 GEMMs on ``device`` keep their sums in float32 inside the block: on CUDA, cuBLAS's reduced-precision
+    reductions (``torch.backends.cuda.matmul.allow_fp16_reduced_precision_reduction``, on by default, which lets
+    split-K sums round to float16) are switched off, and restored on leaving. Elsewhere nothing changes (CPU
+    float16 GEMMs sum in float32). Like :func:`matmul_precision`, a CUDA graph keeps the kernels chosen while
+    it is captured."""
+    flags = torch.backends.cuda.matmul
+    if torch.device(device).type != "cuda" or not hasattr(flags, "allow_fp16_reduced_precision_reduction"):
+        yield
+        return
+    before = flags.allow_fp16_reduced_precision_reduction
+    flags.allow_fp16_reduced_precision_reduction = False
+    try:
+        yield
+    finally:
+        flags.allow_fp16_reduced_precision_reduction = before
+
+
+@contextlib.contextmanager
+def mlp_dtype(dtype: torch.dtype) -> Iterator[None]:
+    """Let the MLPs that keep a float16 copy for playback (prepared by a
+    :class:`~warpavatar.model.playback.Player`) run it inside this block when ``dtype`` is ``torch.float16``
+    (:func:`current_mlp_dtype`); everywhere else they run in float32. Nests; restored on leaving."""
+    token = _mlp_dtype.set(dtype)
+    try:
+        yield
+    finally:
+        _mlp_dtype.reset(token)
+
+
+def current_mlp_dtype() -> torch.dtype:
+    """The dtype the enclosing :func:`mlp_dtype` block chose (``torch.float32`` outside any)."""
+    return _mlp_dtype.get()
