@@ -130,37 +130,41 @@ def test_posing_from_frozen_tensors_reads_no_activation_again(demo_video):
 
 
 # ------------------------------------------------------------------------------- the pose correction's cache
+def _close_outputs(ours: torch.Tensor, reference: torch.Tensor) -> None:
+    """float16: inputs, weights and each layer's outputs rounded to 11 significant bits: within 1 % of the
+    largest output."""
+    torch.testing.assert_close(ours.float(), reference, rtol=0, atol=0.01 * float(reference.abs().max()))
+    assert not torch.equal(ours.float(), reference)
+
+
 @pytest.mark.parametrize("frame_codes", [0, 4])
 @torch.no_grad()
 def test_cached_pose_correction_equals_the_per_frame_one(demo_video, frame_codes):
     avatar = _avatar(demo_video, frame_codes=frame_codes, seed=2 + frame_codes)
     part = avatar.parts["pose_correction"]
+    means = avatar.gaussians.means
     grid = avatar.field.grid_weights()
     frozen = _frozen(avatar, grid)
-    part.prepare_playback(avatar.gaussians.means, mlp_dtype=torch.float16)
+    part.prepare_playback(means, mlp_dtype=torch.float16)
     assert part._network.half is not None
     for frame in (0, 2, 7):  # training instants (with their codes) and another pose
         bones = _bones(demo_video, frame)
-        expected = avatar.pose(bones, grid=grid)
-        part._network, kept = None, part._network
-        uncached = avatar.pose(bones, grid=grid)  # without the network's cache: the fit's own path
-        part._network = kept
-        ours = avatar.pose(bones, grid=grid, frozen=frozen)
-        assert ours["weights"] is not frozen.weights  # the correction moved the centres: read there
-        for name in ("means", "quats", "scales", "weights"):
-            assert torch.equal(ours[name], expected[name]) and torch.equal(ours[name], uncached[name]), name
-        # float16: inputs rounded to 11 significant bits, each layer's outputs too: within 1 % of the outputs
-        key = bones if frame_codes else None
-        code = part.frame_code(key) if frame_codes else None
-        network = part._playback_network(avatar.gaussians.means)
-        reference = part._outputs(avatar.gaussians.means, bones, code)
+        expected = avatar.pose(bones, grid=grid)  # outside a player's frame: the fit's code
+        code = part.frame_code(bones) if frame_codes else None
+        reference = part._outputs(means, bones, code)
         assert reference.abs().max() > 1.0  # the random weights make a large correction
+        with mlp_dtype(torch.float32):
+            network = part._playback_network(means)
+            assert torch.equal(part._outputs(means, bones, code, network=network), reference)  # exact caches
+            ours = avatar.pose(bones, grid=grid, frozen=frozen)
+        assert ours["weights"] is not frozen.weights  # the correction moved the centres: read there
+        for name in ("means", "quats", "scales", "weights"):  # one kernel instead of torch's twenty: rounding
+            torch.testing.assert_close(ours[name], expected[name], rtol=1e-6, atol=1e-6, msg=name)
         with mlp_dtype(torch.float16):
-            half = part._outputs(avatar.gaussians.means, bones, code, network=network)
+            half = part._outputs(means, bones, code, network=part._playback_network(means))
             posed_half = avatar.pose(bones, grid=grid, frozen=frozen)
-        assert half.dtype == torch.float32
-        torch.testing.assert_close(half, reference, rtol=0, atol=0.01 * float(reference.abs().max()))
-        assert not torch.equal(half, reference)
+        assert half.dtype == torch.float16
+        _close_outputs(half, reference)
         offset = float(reference[:, :3].abs().max() * part._offset_scale())  # the largest offset [world units]
         torch.testing.assert_close(posed_half["means"], expected["means"], rtol=0, atol=0.01 * offset)
 
@@ -171,23 +175,24 @@ def test_float16_network_runs_only_inside_a_float16_block_and_follows_changes(de
     part = avatar.parts["pose_correction"]
     means, bones = avatar.gaussians.means, _bones(demo_video, 4)
     part.prepare_playback(means, mlp_dtype=torch.float16)
-    network = part._playback_network(means)
+    network = part._network
     storage = part.prepare_playback(means, mlp_dtype=torch.float32)  # another player's float32: kept as it is
-    assert part._playback_network(means) is network and network.half is not None
-    assert current_mlp_dtype() == torch.float32
-    assert torch.equal(part._outputs(means, bones, None, network=network), part._outputs(means, bones, None))
+    assert part._network is network and network.half is not None
+    assert current_mlp_dtype() is None and part._playback_network(means) is None  # outside a player's frame
+    reference = part._outputs(means, bones, None)
+    with mlp_dtype(torch.float32):
+        assert torch.equal(part._outputs(means, bones, None, network=part._playback_network(means)), reference)
     with mlp_dtype(torch.float16):
-        before = part._outputs(means, bones, None, network=network)
-        assert not torch.equal(before, part._outputs(means, bones, None))
+        before = part._outputs(means, bones, None, network=part._playback_network(means))
+    _close_outputs(before, reference)
     # a change of the weights: the cache no longer serves, and is refilled in place by the next preparation
     part.trunk[2].weight.mul_(1.5)
-    assert part._playback_network(means) is None
-    assert part.prepare_playback(means, mlp_dtype=torch.float16) == storage
-    network = part._playback_network(means)
     with mlp_dtype(torch.float16):
-        after = part._outputs(means, bones, None, network=network)
-    reference = part._outputs(means, bones, None)
-    torch.testing.assert_close(after, reference, rtol=0, atol=0.01 * float(reference.abs().max()))
+        assert part._playback_network(means) is None
+    assert part.prepare_playback(means, mlp_dtype=torch.float16) == storage
+    with mlp_dtype(torch.float16):
+        after = part._outputs(means, bones, None, network=part._playback_network(means))
+    _close_outputs(after, part._outputs(means, bones, None))
     assert (after - before).abs().max() > 0.1
 
 
@@ -197,20 +202,49 @@ def test_float16_is_not_used_where_activations_could_leave_its_range(demo_video)
     part = avatar.parts["pose_correction"]
     means = avatar.gaussians.means
     part.prepare_playback(means, mlp_dtype=torch.float16)
-    peak = part._playback_network(means).peak
+    peak = part._network.peak
     assert 1.0 < peak < 65504.0 / 16.0
     factor = 65504.0 / 16.0 / peak * 1.5  # the third layer's outputs: 1.5 times the margin below float16's largest
     part.trunk[4].weight.mul_(factor)
     part.prepare_playback(means, mlp_dtype=torch.float16)
-    network = part._playback_network(means)
+    network = part._network
     assert network.half_asked and network.half is None
     bones = _bones(demo_video, 1)
     with mlp_dtype(torch.float16):
-        ours = part._outputs(means, bones, None, network=network)
+        ours = part._outputs(means, bones, None, network=part._playback_network(means))
     assert torch.equal(ours, part._outputs(means, bones, None))
     part.trunk[4].weight.div_(factor)
     part.prepare_playback(means, mlp_dtype=torch.float16)
-    assert part._playback_network(means).half is not None
+    assert part._network.half is not None
+
+
+@pytest.mark.parametrize("outputs_dtype", [torch.float32, torch.float16])
+def test_correction_kernel_matches_the_torch_code(device, outputs_dtype):
+    from warpavatar import ops
+    from warpavatar.extensions.pose_correction import corrected_gaussians
+
+    generator = torch.Generator().manual_seed(3)
+    count = 1000
+    outputs = (2.0 * torch.randn(count, 9, generator=generator)).to(outputs_dtype)
+    outputs[:5, 6:9] = torch.tensor([-5.0, 4.0, 3.5]).to(outputs_dtype)  # beyond the log-scale clamp
+    quats = torch.randn(count, 4, generator=generator)
+    quats = quats / quats.norm(dim=-1, keepdim=True)
+    means, scales = torch.randn(count, 3, generator=generator), 0.01 + torch.rand(count, 3, generator=generator)
+    offset_scale = torch.tensor(0.37)
+    inputs = [t.to(device) for t in (outputs, means, quats, scales, offset_scale)]
+    expected = corrected_gaussians(inputs[0].float(), *inputs[1:])
+    with torch.no_grad():
+        ours = ops.apply_correction(*inputs)
+    for name, a, b in zip(("means", "quats", "scales"), ours, expected):
+        assert a.dtype == torch.float32 and a.device == b.device
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-6, msg=name)
+    empty = [t[:0] for t in inputs[:4]]
+    with torch.no_grad():
+        assert [t.shape for t in ops.apply_correction(*empty, inputs[4])] == [(0, 3), (0, 4), (0, 3)]
+    with pytest.raises(ValueError, match="no gradients"):
+        ops.apply_correction(inputs[0], inputs[1].requires_grad_(), *inputs[2:])
+    with torch.no_grad(), pytest.raises(ValueError, match=r"outputs must have shape \[1000, 9\], got \[1000, 8\]"):
+        ops.apply_correction(inputs[0][:, :8], *inputs[1:])
 
 
 # ---------------------------------------------------------------------------------------------- the player
@@ -234,7 +268,8 @@ def test_player_float16_draws_within_rounding_of_float32(demo_video):
         half = players["float16"].render(bones, camera=camera)[0].clone()
         with torch.no_grad():
             expected = avatar.render(camera, bones)[0]  # outside the player: float32, whatever was prepared
-        assert expected.max() > 0.2 and torch.equal(full, expected)
+        assert expected.max() > 0.2  # the player's float32: the correction's kernel rounds unlike torch's ops
+        torch.testing.assert_close(full, expected, rtol=0, atol=1e-5)
         assert not torch.equal(half, full)
         assert (half - full).abs().max() < 0.05 and _psnr(half, full) > 50.0
     assert avatar.parts["pose_correction"]._network.half is not None

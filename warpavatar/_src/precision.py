@@ -36,7 +36,7 @@ MATMUL_PRECISIONS = ("tf32", "fp32")
 """The accepted precisions of float32 GEMMs: ``tf32`` (TF32 tensor cores on CUDA) or ``fp32`` (full float32)."""
 
 _mlp_precision: contextvars.ContextVar[str | None] = contextvars.ContextVar("warpavatar_mlp_precision", default=None)
-_mlp_dtype: contextvars.ContextVar[torch.dtype] = contextvars.ContextVar("warpavatar_mlp_dtype", default=torch.float32)
+_mlp_dtype: contextvars.ContextVar[torch.dtype | None] = contextvars.ContextVar("warpavatar_mlp_dtype", default=None)
 
 
 def check_matmul_precision(precision: str) -> str:
@@ -120,9 +120,10 @@ def float32_sums(device) -> Iterator[None]:
 
 @contextlib.contextmanager
 def mlp_dtype(dtype: torch.dtype) -> Iterator[None]:
-    """Let the MLPs that keep a float16 copy for playback (prepared by a
-    :class:`~warpavatar.model.playback.Player`) run it inside this block when ``dtype`` is ``torch.float16``
-    (:func:`current_mlp_dtype`); everywhere else they run in float32. Nests; restored on leaving."""
+    """Mark the block as a playback frame (:class:`~warpavatar.model.playback.Player`) whose parts' MLPs run in
+    ``dtype`` (``torch.float16`` or ``torch.float32``) where they prepared for it
+    (:meth:`~warpavatar.model.parts.AvatarPart.prepare_playback`): :func:`current_mlp_dtype`. Outside any such
+    block parts compute as a fit does. Nests; restored on leaving."""
     token = _mlp_dtype.set(dtype)
     try:
         yield
@@ -130,6 +131,6 @@ def mlp_dtype(dtype: torch.dtype) -> Iterator[None]:
         _mlp_dtype.reset(token)
 
 
-def current_mlp_dtype() -> torch.dtype:
-    """The dtype the enclosing :func:`mlp_dtype` block chose (``torch.float32`` outside any)."""
+def current_mlp_dtype() -> torch.dtype | None:
+    """The dtype the enclosing :func:`mlp_dtype` block chose, or None outside playback frames."""
     return _mlp_dtype.get()

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
+from warpavatar import ops
 from warpavatar._src.cuda_graph import adam_options
 from warpavatar._src.precision import current_mlp_dtype, float32_sums, mlp_matmuls
 from warpavatar.extensions.base import Extension, LossTerm, option
@@ -27,7 +28,8 @@ from warpavatar.geometry import Linear, linear_rows, match_pose, mlp, quat_from_
 from warpavatar.model.parts import AvatarPart
 from warpavatar.model.skinning_field import box_encoding
 
-__all__ = ["PoseCorrection", "relative_rotations_6d", "PoseCorrectionOptions", "PoseCorrectionExtension"]
+__all__ = ["PoseCorrection", "relative_rotations_6d", "corrected_gaussians", "PoseCorrectionOptions",
+           "PoseCorrectionExtension"]
 
 
 def relative_rotations_6d(bone_transforms: torch.Tensor, parents: torch.Tensor) -> torch.Tensor:
@@ -47,6 +49,17 @@ def relative_rotations_6d(bone_transforms: torch.Tensor, parents: torch.Tensor) 
     identity = torch.eye(3, device=rotations.device, dtype=rotations.dtype)
     six = (relative - identity)[:, :, :2].reshape(-1, 6)
     return six.reshape(-1)
+
+
+def corrected_gaussians(outputs: torch.Tensor, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                        offset_scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The canonical Gaussians a pose correction's outputs [N,9] make of centres [N,3], unit orientations [N,4]
+    and scales [N,3]: ``means + offset_scale * o[:, :3]``, ``quat_from_vector(o[:, 3:6]) * quats``,
+    ``scales * exp(clamp(o[:, 6:9], -3, 3))`` (differentiable; playback runs the one-kernel
+    :func:`warpavatar.ops.apply_correction`)."""
+    offset = outputs[:, :3] * offset_scale
+    rotated = quat_multiply(quat_from_vector(outputs[:, 3:6]), quats)
+    return means + offset, rotated, scales * torch.exp(outputs[:, 6:9].clamp(-3.0, 3.0))
 
 
 class PoseCorrection(AvatarPart):
@@ -105,11 +118,11 @@ class PoseCorrection(AvatarPart):
             code = self.frame_code(bone_transforms if key_pose is None else key_pose)
         network = self._playback_network(means)
         outputs = self._outputs(means, bone_transforms, code, network=network)
+        if network is not None:  # playback: one kernel (float32 rounding apart, the same maths)
+            return ops.apply_correction(outputs, means, quats, scales, network.offset_scale)
         if torch.is_grad_enabled():  # a pose without gradients (a refresh, a preview) keeps the training one's
             self.last_outputs = outputs
-        offset = outputs[:, :3] * (self._offset_scale() if network is None else network.offset_scale)
-        rotated = quat_multiply(quat_from_vector(outputs[:, 3:6]), quats)
-        return means + offset, rotated, scales * torch.exp(outputs[:, 6:9].clamp(-3.0, 3.0))
+        return corrected_gaussians(outputs, means, quats, scales, self._offset_scale())
 
     def deform_canonical(self, canonical, bones, frame):
         """The corrected canonical Gaussians for this pose (read from the skeleton's transforms in ``bones``)."""
@@ -171,10 +184,11 @@ class PoseCorrection(AvatarPart):
         return cache[1]
 
     def _playback_network(self, means: torch.Tensor) -> "_PlaybackNetwork | None":
-        """What :meth:`prepare_playback` kept of the network, when it serves these means (the cached encoding's,
+        """What :meth:`prepare_playback` kept of the network, inside a player's frame
+        (:func:`~warpavatar._src.precision.mlp_dtype`), when it serves these means (the cached encoding's,
         without gradients) and the parameters it was made from are unchanged; else None."""
         network = self._network
-        if network is None or self._cached_encoding(means) is None:
+        if network is None or current_mlp_dtype() is None or self._cached_encoding(means) is None:
             return None
         if not _same_versions(network.key, self._network_key()):
             return None
@@ -270,8 +284,8 @@ _FLOAT16_MARGIN = 16.0
 
 class _HalfNetwork:
     """The pose correction's per-Gaussian network in float16 for playback: the float16 encoding and weights,
-    GEMMs summing in float32 (:func:`~warpavatar._src.precision.float32_sums`), activations stored in float16,
-    the outputs returned in float32.
+    GEMMs summing in float32 (:func:`~warpavatar._src.precision.float32_sums`), activations and outputs stored
+    in float16 (:func:`warpavatar.ops.apply_correction` reads them as they are).
 
     Built only when the values it stores stay well inside float16's range (6e-5 .. 65504): the largest value of the
     network (:meth:`peak`, over the rest pose and the training poses) times :data:`_FLOAT16_MARGIN` must be below
@@ -344,14 +358,14 @@ class _HalfNetwork:
         return float(torch.stack(largest).max())
 
     def outputs(self, bias: torch.Tensor) -> torch.Tensor:
-        """Raw outputs [N,9] (float32) for the first layer's bias of this frame [hidden] (float32)."""
+        """Raw outputs [N,9] (float16) for the first layer's bias of this frame [hidden] (float32)."""
         bias = torch.clamp(bias, min=-self.bias_bound, max=self.bias_bound).to(torch.float16)
         with float32_sums(bias.device):
             (weight, _), *middle, (head_weight, head_bias) = self.layers
             hidden = torch.nn.functional.silu(torch.addmm(bias, self.encoding, weight.t()), inplace=True)
             for weight, layer_bias in middle:
                 hidden = torch.nn.functional.silu(torch.addmm(layer_bias, hidden, weight.t()), inplace=True)
-            return torch.addmm(head_bias, hidden, head_weight.t()).float()
+            return torch.addmm(head_bias, hidden, head_weight.t())
 
     def storage(self) -> tuple:
         return tuple(t.data_ptr() for t in (*self._tensors, self.bias_bound))

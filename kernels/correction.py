@@ -1,0 +1,73 @@
+"""Correction kernels: a pose-dependent correction's network outputs applied to canonical Gaussians in one pass.
+
+The pose correction (:class:`warpavatar.extensions.pose_correction.PoseCorrection`) turns 9 network outputs per
+Gaussian into a corrected centre, orientation and scale: ``mean + offset_scale * o[0:3]``, the unit quaternion
+``(1, o[3:6]) / |(1, o[3:6])|`` applied before the stored orientation (Hamilton product, (w, x, y, z)), and
+``scale * exp(clamp(o[6:9], -3, 3))``. In torch that is some twenty element-wise kernels over the Gaussians; a
+frame of playback runs this one instead (no gradients: playback only; a fit keeps the torch code, which the
+tests hold this kernel to). The outputs may be float32 or float16 (the float16 network of playback), read as
+float32. Launchers take Warp arrays, check their sizes and skip empty work; the torch bridge is
+:mod:`warpavatar._src.correction`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+from warpavatar.kernels.quaternion import quat_multiply
+
+__all__ = ["LOG_SCALE_LIMIT", "apply_correction"]
+
+LOG_SCALE_LIMIT = 3.0
+"""Largest magnitude of the log-scale change (outputs 6..8 are clamped to +-this)."""
+
+_LOG_SCALE_LIMIT = wp.constant(LOG_SCALE_LIMIT)
+
+
+@wp.kernel(enable_backward=False)
+def apply_correction_kernel(outputs: wp.array2d(dtype=Any), means: wp.array(dtype=wp.vec3),
+                            quats: wp.array(dtype=wp.vec4), scales: wp.array(dtype=wp.vec3),
+                            offset_scale: wp.array(dtype=wp.float32), means_out: wp.array(dtype=wp.vec3),
+                            quats_out: wp.array(dtype=wp.vec4), scales_out: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    o = wp.vector(length=9, dtype=wp.float32)
+    for k in range(9):
+        o[k] = wp.float32(outputs[i, k])
+    s = offset_scale[0]
+    means_out[i] = means[i] + wp.vec3(o[0] * s, o[1] * s, o[2] * s)
+    rotation = wp.vec4(1.0, o[3], o[4], o[5])
+    rotation = rotation / wp.sqrt(1.0 + o[3] * o[3] + o[4] * o[4] + o[5] * o[5])
+    quats_out[i] = quat_multiply(rotation, quats[i])
+    scale = scales[i]
+    scales_out[i] = wp.vec3(
+        scale[0] * wp.exp(wp.clamp(o[6], -_LOG_SCALE_LIMIT, _LOG_SCALE_LIMIT)),
+        scale[1] * wp.exp(wp.clamp(o[7], -_LOG_SCALE_LIMIT, _LOG_SCALE_LIMIT)),
+        scale[2] * wp.exp(wp.clamp(o[8], -_LOG_SCALE_LIMIT, _LOG_SCALE_LIMIT)),
+    )
+
+
+def apply_correction(outputs: wp.array, means: wp.array, quats: wp.array, scales: wp.array, offset_scale: wp.array,
+                     means_out: wp.array, quats_out: wp.array, scales_out: wp.array) -> None:
+    """Write the corrected Gaussians (launcher of :func:`apply_correction_kernel`).
+
+    Args:
+        outputs: [N,9] float32 or float16 network outputs (offset, rotation vector, log-scale change).
+        means: [N] vec3 canonical centres [world units].
+        quats: [N] vec4 unit orientations (w, x, y, z).
+        scales: [N] vec3 scales [world units].
+        offset_scale: [1] world length of a unit offset output.
+        means_out, quats_out, scales_out: [N] outputs of the same types (may not alias the inputs).
+    """
+    count = means.shape[0]
+    for name, array in (("outputs", outputs), ("quats", quats), ("scales", scales), ("means_out", means_out),
+                        ("quats_out", quats_out), ("scales_out", scales_out)):
+        if array.shape[0] != count:
+            raise ValueError(f"{name} has {array.shape[0]} rows, means {count}")
+    if outputs.shape[1] != 9 or offset_scale.shape != (1,):
+        raise ValueError(f"outputs must be [N,9] and offset_scale [1], got {outputs.shape} and {offset_scale.shape}")
+    if count == 0:
+        return
+    wp.launch(apply_correction_kernel, dim=count, device=means.device,
+              inputs=[outputs, means, quats, scales, offset_scale], outputs=[means_out, quats_out, scales_out])

@@ -1,0 +1,51 @@
+"""Torch bridge of the correction kernel (``kernels/correction.py``): a pose correction's network outputs applied
+to canonical Gaussians in one launch, for playback (no gradients). The torch code it stands in for, which fits
+differentiate, is :func:`warpavatar.extensions.pose_correction.corrected_gaussians`."""
+
+from __future__ import annotations
+
+import torch
+import warp as wp
+
+from warpavatar._src.warp_utils import check_tensor, to_warp, torch_stream_scope
+from warpavatar.kernels import correction as kernels
+
+__all__ = ["apply_correction"]
+
+
+def apply_correction(outputs: torch.Tensor, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                     offset_scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Corrected canonical Gaussians from a pose correction's outputs, in one kernel.
+
+    Per Gaussian: ``means + offset_scale * outputs[:, 0:3]``, ``q(outputs[:, 3:6]) * quats`` with
+    ``q(v) = (1, v) / |(1, v)|`` (Hamilton product, (w, x, y, z)), and
+    ``scales * exp(clamp(outputs[:, 6:9], -3, 3))``. Not differentiable (playback): raises when a gradient is
+    asked for.
+
+    Args:
+        outputs: [N,9] float32 or float16 network outputs.
+        means: float32 [N,3] canonical centres [world units].
+        quats: float32 [N,4] unit orientations (w, x, y, z).
+        scales: float32 [N,3] scales [world units].
+        offset_scale: float32 [] or [1] world length of a unit offset output (a device tensor: no host read).
+
+    Returns:
+        ``(means [N,3], quats [N,4], scales [N,3])``, float32, new tensors.
+    """
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (outputs, means, quats, scales, offset_scale)):
+        raise ValueError("apply_correction has no gradients (playback only): call it under torch.no_grad()")
+    check_tensor("means", means, (None, 3), dtype_kind="float32")
+    count, device = means.shape[0], means.device
+    check_tensor("outputs", outputs, (count, 9), device=device)
+    if outputs.dtype not in (torch.float32, torch.float16):
+        raise ValueError(f"outputs must be float32 or float16, got {outputs.dtype}")
+    check_tensor("quats", quats, (count, 4), dtype_kind="float32", device=device)
+    check_tensor("scales", scales, (count, 3), dtype_kind="float32", device=device)
+    check_tensor("offset_scale", offset_scale.reshape(-1), (1,), dtype_kind="float32", device=device)
+    means_out, quats_out, scales_out = torch.empty_like(means), torch.empty_like(quats), torch.empty_like(scales)
+    with torch_stream_scope(device):
+        kernels.apply_correction(to_warp(outputs), to_warp(means, dtype=wp.vec3), to_warp(quats, dtype=wp.vec4),
+                                 to_warp(scales, dtype=wp.vec3), to_warp(offset_scale.reshape(1)),
+                                 to_warp(means_out, dtype=wp.vec3), to_warp(quats_out, dtype=wp.vec4),
+                                 to_warp(scales_out, dtype=wp.vec3))
+    return means_out, quats_out, scales_out
