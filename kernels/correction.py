@@ -6,7 +6,9 @@ Gaussian into a corrected centre, orientation and scale: ``mean + offset_scale *
 ``scale * exp(clamp(o[6:9], -3, 3))``. In torch that is some twenty element-wise kernels over the Gaussians; a
 frame of playback runs this one instead (no gradients: playback only; a fit keeps the torch code, which the
 tests hold this kernel to). The outputs may be float32 or float16 (the float16 network of playback), read as
-float32. Launchers take Warp arrays, check their sizes and skip empty work; the torch bridge is
+float32. The frame code a pose gets (the code of the training frame whose pose it is, else zeros: what
+:meth:`~warpavatar.extensions.pose_correction.PoseCorrection.frame_code` computes in seven torch kernels) takes
+two: the largest entry difference from each training pose, then the closest pose's code. Launchers take Warp arrays, check their sizes and skip empty work; the torch bridge is
 :mod:`warpavatar._src.correction`.
 """
 
@@ -18,7 +20,7 @@ import warp as wp
 
 from warpavatar.kernels.quaternion import quat_multiply
 
-__all__ = ["LOG_SCALE_LIMIT", "apply_correction"]
+__all__ = ["LOG_SCALE_LIMIT", "apply_correction", "match_frame_code"]
 
 LOG_SCALE_LIMIT = 3.0
 """Largest magnitude of the log-scale change (outputs 6..8 are clamped to +-this)."""
@@ -71,3 +73,54 @@ def apply_correction(outputs: wp.array, means: wp.array, quats: wp.array, scales
         return
     wp.launch(apply_correction_kernel, dim=count, device=means.device,
               inputs=[outputs, means, quats, scales, offset_scale], outputs=[means_out, quats_out, scales_out])
+
+
+@wp.kernel(enable_backward=False)
+def pose_difference_kernel(frame_poses: wp.array2d(dtype=wp.float32), pose: wp.array(dtype=wp.float32),
+                           differences: wp.array(dtype=wp.float32)):
+    t = wp.tid()
+    largest = wp.float32(0.0)
+    for k in range(frame_poses.shape[1]):
+        largest = wp.max(largest, wp.abs(frame_poses[t, k] - pose[k]))
+    differences[t] = largest
+
+
+@wp.kernel(enable_backward=False)
+def closest_code_kernel(differences: wp.array(dtype=wp.float32), codes: wp.array2d(dtype=wp.float32),
+                        tolerance: wp.float32, code: wp.array(dtype=wp.float32)):
+    c = wp.tid()
+    best = int(0)
+    for t in range(1, differences.shape[0]):
+        if differences[t] < differences[best]:
+            best = t
+    matched = wp.float32(0.0)
+    if differences[best] <= tolerance:
+        matched = wp.float32(1.0)
+    code[c] = codes[best, c] * matched
+
+
+def match_frame_code(frame_poses: wp.array, pose: wp.array, codes: wp.array, tolerance: float,
+                     differences: wp.array, code: wp.array) -> None:
+    """Write the code of the training frame whose pose equals ``pose`` within ``tolerance`` (every entry), else
+    zeros (the closest frame's code times 0; the first closest on ties).
+
+    Args:
+        frame_poses: [T, K] the training frames' poses, flattened (K = J*16).
+        pose: [K'] this frame's pose, flattened (K' >= K: only the first K entries are compared).
+        codes: [T, C] the frames' codes.
+        tolerance: largest entry difference of a match.
+        differences: [T] scratch: each frame's largest entry difference.
+        code: [C] output.
+    """
+    count, width = frame_poses.shape
+    if codes.shape[0] != count or differences.shape[0] != count or code.shape[0] != codes.shape[1]:
+        raise ValueError(f"frame_poses {frame_poses.shape}, codes {codes.shape}, differences {differences.shape} and "
+                         f"code {code.shape} do not agree")
+    if pose.shape[0] < width:
+        raise ValueError(f"pose has {pose.shape[0]} entries, the frames' poses {width}")
+    if count == 0 or code.shape[0] == 0:
+        return
+    wp.launch(pose_difference_kernel, dim=count, device=pose.device, inputs=[frame_poses, pose],
+              outputs=[differences])
+    wp.launch(closest_code_kernel, dim=code.shape[0], device=pose.device,
+              inputs=[differences, codes, float(tolerance)], outputs=[code])

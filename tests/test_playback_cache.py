@@ -247,6 +247,26 @@ def test_correction_kernel_matches_the_torch_code(device, outputs_dtype):
         ops.apply_correction(inputs[0][:, :8], *inputs[1:])
 
 
+def test_frame_code_kernels_give_the_torch_code(device):
+    from tests.test_mlp_paths import _random_correction, _random_poses
+    from warpavatar import ops
+
+    part = _random_correction(device, frame_count=6, seed=9)
+    generator = torch.Generator().manual_seed(4)
+    poses = _random_poses(6, generator).to(device)
+    part.set_frame_poses(poses)
+    grown = torch.eye(4, device=device).repeat(3, 1, 1)  # grown joints' transforms after the skeleton's
+    near = poses[4] + 1e-4 * (torch.rand(poses[4].shape, generator=generator).to(device) - 0.5)  # within 5e-5
+    cases = [poses[2], poses[5], near, poses[1] + 3e-4, _random_poses(1, generator)[0].to(device),
+             torch.cat([poses[3], grown])]
+    with torch.no_grad():
+        for pose in cases:
+            ours = ops.match_frame_code(part.frame_poses, pose, part.frame_codes)
+            assert torch.equal(ours, part.frame_code(pose))
+        assert ops.match_frame_code(part.frame_poses, near, part.frame_codes).abs().max() > 0.1  # a match
+        assert not ops.match_frame_code(part.frame_poses, poses[1] + 3e-4, part.frame_codes).any()  # none
+
+
 # ---------------------------------------------------------------------------------------------- the player
 def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return 10.0 * math.log10(1.0 / float(((a - b) ** 2).mean()))

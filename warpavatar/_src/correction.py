@@ -1,6 +1,8 @@
-"""Torch bridge of the correction kernel (``kernels/correction.py``): a pose correction's network outputs applied
-to canonical Gaussians in one launch, for playback (no gradients). The torch code it stands in for, which fits
-differentiate, is :func:`warpavatar.extensions.pose_correction.corrected_gaussians`."""
+"""Torch bridge of the correction kernels (``kernels/correction.py``): a pose correction's network outputs applied
+to canonical Gaussians in one launch, and a pose's frame code in two, for playback (no gradients). The torch
+code they stand in for, which fits differentiate, is
+:func:`warpavatar.extensions.pose_correction.corrected_gaussians` and
+:meth:`~warpavatar.extensions.pose_correction.PoseCorrection.frame_code`."""
 
 from __future__ import annotations
 
@@ -10,7 +12,7 @@ import warp as wp
 from warpavatar._src.warp_utils import check_tensor, to_warp, torch_stream_scope
 from warpavatar.kernels import correction as kernels
 
-__all__ = ["apply_correction"]
+__all__ = ["apply_correction", "match_frame_code"]
 
 
 def apply_correction(outputs: torch.Tensor, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
@@ -49,3 +51,33 @@ def apply_correction(outputs: torch.Tensor, means: torch.Tensor, quats: torch.Te
                                  to_warp(means_out, dtype=wp.vec3), to_warp(quats_out, dtype=wp.vec4),
                                  to_warp(scales_out, dtype=wp.vec3))
     return means_out, quats_out, scales_out
+
+
+def match_frame_code(frame_poses: torch.Tensor, pose: torch.Tensor, codes: torch.Tensor, *,
+                     tolerance: float = 1e-4) -> torch.Tensor:
+    """The code [C] of the training frame whose pose equals ``pose`` (every entry within ``tolerance``), else
+    zeros, in two kernels and without a host read: the values of
+    ``codes[best] * (closest <= tolerance)`` with :func:`warpavatar.geometry.match_pose`'s ``best`` (the first
+    closest on ties). No gradients.
+
+    Args:
+        frame_poses: float32 [T,J,4,4] the training frames' poses (T >= 1).
+        pose: float32 [J',4,4] this frame's transforms (J' >= J: the first J are compared).
+        codes: float32 [T,C] the frames' codes.
+        tolerance: largest entry difference of a match.
+    """
+    if torch.is_grad_enabled() and codes.requires_grad:
+        raise ValueError("match_frame_code has no gradients (playback only): call it under torch.no_grad()")
+    device = pose.device
+    check_tensor("frame_poses", frame_poses, (None, None, 4, 4), dtype_kind="float32", device=device)
+    check_tensor("pose", pose, (None, 4, 4), dtype_kind="float32")
+    count = frame_poses.shape[0]
+    check_tensor("codes", codes, (count, None), dtype_kind="float32", device=device)
+    if count == 0:
+        raise ValueError("frame_poses holds no pose")
+    differences = torch.empty(count, device=device)
+    code = torch.empty(codes.shape[1], device=device)
+    with torch_stream_scope(device):
+        kernels.match_frame_code(to_warp(frame_poses.reshape(count, -1)), to_warp(pose.reshape(-1)), to_warp(codes),
+                                 tolerance, to_warp(differences), to_warp(code))
+    return code

@@ -113,10 +113,12 @@ class PoseCorrection(AvatarPart):
                 *, key_pose: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Corrected canonical (means [N,3], unit quats [N,4], scales [N,3]) for this pose; ``key_pose`` [J,4,4]
         says which training instant's code applies (default: the pose itself)."""
+        network = self._playback_network(means)
         code = None
         if self.frame_codes.shape[0]:
-            code = self.frame_code(bone_transforms if key_pose is None else key_pose)
-        network = self._playback_network(means)
+            key_pose = bone_transforms if key_pose is None else key_pose
+            code = self.frame_code(key_pose) if network is None else \
+                ops.match_frame_code(self.frame_poses, key_pose, self.frame_codes)  # the same values
         outputs = self._outputs(means, bone_transforms, code, network=network)
         if network is not None:  # playback: one kernel (float32 rounding apart, the same maths)
             return ops.apply_correction(outputs, means, quats, scales, network.offset_scale)
@@ -298,9 +300,10 @@ class _HalfNetwork:
         half = torch.float16
         first, width = part.trunk[0], part.position_width
         bias_bound = _HalfNetwork.bias_bound(part)
-        if old is not None and old.bias_bound.shape == bias_bound.shape:
-            bias_bound = old.bias_bound.copy_(bias_bound)
-        self.bias_bound = bias_bound
+        bounds = (-bias_bound, bias_bound)
+        if old is not None and old.bias_bounds[0].shape == bias_bound.shape:
+            bounds = tuple(k.copy_(v) for k, v in zip(old.bias_bounds, bounds))
+        self.bias_bounds = bounds  # (low, high) of the frame's bias
         layers = [(first.weight[:, :width], None)]
         layers += [(layer.weight, layer.bias) for layer in itertools.islice(part.trunk, 2, None, 2)]
         layers.append((part.head.weight, part.head.bias))
@@ -359,7 +362,7 @@ class _HalfNetwork:
 
     def outputs(self, bias: torch.Tensor) -> torch.Tensor:
         """Raw outputs [N,9] (float16) for the first layer's bias of this frame [hidden] (float32)."""
-        bias = torch.clamp(bias, min=-self.bias_bound, max=self.bias_bound).to(torch.float16)
+        bias = torch.clamp(bias, *self.bias_bounds).to(torch.float16)
         with float32_sums(bias.device):
             (weight, _), *middle, (head_weight, head_bias) = self.layers
             hidden = torch.nn.functional.silu(torch.addmm(bias, self.encoding, weight.t()), inplace=True)
@@ -368,7 +371,7 @@ class _HalfNetwork:
             return torch.addmm(head_bias, hidden, head_weight.t())
 
     def storage(self) -> tuple:
-        return tuple(t.data_ptr() for t in (*self._tensors, self.bias_bound))
+        return tuple(t.data_ptr() for t in (*self._tensors, *self.bias_bounds))
 
 
 class _PlaybackNetwork:
