@@ -293,3 +293,28 @@ def test_player_float16_draws_within_rounding_of_float32(demo_video):
         assert not torch.equal(half, full)
         assert (half - full).abs().max() < 0.05 and _psnr(half, full) > 50.0
     assert avatar.parts["pose_correction"]._network.half is not None
+
+
+def test_player_follows_in_place_changes_of_the_gaussians_and_the_field(demo_video):
+    from warpavatar.model.playback import Player
+
+    avatar = _avatar(demo_video, seed=8)
+    _randomized(avatar, 8, correction_std=0.05)
+    player = Player(avatar, demo_video.cameras[0], cuda_graph="off", mlp_dtype="float32", check_every=1)
+    bones = _bones(demo_video, 6)
+    before = player.render(bones)[0].clone()
+    frozen = player._frozen
+    storage = [frozen.opacities.data_ptr(), frozen.weights.data_ptr()]
+    gaussians = avatar.gaussians
+    with torch.no_grad():  # what an optimizer step does: every parameter changed in place
+        gaussians.opacity_logits.sub_(1.0)
+        gaussians.log_scales.add_(0.3)
+        gaussians.sh_dc.mul_(0.5)
+        gaussians.quats[:, 0].add_(0.5)
+        avatar.field.mlp[0].bias.add_(0.5)
+    after = player.render(bones)[0]
+    with torch.no_grad():
+        expected = avatar.render(demo_video.cameras[0], bones)[0]
+    torch.testing.assert_close(after, expected, rtol=0, atol=1e-5)
+    assert (after - before).abs().max() > 0.1
+    assert [frozen.opacities.data_ptr(), frozen.weights.data_ptr()] == storage  # refilled in place
