@@ -55,7 +55,8 @@ def apply_correction(outputs: wp.array, means: wp.array, quats: wp.array, scales
     """Write the corrected Gaussians (launcher of :func:`apply_correction_kernel`).
 
     Args:
-        outputs: [N,9] float32 or float16 network outputs (offset, rotation vector, log-scale change).
+        outputs: [N,C>=9] float32 or float16 network outputs (offset, rotation vector, log-scale change); columns
+            past the 9th are not read (a network padded to aligned rows).
         means: [N] vec3 canonical centres [world units].
         quats: [N] vec4 unit orientations (w, x, y, z).
         scales: [N] vec3 scales [world units].
@@ -67,8 +68,9 @@ def apply_correction(outputs: wp.array, means: wp.array, quats: wp.array, scales
                         ("quats_out", quats_out), ("scales_out", scales_out)):
         if array.shape[0] != count:
             raise ValueError(f"{name} has {array.shape[0]} rows, means {count}")
-    if outputs.shape[1] != 9 or offset_scale.shape != (1,):
-        raise ValueError(f"outputs must be [N,9] and offset_scale [1], got {outputs.shape} and {offset_scale.shape}")
+    if outputs.shape[1] < 9 or offset_scale.shape != (1,):
+        raise ValueError(f"outputs must be [N,>=9] and offset_scale [1], got {outputs.shape} and "
+                         f"{offset_scale.shape}")
     if count == 0:
         return
     wp.launch(apply_correction_kernel, dim=count, device=means.device,

@@ -25,7 +25,7 @@ def apply_correction(outputs: torch.Tensor, means: torch.Tensor, quats: torch.Te
     asked for.
 
     Args:
-        outputs: [N,9] float32 or float16 network outputs.
+        outputs: [N,C] float32 or float16 network outputs, C >= 9 (columns past the 9th are not read).
         means: float32 [N,3] canonical centres [world units].
         quats: float32 [N,4] unit orientations (w, x, y, z).
         scales: float32 [N,3] scales [world units].
@@ -38,7 +38,9 @@ def apply_correction(outputs: torch.Tensor, means: torch.Tensor, quats: torch.Te
         raise ValueError("apply_correction has no gradients (playback only): call it under torch.no_grad()")
     check_tensor("means", means, (None, 3), dtype_kind="float32")
     count, device = means.shape[0], means.device
-    check_tensor("outputs", outputs, (count, 9), device=device)
+    check_tensor("outputs", outputs, (count, None), device=device)
+    if outputs.shape[1] < 9:
+        raise ValueError(f"outputs must have at least 9 columns, got {outputs.shape[1]}")
     if outputs.dtype not in (torch.float32, torch.float16):
         raise ValueError(f"outputs must be float32 or float16, got {outputs.dtype}")
     check_tensor("quats", quats, (count, 4), dtype_kind="float32", device=device)

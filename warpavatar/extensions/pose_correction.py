@@ -304,10 +304,14 @@ class _HalfNetwork:
         if old is not None and old.bias_bounds[0].shape == bias_bound.shape:
             bounds = tuple(k.copy_(v) for k, v in zip(old.bias_bounds, bounds))
         self.bias_bounds = bounds  # (low, high) of the frame's bias
-        layers = [(first.weight[:, :width], None)]
+        # the encoding's columns and the head's outputs padded with zeros to multiples of 8 (16-byte rows, as
+        # float16 tensor-core GEMMs want them): the same sums, and apply_correction reads the first 9 outputs
+        pad_in, pad_out = -width % 8, -part.head.out_features % 8
+        pad = torch.nn.functional.pad
+        layers = [(pad(first.weight[:, :width], (0, pad_in)), None)]
         layers += [(layer.weight, layer.bias) for layer in itertools.islice(part.trunk, 2, None, 2)]
-        layers.append((part.head.weight, part.head.bias))
-        values = [encoding, *(t for layer in layers for t in layer if t is not None)]
+        layers.append((pad(part.head.weight, (0, 0, 0, pad_out)), pad(part.head.bias, (0, pad_out))))
+        values = [pad(encoding, (0, pad_in)), *(t for layer in layers for t in layer if t is not None)]
         kept = [] if old is None else old._tensors
         if [tuple(t.shape) for t in kept] == [tuple(t.shape) for t in values]:
             values = [k.copy_(v) for k, v in zip(kept, values)]  # in place: a captured frame reads them
@@ -361,7 +365,8 @@ class _HalfNetwork:
         return float(torch.stack(largest).max())
 
     def outputs(self, bias: torch.Tensor) -> torch.Tensor:
-        """Raw outputs [N,9] (float16) for the first layer's bias of this frame [hidden] (float32)."""
+        """Raw outputs [N,16] (float16; the first 9 are the network's, then zeros) for the first layer's bias of
+        this frame [hidden] (float32)."""
         bias = torch.clamp(bias, *self.bias_bounds).to(torch.float16)
         with float32_sums(bias.device):
             (weight, _), *middle, (head_weight, head_bias) = self.layers
