@@ -8,8 +8,8 @@ frame of playback runs this one instead (no gradients: playback only; a fit keep
 tests hold this kernel to). The outputs may be float32 or float16 (the float16 network of playback), read as
 float32. The frame code a pose gets (the code of the training frame whose pose it is, else zeros: what
 :meth:`~warpavatar.extensions.pose_correction.PoseCorrection.frame_code` computes in seven torch kernels) takes
-two: the largest entry difference from each training pose, then the closest pose's code. Launchers take Warp arrays, check their sizes and skip empty work; the torch bridge is
-:mod:`warpavatar._src.correction`.
+two: the largest entry difference from each training pose, then the closest pose's code. Launchers take Warp
+arrays, check their sizes and skip empty work; the torch bridge is :mod:`warpavatar._src.correction`.
 """
 
 from __future__ import annotations

@@ -14,10 +14,10 @@ What depends only on the frozen avatar is computed once, before any capture, in 
 the skinning grid, the activated Gaussians and their skinning weights at the stored centres
 (:class:`~warpavatar.model.frozen.FrozenCanonical`: exact, the same functions), and what parts cache
 (:meth:`~warpavatar.model.parts.AvatarPart.prepare_playback`: the pose correction's encoding of the canonical
-centres, its parameter-only pieces and, with ``mlp_dtype="float16"``, its network in float16). Before each frame the player compares the version
-counters of the avatar's tensors with those the caches were made from (host values, no device read): a change
-(an optimizer step, ``load_state_dict``) refills the caches in place, and a change of the storage a captured
-frame reads (the caches', the Gaussians') captures again.
+centres, its parameter-only pieces and, with ``mlp_dtype="float16"``, its network in float16). Before each frame
+the player compares the version counters of the avatar's tensors with those the caches were made from (host
+values, no device read): a change (an optimizer step, ``load_state_dict``) refills the caches in place, and a
+change of the storage a captured frame reads (the caches', the Gaussians') captures again.
 """
 
 from __future__ import annotations
