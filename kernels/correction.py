@@ -8,8 +8,10 @@ frame of playback runs this one instead (no gradients: playback only; a fit keep
 tests hold this kernel to). The outputs may be float32 or float16 (the float16 network of playback), read as
 float32. The frame code a pose gets (the code of the training frame whose pose it is, else zeros: what
 :meth:`~warpavatar.extensions.pose_correction.PoseCorrection.frame_code` computes in seven torch kernels) takes
-two: the largest entry difference from each training pose, then the closest pose's code. Launchers take Warp
-arrays, check their sizes and skip empty work; the torch bridge is :mod:`warpavatar._src.correction`.
+two: the largest entry difference from each training pose, then the closest pose's code. The network's
+first-layer bias of a frame (the pose feature through the pose encoder, joined by the code, through the first
+layer's pose columns: some ten small torch kernels) takes two more. Launchers take Warp arrays, check their
+sizes and skip empty work; the torch bridge is :mod:`warpavatar._src.correction`.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import warp as wp
 
 from warpavatar.kernels.quaternion import quat_multiply
 
-__all__ = ["LOG_SCALE_LIMIT", "apply_correction", "match_frame_code"]
+__all__ = ["LOG_SCALE_LIMIT", "apply_correction", "match_frame_code", "frame_bias"]
 
 LOG_SCALE_LIMIT = 3.0
 """Largest magnitude of the log-scale change (outputs 6..8 are clamped to +-this)."""
@@ -126,3 +128,69 @@ def match_frame_code(frame_poses: wp.array, pose: wp.array, codes: wp.array, tol
               outputs=[differences])
     wp.launch(closest_code_kernel, dim=code.shape[0], device=pose.device,
               inputs=[differences, codes, float(tolerance)], outputs=[code])
+
+
+@wp.kernel(enable_backward=False)
+def pose_feature_kernel(bones: wp.array(dtype=wp.mat44), parent_index: wp.array(dtype=wp.int32),
+                        encoder_weight: wp.array2d(dtype=wp.float32), encoder_bias: wp.array(dtype=wp.float32),
+                        code: wp.array(dtype=wp.float32), feature: wp.array(dtype=wp.float32)):
+    j = wp.tid()
+    width = encoder_bias.shape[0]
+    if j >= width:  # the frame code follows the encoded pose
+        feature[j] = code[j - width]
+        return
+    total = encoder_bias[j]
+    for joint in range(parent_index.shape[0]):
+        rotation = bones[joint]
+        parent = bones[parent_index[joint]]
+        for row in range(3):
+            for column in range(2):  # (R_parent^T R - I)[row, column], row-major over the first two columns
+                value = parent[0, row] * rotation[0, column] + parent[1, row] * rotation[1, column] + \
+                    parent[2, row] * rotation[2, column]
+                if row == column:
+                    value = value - 1.0
+                total = total + encoder_weight[j, joint * 6 + row * 2 + column] * value
+    feature[j] = total
+
+
+@wp.kernel(enable_backward=False)
+def first_bias_kernel(feature: wp.array(dtype=wp.float32), weight: wp.array2d(dtype=wp.float32),
+                      bias: wp.array(dtype=wp.float32), low: wp.array(dtype=wp.float32),
+                      high: wp.array(dtype=wp.float32), out: wp.array(dtype=Any)):
+    h = wp.tid()
+    total = bias[h]
+    for j in range(feature.shape[0]):
+        total = total + weight[h, j] * feature[j]
+    out[h] = out.dtype(wp.clamp(total, low[h], high[h]))
+
+
+def frame_bias(bones: wp.array, parent_index: wp.array, encoder_weight: wp.array, encoder_bias: wp.array,
+               code: wp.array, weight: wp.array, bias: wp.array, low: wp.array, high: wp.array, feature: wp.array,
+               out: wp.array) -> None:
+    """Write a frame's first-layer bias of the pose correction's network:
+    ``clamp(bias + weight @ [encoder_bias + encoder_weight @ pose6d(bones), code], low, high)``.
+
+    Args:
+        bones: [J'] mat44 skinning transforms (J' >= J: the first J are the skeleton's).
+        parent_index: [J] int32 each joint's parent, itself for roots.
+        encoder_weight: [P, 6J] the pose encoder's weight; encoder_bias: [P] its bias.
+        code: [C] the frame code, or None (C = 0).
+        weight: [H, P+C] the first layer's pose and code columns (contiguous); bias: [H] its bias.
+        low, high: [H] the clamp (+-inf for none).
+        feature: [P+C] scratch: the encoded pose and the code.
+        out: [H] float32 or float16 output.
+    """
+    joints, width = parent_index.shape[0], encoder_bias.shape[0]
+    code_width = 0 if code is None else code.shape[0]
+    if bones.shape[0] < joints or encoder_weight.shape != (width, 6 * joints):
+        raise ValueError(f"bones {bones.shape}, parents {parent_index.shape} and encoder weight "
+                         f"{encoder_weight.shape} do not agree")
+    if feature.shape[0] != width + code_width or weight.shape[1] != feature.shape[0]:
+        raise ValueError(f"feature {feature.shape}, code [{code_width}] and weight {weight.shape} do not agree")
+    hidden = bias.shape[0]
+    if weight.shape[0] != hidden or low.shape[0] != hidden or high.shape[0] != hidden or out.shape[0] != hidden:
+        raise ValueError(f"weight {weight.shape}, bias, bounds and out must have {hidden} rows")
+    wp.launch(pose_feature_kernel, dim=feature.shape[0], device=bones.device,
+              inputs=[bones, parent_index, encoder_weight, encoder_bias, code], outputs=[feature])
+    wp.launch(first_bias_kernel, dim=hidden, device=bones.device, inputs=[feature, weight, bias, low, high],
+              outputs=[out])

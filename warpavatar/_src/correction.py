@@ -12,7 +12,7 @@ import warp as wp
 from warpavatar._src.warp_utils import check_tensor, to_warp, torch_stream_scope
 from warpavatar.kernels import correction as kernels
 
-__all__ = ["apply_correction", "match_frame_code"]
+__all__ = ["apply_correction", "match_frame_code", "frame_bias"]
 
 
 def apply_correction(outputs: torch.Tensor, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
@@ -83,3 +83,42 @@ def match_frame_code(frame_poses: torch.Tensor, pose: torch.Tensor, codes: torch
         kernels.match_frame_code(to_warp(frame_poses.reshape(count, -1)), to_warp(pose.reshape(-1)), to_warp(codes),
                                  tolerance, to_warp(differences), to_warp(code))
     return code
+
+
+def frame_bias(bone_transforms: torch.Tensor, parent_index: torch.Tensor, encoder_weight: torch.Tensor,
+               encoder_bias: torch.Tensor, code: torch.Tensor | None, weight: torch.Tensor, bias: torch.Tensor, *,
+               low: torch.Tensor, high: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """The pose correction's first-layer bias of a frame [H] in two kernels, without a host read: the values of
+    ``clamp(bias + weight @ cat([encoder_bias + encoder_weight @ f, code]), low, high)`` with ``f`` the pose
+    feature of :func:`warpavatar.extensions.pose_correction.relative_rotations_6d` (float32 sums in another
+    order than torch's: float32 rounding apart). No gradients.
+
+    Args:
+        bone_transforms: float32 [J',4,4] skinning transforms (the first J are the skeleton's).
+        parent_index: int32 [J] each joint's parent, itself for roots.
+        encoder_weight: float32 [P, 6J] and encoder_bias [P]: the pose encoder.
+        code: float32 [C] the frame code, or None.
+        weight: float32 [H, P+C] the first layer's pose and code columns; bias: [H] its bias.
+        low, high: float32 [H] the clamp.
+        dtype: float32 or float16, the output's.
+    """
+    device = bone_transforms.device
+    check_tensor("bone_transforms", bone_transforms, (None, 4, 4), dtype_kind="float32")
+    check_tensor("parent_index", parent_index, (None,), dtype_kind="int", device=device)
+    if parent_index.dtype != torch.int32:
+        raise TypeError(f"parent_index must be int32, got {parent_index.dtype}")
+    for name, tensor in (("encoder_weight", encoder_weight), ("weight", weight)):
+        check_tensor(name, tensor, (None, None), dtype_kind="float32", device=device)
+    for name, tensor in (("encoder_bias", encoder_bias), ("bias", bias), ("low", low), ("high", high),
+                         *(() if code is None else (("code", code),))):
+        check_tensor(name, tensor, (None,), dtype_kind="float32", device=device)
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (encoder_weight, weight, bias, bone_transforms)):
+        raise ValueError("frame_bias has no gradients (playback only): call it under torch.no_grad()")
+    feature = torch.empty(weight.shape[1], device=device)
+    out = torch.empty(bias.shape[0], device=device, dtype=dtype)
+    with torch_stream_scope(device):
+        kernels.frame_bias(to_warp(bone_transforms, dtype=wp.mat44), to_warp(parent_index),
+                           to_warp(encoder_weight), to_warp(encoder_bias), None if code is None else to_warp(code),
+                           to_warp(weight), to_warp(bias), to_warp(low), to_warp(high), to_warp(feature),
+                           to_warp(out))
+    return out

@@ -150,22 +150,27 @@ class PoseCorrection(AvatarPart):
         every Gaussian, so their columns make a bias of this frame, ``b + W[:, E:] @ [pose, code]``, and only
         the encoding's E columns multiply per Gaussian (no [N, E + pose + code] input is built). Playback reuses
         the encoding when the means are the frozen ones (:meth:`prepare_playback`), and there the parts of the
-        network that depend only on the parameters (in float16 when the player asks for it)."""
-        if network is None:
-            rotations = relative_rotations_6d(bone_transforms, self.parents)  # posing maths: float32 products
-        else:  # the same values: the parents' rotations gathered by an index kept for playback
-            rotations = bone_transforms[:, :3, :3]
-            relative = rotations.index_select(0, network.parent_index).transpose(1, 2) @ rotations
-            rotations = (relative - network.identity)[:, :, :2].reshape(-1)
-        with mlp_matmuls(means.device):
-            pose = self.pose_encoder(rotations)
-            if code is not None:
-                pose = torch.cat([pose, code])
-            first, width = self.trunk[0], self.position_width
-            bias = torch.addmv(first.bias, first.weight[:, width:], pose)
-            if network is not None and network.half is not None and current_mlp_dtype() == torch.float16:
+        network that depend only on the parameters (in float16 when the player asks for it); its frame bias
+        comes from :func:`warpavatar.ops.frame_bias` (float32 rounding apart, the same values)."""
+        first, width = self.trunk[0], self.position_width
+        if network is not None:  # playback: the frame's bias in two kernels, the network's rest from the caches
+            half = network.half is not None and current_mlp_dtype() == torch.float16
+            low, high = network.half.bias_bounds if half else network.unbounded
+            bias = ops.frame_bias(bone_transforms, network.parent_index, self.pose_encoder.weight,
+                                  self.pose_encoder.bias, code, network.pose_columns, first.bias, low=low, high=high,
+                                  dtype=torch.float16 if half else torch.float32)
+            if half:
                 return network.half.outputs(bias)
-            encoded = self._encode(means.detach()) if network is None else network.encoding
+            encoded = network.encoding
+        else:
+            rotations = relative_rotations_6d(bone_transforms, self.parents)  # posing maths: float32 products
+        with mlp_matmuls(means.device):
+            if network is None:
+                pose = self.pose_encoder(rotations)
+                if code is not None:
+                    pose = torch.cat([pose, code])
+                bias = torch.addmv(first.bias, first.weight[:, width:], pose)
+                encoded = self._encode(means.detach())
             hidden = linear_rows(encoded, first.weight[:, :width], bias)
             for layer in itertools.islice(self.trunk, 1, None):
                 hidden = layer(hidden)
@@ -203,7 +208,7 @@ class PoseCorrection(AvatarPart):
     def prepare_playback(self, rest_means: torch.Tensor, *, mlp_dtype: torch.dtype = torch.float32) -> tuple:
         """Cache what a frame of a frozen avatar computes from the parameters alone: the positional encoding
         [N,E] of the stored canonical centres [N,3] (a dozen small kernels a frame), the parents' index and
-        the identity of the pose feature, the offsets' world scale and, with ``mlp_dtype`` float16, the
+        the first layer's pose columns (read by :func:`warpavatar.ops.frame_bias`), the offsets' world scale and, with ``mlp_dtype`` float16, the
         network's weights and that encoding in float16 (:class:`_HalfNetwork`; float32 is kept when the
         activations could leave float16's range). Buffers are refilled in place while their shapes hold;
         returns their storage (a captured frame reads it). Used by :meth:`_outputs` only for these very means,
@@ -366,8 +371,7 @@ class _HalfNetwork:
 
     def outputs(self, bias: torch.Tensor) -> torch.Tensor:
         """Raw outputs [N,16] (float16; the first 9 are the network's, then zeros) for the first layer's bias of
-        this frame [hidden] (float32)."""
-        bias = torch.clamp(bias, *self.bias_bounds).to(torch.float16)
+        this frame [hidden] (float16, clamped to :attr:`bias_bounds`: :func:`warpavatar.ops.frame_bias`)."""
         with float32_sums(bias.device):
             (weight, _), *middle, (head_weight, head_bias) = self.layers
             hidden = torch.nn.functional.silu(torch.addmm(bias, self.encoding, weight.t()), inplace=True)
@@ -382,8 +386,8 @@ class _HalfNetwork:
 class _PlaybackNetwork:
     """What a playback frame of :class:`PoseCorrection` reads that depends on its parameters alone
     (:meth:`PoseCorrection.prepare_playback`): the encoding of the stored centres, the index of each joint's
-    parent (itself for roots), the identity, the offsets' world scale and, once a player asked for float16 and
-    when it fits, the :class:`_HalfNetwork`.
+    parent (itself for roots), the first layer's pose columns, the offsets' world scale and, once a player asked
+    for float16 and when it fits, the :class:`_HalfNetwork`.
 
     Attributes:
         key: the :func:`_versions` of the part's parameters and buffers it was made from.
@@ -395,13 +399,19 @@ class _PlaybackNetwork:
                  old: "_PlaybackNetwork | None"):
         self.key, self.half_asked, self.encoding = key, half, encoding
         parents = part.parents
-        index = torch.where(parents >= 0, parents, torch.arange(parents.shape[0], device=parents.device))
-        identity = torch.eye(3, device=parents.device, dtype=part.frame_poses.dtype)
-        scale = part._offset_scale()
-        kept = None if old is None else (old.parent_index, old.identity, old.offset_scale)
-        if kept is not None and kept[0].shape == index.shape:
-            index, identity, scale = (k.copy_(v) for k, v in zip(kept, (index, identity, scale)))
-        self.parent_index, self.identity, self.offset_scale = index, identity, scale
+        hidden = part.trunk[0].out_features
+        infinity = torch.full((hidden,), float("inf"), device=parents.device)
+        values = [torch.where(parents >= 0, parents, torch.arange(parents.shape[0], device=parents.device)).int(),
+                  part.trunk[0].weight[:, part.position_width:].contiguous(), part._offset_scale(), -infinity,
+                  infinity]
+        kept = None if old is None else old._tensors
+        if kept is not None and [t.shape for t in kept] == [t.shape for t in values]:
+            values = [k.copy_(v) for k, v in zip(kept, values)]  # in place: a captured frame reads them
+        self._tensors = values
+        #: each joint's parent (itself for roots) [J] int32, the first layer's pose and code columns [H, P+C],
+        #: the offsets' world scale [], and no bound on the frame bias (-inf, inf) [H] each
+        self.parent_index, self.pose_columns, self.offset_scale, *unbounded = values
+        self.unbounded = tuple(unbounded)
         self.half = None
         #: the largest value the network takes in float32 (:meth:`_HalfNetwork.peak`; None unless float16 asked)
         self.peak = _HalfNetwork.peak(part, encoding) if half and _HalfNetwork.usable(part) else None
@@ -409,7 +419,7 @@ class _PlaybackNetwork:
             self.half = _HalfNetwork(part, encoding, None if old is None else old.half)
 
     def storage(self) -> tuple:
-        own = tuple(t.data_ptr() for t in (self.encoding, self.parent_index, self.identity, self.offset_scale))
+        own = tuple(t.data_ptr() for t in (self.encoding, *self._tensors))
         return own + (() if self.half is None else self.half.storage())
 
 
