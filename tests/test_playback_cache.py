@@ -10,6 +10,7 @@ import math
 import pytest
 import torch
 
+from warpavatar import _torch_impl as reference
 from warpavatar._src.precision import current_mlp_dtype, mlp_dtype
 from warpavatar.model.frozen import FrozenCanonical
 
@@ -240,9 +241,10 @@ def test_correction_kernel_matches_the_torch_code(device, outputs_dtype):
     expected = corrected_gaussians(inputs[0].float(), *inputs[1:])
     with torch.no_grad():
         ours = ops.apply_correction(*inputs)
-    for name, a, b in zip(("means", "quats", "scales"), ours, expected):
+    for name, a, b, c in zip(("means", "quats", "scales"), ours, expected, reference.apply_correction(*inputs)):
         assert a.dtype == torch.float32 and a.device == b.device
         torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-6, msg=name)
+        assert torch.equal(c, b), name  # the reference is the fit's code
     empty = [t[:0] for t in inputs[:4]]
     with torch.no_grad():
         assert [t.shape for t in ops.apply_correction(*empty, inputs[4])] == [(0, 3), (0, 4), (0, 3)]
@@ -271,6 +273,7 @@ def test_frame_code_kernels_give_the_torch_code(device):
         for pose in cases:
             ours = ops.match_frame_code(part.frame_poses, pose, part.frame_codes)
             assert torch.equal(ours, part.frame_code(pose))
+            assert torch.equal(reference.match_frame_code(part.frame_poses, pose, part.frame_codes), ours)
         assert ops.match_frame_code(part.frame_poses, near, part.frame_codes).abs().max() > 0.1  # a match
         assert not ops.match_frame_code(part.frame_poses, poses[1] + 3e-4, part.frame_codes).any()  # none
 
@@ -302,6 +305,10 @@ def test_frame_bias_kernels_give_the_torch_bias(device, frame_count):
                                      first.bias, low=-bound, high=bound, dtype=torch.float16)
         assert expected.abs().max() > 1.0 and (expected.abs() > 0.3).any() and (expected.abs() < 0.3).any()
         torch.testing.assert_close(ours, expected, rtol=1e-5, atol=1e-5)
+        with torch.no_grad():
+            theirs = reference.frame_bias(pose, index, part.pose_encoder.weight, part.pose_encoder.bias, code,
+                                          columns, first.bias, low=-bound, high=bound, dtype=torch.float16)
+        assert theirs.dtype == torch.float16 and (theirs != clamped).sum() <= 2  # a float16 rounding apart
         assert clamped.dtype == torch.float16
         torch.testing.assert_close(clamped.float(), expected.clamp(-0.3, 0.3), rtol=1e-3, atol=1e-4)
     with pytest.raises(TypeError, match="parent_index must be int32"):
