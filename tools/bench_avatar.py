@@ -14,7 +14,8 @@ Times, side by side in one run:
   counted apart, as they synchronize nothing), and on CUDA the runtime's kernel launches and synchronizations as the
   torch profiler records them;
 * playback at 1920x1080 (:class:`warpavatar.model.playback.Player`: pose + shade + rasterize) in frames per
-  second over the training motion, eager and from a CUDA graph.
+  second over the training motion, eager and from a CUDA graph (on CUDA once with the per-Gaussian MLP in float16,
+  the player's default there, and once in float32: ``Player(mlp_dtype=...)``).
 
 Without ``--avatar`` (as ``--quick`` on CPU does) the avatar is the one a fresh fit of the video starts from.
 ``--video`` defaults to the built-in demo subject. Times are medians (``bench_common.time_function``).
