@@ -13,6 +13,7 @@ Families:
     cloth: a cloth substep's edge terms (length-spring rest offsets, edge damping).
     shading: view-dependent colour from spherical harmonics in each Gaussian's canonical frame.
     cloth_frame: a whole cloth substep fused in one kernel (rollouts without gradients).
+    correction: a pose correction's outputs applied to canonical Gaussians in one pass (playback).
 
 :mod:`~warpavatar.kernels.quaternion` holds the quaternion ``@wp.func`` helpers the families share.
 """

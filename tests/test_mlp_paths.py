@@ -120,10 +120,9 @@ def _uncached(avatar):
 def _assert_same_images(ours, theirs, device):
     for a, b in zip(ours, theirs):
         assert b.max() > 0.2
-        if torch.device(device).type == "cpu":
-            assert torch.equal(a, b)
-        else:  # atomics in the compositing may round differently
-            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+        # the player applies the correction in one kernel (tests/test_playback_cache.py), which rounds unlike
+        # torch's ops; on CUDA atomics in the compositing may round differently too
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
 
 
 @pytest.mark.parametrize("cuda_graph", ["off", "on"])

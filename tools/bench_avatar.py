@@ -14,7 +14,8 @@ Times, side by side in one run:
   counted apart, as they synchronize nothing), and on CUDA the runtime's kernel launches and synchronizations as the
   torch profiler records them;
 * playback at 1920x1080 (:class:`warpavatar.model.playback.Player`: pose + shade + rasterize) in frames per
-  second over the training motion, eager and from a CUDA graph.
+  second over the training motion, eager and from a CUDA graph (on CUDA once with the per-Gaussian MLP in float16,
+  the player's default there, and once in float32: ``Player(mlp_dtype=...)``).
 
 Without ``--avatar`` (as ``--quick`` on CPU does) the avatar is the one a fresh fit of the video starts from.
 ``--video`` defaults to the built-in demo subject. Times are medians (``bench_common.time_function``).
@@ -26,6 +27,7 @@ import collections
 import contextlib
 import copy
 import dataclasses
+import itertools
 import os
 import sys
 import tempfile
@@ -245,14 +247,15 @@ def _step_row(trainer, video, device, warmup, repeats) -> dict:
             "ours": milliseconds, "gsplat": None, "ratio": None, "notes": notes + f"; top ops: {counts['top_ops']}"}
 
 
-def _playback_rows(avatar, video, device, repeats, quick, modes=("off",), *, precision: str) -> list[dict]:
+def _playback_rows(avatar, video, device, repeats, quick, modes=("off",), *, precision: str,
+                   mlp_dtypes=(None,)) -> list[dict]:
     width, height = (160, 90) if quick else (1920, 1080)
     scene = _camera_at(video.cameras[0], width, height, device)
     camera = type("Camera", (), scene)
     bones = torch.as_tensor(video.bone_transforms, dtype=torch.float32, device=device)
     rows = []
-    for mode in modes:
-        player = Player(avatar, camera, cuda_graph=mode, matmul_precision=precision)
+    for mode, mlp_dtype in itertools.product(modes, mlp_dtypes):
+        player = Player(avatar, camera, cuda_graph=mode, matmul_precision=precision, mlp_dtype=mlp_dtype)
         frame = iter(range(10 ** 9))
 
         def draw():
@@ -266,7 +269,8 @@ def _playback_rows(avatar, video, device, repeats, quick, modes=("off",), *, pre
         counts = count_step_work(draw, device=device)
         rows.append({"measure": f"playback FPS ({'CUDA graph' if player.use_graph else 'eager'})",
                      "size": f"{width}x{height}", "ours": 1000.0 / milliseconds, "gsplat": None, "ratio": None,
-                     "notes": f"{milliseconds:.3f} ms/frame (MLPs in {precision}); per frame: {counts['warp']:g} "
+                     "notes": f"{milliseconds:.3f} ms/frame (MLPs in {precision}, per-Gaussian MLP in "
+                              f"{player.mlp_dtype}); per frame: {counts['warp']:g} "
                               f"Warp launches, {counts['torch_ops']:g} torch ops, {counts['host_reads']:g} host reads"
                               + (f", {counts['cuda_syncs']:g} syncs" if "cuda_syncs" in counts else "")})
     return rows
@@ -294,7 +298,7 @@ def run(device: str, quick: bool, *, avatar: str | None = None, video: str | Non
             except Exception as error:  # noqa: BLE001
                 rows.append(_failed_row("training step ms (CUDA graph)", "", error))
         rows += _playback_rows(eager.avatar, video_folder, device, repeats, quick, modes=("on",),
-                               precision=config.matmul_precision)
+                               precision=config.matmul_precision, mlp_dtypes=("float16", "float32"))
     return rows
 
 

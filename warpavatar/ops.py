@@ -3,6 +3,10 @@
 Every function here takes and returns torch tensors on CPU or CUDA, runs hand-written Warp kernels on
 torch's current stream and is differentiable through ``torch.autograd`` (backward passes are explicit
 kernels). A plain-torch reference of each, with the same signature, is in :mod:`warpavatar._torch_impl`.
+The exceptions are :func:`apply_correction`, :func:`match_frame_code` and :func:`frame_bias`, playback's
+few-kernel forms of the pose correction's torch code (:func:`warpavatar.extensions.pose_correction.corrected_gaussians`,
+``PoseCorrection.frame_code`` and the first layer's bias in ``PoseCorrection._outputs``, their references),
+without gradients.
 Conventions: quaternions are (w, x, y, z); cameras follow OpenCV (x right, y down, z forward,
 ``world_to_camera`` 4x4, intrinsics ``K`` 3x3 with pixel centres at integer coordinates as
 ``docs/conventions.md`` states); lengths are in world units (metres in the supplied data).
@@ -10,6 +14,7 @@ Conventions: quaternions are (w, x, y, z); cameras follow OpenCV (x right, y dow
 
 from warpavatar._src.cloth import cloth_edge_terms
 from warpavatar._src.collision import push_out_of_capsules
+from warpavatar._src.correction import apply_correction, frame_bias, match_frame_code
 from warpavatar._src.knn import knn_graph
 from warpavatar._src.shading import view_colors
 from warpavatar._src.skinning import inverse_lbs, lbs, sample_grid
@@ -29,4 +34,7 @@ __all__ = [
     "push_out_of_capsules",
     "cloth_edge_terms",
     "view_colors",
+    "apply_correction",
+    "match_frame_code",
+    "frame_bias",
 ]

@@ -29,12 +29,14 @@ from typing import Iterator
 
 import torch
 
-__all__ = ["MATMUL_PRECISIONS", "check_matmul_precision", "matmul_precision", "mlp_precision", "mlp_matmuls"]
+__all__ = ["MATMUL_PRECISIONS", "check_matmul_precision", "matmul_precision", "mlp_precision", "mlp_matmuls",
+           "float32_sums", "mlp_dtype", "current_mlp_dtype"]
 
 MATMUL_PRECISIONS = ("tf32", "fp32")
 """The accepted precisions of float32 GEMMs: ``tf32`` (TF32 tensor cores on CUDA) or ``fp32`` (full float32)."""
 
 _mlp_precision: contextvars.ContextVar[str | None] = contextvars.ContextVar("warpavatar_mlp_precision", default=None)
+_mlp_dtype: contextvars.ContextVar[torch.dtype | None] = contextvars.ContextVar("warpavatar_mlp_dtype", default=None)
 
 
 def check_matmul_precision(precision: str) -> str:
@@ -95,3 +97,40 @@ def mlp_matmuls(device) -> contextlib.AbstractContextManager:
     enclosing :func:`mlp_precision` chose; outside any, nothing changes."""
     precision = _mlp_precision.get()
     return contextlib.nullcontext() if precision is None else matmul_precision(precision, device)
+
+
+@contextlib.contextmanager
+def float32_sums(device) -> Iterator[None]:
+    """Float16 GEMMs on ``device`` keep their sums in float32 inside the block: on CUDA, cuBLAS's reduced-precision
+    reductions (``torch.backends.cuda.matmul.allow_fp16_reduced_precision_reduction``, on by default, which lets
+    split-K sums round to float16) are switched off, and restored on leaving. Elsewhere nothing changes (CPU
+    float16 GEMMs sum in float32). Like :func:`matmul_precision`, a CUDA graph keeps the kernels chosen while
+    it is captured."""
+    flags = torch.backends.cuda.matmul
+    if torch.device(device).type != "cuda" or not hasattr(flags, "allow_fp16_reduced_precision_reduction"):
+        yield
+        return
+    before = flags.allow_fp16_reduced_precision_reduction
+    flags.allow_fp16_reduced_precision_reduction = False
+    try:
+        yield
+    finally:
+        flags.allow_fp16_reduced_precision_reduction = before
+
+
+@contextlib.contextmanager
+def mlp_dtype(dtype: torch.dtype) -> Iterator[None]:
+    """Mark the block as a playback frame (:class:`~warpavatar.model.playback.Player`) whose parts' MLPs run in
+    ``dtype`` (``torch.float16`` or ``torch.float32``) where they prepared for it
+    (:meth:`~warpavatar.model.parts.AvatarPart.prepare_playback`): :func:`current_mlp_dtype`. Outside any such
+    block parts compute as a fit does. Nests; restored on leaving."""
+    token = _mlp_dtype.set(dtype)
+    try:
+        yield
+    finally:
+        _mlp_dtype.reset(token)
+
+
+def current_mlp_dtype() -> torch.dtype | None:
+    """The dtype the enclosing :func:`mlp_dtype` block chose, or None outside playback frames."""
+    return _mlp_dtype.get()

@@ -28,6 +28,7 @@ import torch
 from warpavatar import ops
 from warpavatar._src.precision import check_matmul_precision
 from warpavatar.geometry import camera_centre
+from warpavatar.model.frozen import FrozenCanonical
 from warpavatar.model.gaussians import GaussianModel
 from warpavatar.model.parts import (AvatarPart, CanonicalGaussians, PoseFrame, frame_intervals, part_class_path,
                                     part_from_file_state)
@@ -181,7 +182,7 @@ class Avatar(torch.nn.Module):
     # ----------------------------------------------------------------------------------------------- posing
     def pose(self, bone_transforms: torch.Tensor, *, sh_degree: int | None = None, frame_index: int | None = None,
              grid: torch.Tensor | None = None, inputs: Mapping[str, Any] | None = None,
-             skeleton_pose: torch.Tensor | None = None) -> PosedGaussians:
+             skeleton_pose: torch.Tensor | None = None, frozen: FrozenCanonical | None = None) -> PosedGaussians:
         """Pose the canonical Gaussians.
 
         Args:
@@ -192,20 +193,33 @@ class Avatar(torch.nn.Module):
             inputs: explicit inputs of parts by part name (see :class:`~warpavatar.model.parts.PoseFrame`).
             skeleton_pose: [J,4,4] the skeleton's transforms to skin with, while ``bone_transforms`` still says
                 which instant this is (test-time pose refinement).
+            frozen: the activated Gaussians and their weights at the stored centres, kept for a frozen avatar
+                (playback: :class:`~warpavatar.model.frozen.FrozenCanonical`, refreshed with ``grid`` and
+                this degree), used instead of computing them (no gradients reach the parameters through them).
         """
         gaussians = self.gaussians
         degree = gaussians.sh_degree if sh_degree is None else min(sh_degree, gaussians.sh_degree)
         frame = self._frame(bone_transforms, frame_index, inputs, skeleton_pose)
         bones = self._skinning_transforms(frame)
-        canonical = CanonicalGaussians(means=gaussians.means, quats=gaussians.normalized_quats,
-                                       scales=gaussians.scales, offset=None, rest_means=gaussians.means)
+        if frozen is None:
+            quats, scales, opacities, colors = (gaussians.normalized_quats, gaussians.scales, gaussians.opacities,
+                                                gaussians.sh_coefficients(degree))
+        elif frozen.sh_degree != degree:
+            raise ValueError(f"the frozen tensors keep SH degree {frozen.sh_degree}, posing asks for {degree}")
+        else:
+            quats, scales, opacities, colors = frozen.quats, frozen.scales, frozen.opacities, frozen.colors
+        canonical = CanonicalGaussians(means=gaussians.means, quats=quats, scales=scales, offset=None,
+                                       rest_means=gaussians.means)
         for part in self.parts.values():
             canonical = part.deform_canonical(canonical, bones, frame)
-        weights = self.field.weights(canonical.means, grid)
+        if frozen is not None and canonical.means is gaussians.means:  # read where the kept weights were
+            weights = frozen.weights
+        else:
+            weights = self.field.weights(canonical.means, grid)
         moved = canonical.means if canonical.offset is None else canonical.means + canonical.offset
         means, quats = ops.lbs(moved.contiguous(), weights, bones, quats=canonical.quats)
-        posed = PosedGaussians(means=means, quats=quats, scales=canonical.scales, opacities=gaussians.opacities,
-                               colors=gaussians.sh_coefficients(degree), sh_degree=degree, weights=weights,
+        posed = PosedGaussians(means=means, quats=quats, scales=canonical.scales, opacities=opacities,
+                               colors=colors, sh_degree=degree, weights=weights,
                                canonical_quats=canonical.quats, canonical_means=canonical.means,
                                bone_transforms=bones, frame=frame)
         for part in self.parts.values():

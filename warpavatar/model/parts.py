@@ -152,10 +152,13 @@ class AvatarPart(torch.nn.Module):
         frame before (:func:`frame_intervals`)."""
 
     # -------------------------------------------------------------------------------------- playback
-    def prepare_playback(self, rest_means: torch.Tensor) -> tuple:
+    def prepare_playback(self, rest_means: torch.Tensor, *, mlp_dtype: torch.dtype = torch.float32) -> tuple:
         """Called by :class:`~warpavatar.model.playback.Player` before every frame, outside any captured graph,
         with the stored canonical centres [N,3]: a part may cache what depends only on them and on its own
         parameters (the same for every frame of a frozen avatar), refilled in place when they change.
+        ``mlp_dtype`` (``torch.float16`` or ``torch.float32``) is the dtype the player asks the part's
+        per-Gaussian MLPs to run in (inputs, weights and activations; sums in float32); a part may keep float32
+        where its values could leave float16's range. Host reads are allowed here, not in the frame.
 
         Returns:
             The storage a captured frame reads of those caches (data pointers, shapes); when it changes, the

@@ -11,11 +11,13 @@ needed so far (one synchronization, :class:`~warpavatar.model.capacity.Intersect
 and, when a frame needed more than the capacity, grows it, captures again and redraws the frame.
 
 What depends only on the frozen avatar is computed once, before any capture, in buffers a captured frame reads:
-the skinning grid, and what parts cache (:meth:`~warpavatar.model.parts.AvatarPart.prepare_playback`: the
-pose correction's first layer at the canonical centres). Before each frame the player compares the version
-counters of the avatar's tensors with those the caches were made from (host values, no device read): a change
-(an optimizer step, ``load_state_dict``) refills the caches in place, and a change of the storage a captured
-frame reads (the caches', the Gaussians') captures again.
+the skinning grid, the activated Gaussians and their skinning weights at the stored centres
+(:class:`~warpavatar.model.frozen.FrozenCanonical`: exact, the same functions), and what parts cache
+(:meth:`~warpavatar.model.parts.AvatarPart.prepare_playback`: the pose correction's encoding of the canonical
+centres, its parameter-only pieces and, with ``mlp_dtype="float16"``, its network in float16). Before each frame
+the player compares the version counters of the avatar's tensors with those the caches were made from (host
+values, no device read): a change (an optimizer step, ``load_state_dict``) refills the caches in place, and a
+change of the storage a captured frame reads (the caches', the Gaussians') captures again.
 """
 
 from __future__ import annotations
@@ -25,11 +27,14 @@ from typing import Any, Mapping
 import torch
 
 from warpavatar._src.cuda_graph import capture_or_fall_back, resolve_cuda_graph
-from warpavatar._src.precision import check_matmul_precision, mlp_precision
+from warpavatar._src.precision import check_matmul_precision, mlp_dtype, mlp_precision
 from warpavatar.model.capacity import IntersectionCapacity
+from warpavatar.model.frozen import FrozenCanonical
 from warpavatar.model.parts import AvatarPart
 
 __all__ = ["Player"]
+
+_MLP_DTYPES = {"float16": torch.float16, "float32": torch.float32}
 
 
 class _Camera:
@@ -65,6 +70,11 @@ class Player:
         matmul_precision: ``tf32`` (the MLPs' float32 GEMMs on TF32 tensor cores, on CUDA) or ``fp32``
             (:mod:`warpavatar._src.precision`); default: the avatar's (``warpavatar-fit --matmul-precision``,
             kept in the avatar file). No effect on a CPU.
+        mlp_dtype: ``float16`` or ``float32``: the dtype of the inputs, weights and activations of the parts'
+            per-Gaussian MLPs (the pose correction's), sums kept in float32 (half the bytes their GEMMs and
+            activations move; TF32 rounds GEMM inputs to the same 10-bit mantissa). A part keeps float32 where
+            its values could leave float16's range (:meth:`AvatarPart.prepare_playback`). Default: ``float16`` on
+            CUDA when ``matmul_precision`` is ``tf32``, else ``float32`` (on a CPU float16 is correct but slow).
 
     Raises:
         ValueError: bad options, or ``cuda_graph="on"`` without CUDA.
@@ -72,12 +82,18 @@ class Player:
 
     def __init__(self, avatar, camera, *, background: torch.Tensor | None = None, sh_degree: int | None = None,
                  cuda_graph: str = "auto", capacity_factor: float = 2.0, check_every: int = 30,
-                 matmul_precision: str | None = None):
+                 matmul_precision: str | None = None, mlp_dtype: str | None = None):
         if check_every < 1:
             raise ValueError(f"check_every must be >= 1, got {check_every}")
         self.matmul_precision = check_matmul_precision(matmul_precision or avatar.matmul_precision)
         self.avatar = avatar
         self.device = avatar.gaussians.means.device
+        if mlp_dtype is None:
+            mlp_dtype = "float16" if self.device.type == "cuda" and self.matmul_precision == "tf32" else "float32"
+        if mlp_dtype not in _MLP_DTYPES:
+            raise ValueError(f"mlp_dtype must be 'float16' or 'float32', got {mlp_dtype!r}")
+        #: the dtype the parts' MLPs are asked to run in (``float16`` or ``float32``)
+        self.mlp_dtype = mlp_dtype
         self.sh_degree = sh_degree
         self._capacity = IntersectionCapacity(self.device, factor=capacity_factor)
         self.check_every = int(check_every)
@@ -98,6 +114,7 @@ class Player:
         self._grid: torch.Tensor | None = None
         self._field_tensors: list[torch.Tensor] = []  # held: their identities are part of the field's key
         self._field_key: tuple = ()
+        self._frozen = FrozenCanonical()  # the activated Gaussians and their weights at the stored centres
         self._cache_key: tuple | None = None  # what the captured graph reads of the caches
         self._refresh()
 
@@ -129,8 +146,12 @@ class Player:
                 grid = self._grid.copy_(grid)  # in place: a captured frame reads this storage
             self._grid, self._field_tensors, self._field_key = grid, tensors, field_key
         gaussians = avatar.gaussians
-        key = (gaussians.count, self._grid.data_ptr(), tuple(t.data_ptr() for t in gaussians.parameters()),
-               tuple((id(part), part.prepare_playback(gaussians.means)) for part in avatar.parts.values()))
+        degree = gaussians.sh_degree if self.sh_degree is None else min(self.sh_degree, gaussians.sh_degree)
+        frozen = self._frozen.refresh(gaussians, field, self._grid, sh_degree=degree)
+        dtype = _MLP_DTYPES[self.mlp_dtype]
+        key = (gaussians.count, self._grid.data_ptr(), tuple(t.data_ptr() for t in gaussians.parameters()), frozen,
+               tuple((id(part), part.prepare_playback(gaussians.means, mlp_dtype=dtype))
+                     for part in avatar.parts.values()))
         if key != self._cache_key:
             if self._cache_key is not None and key[0] != self._cache_key[0]:
                 self._capacity.value = None  # other Gaussians: the next frame counts their pairs
@@ -139,9 +160,9 @@ class Player:
 
     def _draw(self):
         """One frame from the player's tensors: (image, alpha, depth); its rasterizer status is recorded."""
-        with mlp_precision(self.matmul_precision):
+        with mlp_precision(self.matmul_precision), mlp_dtype(_MLP_DTYPES[self.mlp_dtype]):
             posed = self.avatar.pose(self._bones, sh_degree=self.sh_degree, grid=self._grid, inputs=self._inputs,
-                                     frame_index=self._frame_index)
+                                     frame_index=self._frame_index, frozen=self._frozen)
         image, alpha, depth, info = self.avatar.rasterize(posed, self._camera, background=self._background,
                                                           return_info=True, intersection_capacity=self.capacity)
         self._capacity.record(info["status"])
