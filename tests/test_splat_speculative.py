@@ -39,8 +39,9 @@ def _assert_same_pass(first, second):
     (outputs_a, grads_a, _), (outputs_b, grads_b, _) = first, second
     for a, b in zip(outputs_a, outputs_b):
         assert torch.equal(a, b)
-    for name in grads_a:
-        torch.testing.assert_close(grads_b[name], grads_a[name], rtol=1e-5, atol=1e-6, msg=name)
+    for name in grads_a:  # CUDA's atomic additions sum in another order on every pass: a relative bound
+        scale = grads_a[name].abs().max()
+        assert scale > 0 and (grads_b[name] - grads_a[name]).abs().max() <= 1e-5 * scale, name
 
 
 def test_a_repeated_call_speculates_and_matches_the_exact_pass(device, speculation):
@@ -54,7 +55,7 @@ def test_a_repeated_call_speculates_and_matches_the_exact_pass(device, speculati
     assert pairs > 200 and capacity == max(1024, -(-pairs * 12 // 10))
     speculative = render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents, densify=True)
     _assert_same_pass(exact, speculative)
-    torch.testing.assert_close(speculative[2], exact[2], rtol=1e-5, atol=1e-6)
+    assert (speculative[2] - exact[2]).abs().max() <= 1e-5 * exact[2].abs().max()
     # The speculative pass sorted in buffers of the guessed size (padding slots sort after every tile).
     sorted_ids, pair_count = _saved_sorted_ids(scene, sizes)
     assert pair_count == pairs and sorted_ids.shape[0] == capacity > pairs
