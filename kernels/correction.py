@@ -82,11 +82,10 @@ def apply_correction(outputs: wp.array, means: wp.array, quats: wp.array, scales
 @wp.kernel(enable_backward=False)
 def pose_difference_kernel(frame_poses: wp.array2d(dtype=wp.float32), pose: wp.array(dtype=wp.float32),
                            differences: wp.array(dtype=wp.float32)):
-    t = wp.tid()
-    largest = wp.float32(0.0)
-    for k in range(frame_poses.shape[1]):
-        largest = wp.max(largest, wp.abs(frame_poses[t, k] - pose[k]))
-    differences[t] = largest
+    """One thread per (frame, entry): ``differences[t]`` (zeroed by the caller) becomes the largest absolute entry
+    difference (a maximum: the same in any order)."""
+    t, k = wp.tid()
+    wp.atomic_max(differences, t, wp.abs(frame_poses[t, k] - pose[k]))
 
 
 @wp.kernel(enable_backward=False)
@@ -113,7 +112,7 @@ def match_frame_code(frame_poses: wp.array, pose: wp.array, codes: wp.array, tol
         pose: [K'] this frame's pose, flattened (K' >= K: only the first K entries are compared).
         codes: [T, C] the frames' codes.
         tolerance: largest entry difference of a match.
-        differences: [T] scratch: each frame's largest entry difference.
+        differences: [T] scratch, zeroed: each frame's largest entry difference.
         code: [C] output.
     """
     count, width = frame_poses.shape
@@ -124,32 +123,42 @@ def match_frame_code(frame_poses: wp.array, pose: wp.array, codes: wp.array, tol
         raise ValueError(f"pose has {pose.shape[0]} entries, the frames' poses {width}")
     if count == 0 or code.shape[0] == 0:
         return
-    wp.launch(pose_difference_kernel, dim=count, device=pose.device, inputs=[frame_poses, pose],
+    wp.launch(pose_difference_kernel, dim=(count, width), device=pose.device, inputs=[frame_poses, pose],
               outputs=[differences])
     wp.launch(closest_code_kernel, dim=code.shape[0], device=pose.device,
               inputs=[differences, codes, float(tolerance)], outputs=[code])
 
 
 @wp.kernel(enable_backward=False)
-def pose_feature_kernel(bones: wp.array(dtype=wp.mat44), parent_index: wp.array(dtype=wp.int32),
-                        encoder_weight: wp.array2d(dtype=wp.float32), encoder_bias: wp.array(dtype=wp.float32),
-                        code: wp.array(dtype=wp.float32), feature: wp.array(dtype=wp.float32)):
+def pose_rotation_kernel(bones: wp.array(dtype=wp.mat44), parent_index: wp.array(dtype=wp.int32),
+                         rotations: wp.array(dtype=wp.float32)):
+    """One thread per (joint, row, column): ``rotations[joint * 6 + row * 2 + column]`` = (R_parent^T R - I)[row,
+    column] over the first two columns (the 6D feature of ``relative_rotations_6d``)."""
+    i = wp.tid()
+    joint = i // 6
+    row = (i - joint * 6) // 2
+    column = i - joint * 6 - row * 2
+    rotation = bones[joint]
+    parent = bones[parent_index[joint]]
+    value = parent[0, row] * rotation[0, column] + parent[1, row] * rotation[1, column] + \
+        parent[2, row] * rotation[2, column]
+    if row == column:
+        value = value - 1.0
+    rotations[i] = value
+
+
+@wp.kernel(enable_backward=False)
+def pose_feature_kernel(rotations: wp.array(dtype=wp.float32), encoder_weight: wp.array2d(dtype=wp.float32),
+                        encoder_bias: wp.array(dtype=wp.float32), code: wp.array(dtype=wp.float32),
+                        feature: wp.array(dtype=wp.float32)):
     j = wp.tid()
     width = encoder_bias.shape[0]
     if j >= width:  # the frame code follows the encoded pose
         feature[j] = code[j - width]
         return
     total = encoder_bias[j]
-    for joint in range(parent_index.shape[0]):
-        rotation = bones[joint]
-        parent = bones[parent_index[joint]]
-        for row in range(3):
-            for column in range(2):  # (R_parent^T R - I)[row, column], row-major over the first two columns
-                value = parent[0, row] * rotation[0, column] + parent[1, row] * rotation[1, column] + \
-                    parent[2, row] * rotation[2, column]
-                if row == column:
-                    value = value - 1.0
-                total = total + encoder_weight[j, joint * 6 + row * 2 + column] * value
+    for i in range(rotations.shape[0]):  # every thread reads the same entry: one broadcast load
+        total = total + encoder_weight[j, i] * rotations[i]
     feature[j] = total
 
 
@@ -166,7 +175,7 @@ def first_bias_kernel(feature: wp.array(dtype=wp.float32), weight: wp.array2d(dt
 
 def frame_bias(bones: wp.array, parent_index: wp.array, encoder_weight: wp.array, encoder_bias: wp.array,
                code: wp.array, weight: wp.array, bias: wp.array, low: wp.array, high: wp.array, feature: wp.array,
-               out: wp.array) -> None:
+               out: wp.array, rotations: wp.array) -> None:
     """Write a frame's first-layer bias of the pose correction's network:
     ``clamp(bias + weight @ [encoder_bias + encoder_weight @ pose6d(bones), code], low, high)``.
 
@@ -178,6 +187,7 @@ def frame_bias(bones: wp.array, parent_index: wp.array, encoder_weight: wp.array
         weight: [H, P+C] the first layer's pose and code columns (contiguous); bias: [H] its bias.
         low, high: [H] the clamp (+-inf for none).
         feature: [P+C] scratch: the encoded pose and the code.
+        rotations: [6J] scratch: the pose feature.
         out: [H] float32 or float16 output.
     """
     joints, width = parent_index.shape[0], encoder_bias.shape[0]
@@ -190,7 +200,11 @@ def frame_bias(bones: wp.array, parent_index: wp.array, encoder_weight: wp.array
     hidden = bias.shape[0]
     if weight.shape[0] != hidden or low.shape[0] != hidden or high.shape[0] != hidden or out.shape[0] != hidden:
         raise ValueError(f"weight {weight.shape}, bias, bounds and out must have {hidden} rows")
+    if rotations.shape[0] != 6 * joints:
+        raise ValueError(f"rotations has {rotations.shape[0]} entries, expected 6 * {joints} joints")
+    wp.launch(pose_rotation_kernel, dim=6 * joints, device=bones.device, inputs=[bones, parent_index],
+              outputs=[rotations])
     wp.launch(pose_feature_kernel, dim=feature.shape[0], device=bones.device,
-              inputs=[bones, parent_index, encoder_weight, encoder_bias, code], outputs=[feature])
+              inputs=[rotations, encoder_weight, encoder_bias, code], outputs=[feature])
     wp.launch(first_bias_kernel, dim=hidden, device=bones.device, inputs=[feature, weight, bias, low, high],
               outputs=[out])
