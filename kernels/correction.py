@@ -79,13 +79,20 @@ def apply_correction(outputs: wp.array, means: wp.array, quats: wp.array, scales
               inputs=[outputs, means, quats, scales, offset_scale], outputs=[means_out, quats_out, scales_out])
 
 
+DIFFERENCE_LANES = 32
+"""Threads per frame of :data:`pose_difference_kernel` (each takes every 32nd entry, then one atomic maximum)."""
+
+
 @wp.kernel(enable_backward=False)
 def pose_difference_kernel(frame_poses: wp.array2d(dtype=wp.float32), pose: wp.array(dtype=wp.float32),
                            differences: wp.array(dtype=wp.float32)):
-    """One thread per (frame, entry): ``differences[t]`` (zeroed by the caller) becomes the largest absolute entry
-    difference (a maximum: the same in any order)."""
-    t, k = wp.tid()
-    wp.atomic_max(differences, t, wp.abs(frame_poses[t, k] - pose[k]))
+    """:data:`DIFFERENCE_LANES` threads per frame: ``differences[t]`` (zeroed by the caller) becomes the largest
+    absolute entry difference (a maximum: the same in any order)."""
+    t, lane = wp.tid()
+    largest = wp.float32(0.0)
+    for k in range(lane, frame_poses.shape[1], DIFFERENCE_LANES):
+        largest = wp.max(largest, wp.abs(frame_poses[t, k] - pose[k]))
+    wp.atomic_max(differences, t, largest)
 
 
 @wp.kernel(enable_backward=False)
@@ -123,7 +130,7 @@ def match_frame_code(frame_poses: wp.array, pose: wp.array, codes: wp.array, tol
         raise ValueError(f"pose has {pose.shape[0]} entries, the frames' poses {width}")
     if count == 0 or code.shape[0] == 0:
         return
-    wp.launch(pose_difference_kernel, dim=(count, width), device=pose.device, inputs=[frame_poses, pose],
+    wp.launch(pose_difference_kernel, dim=(count, DIFFERENCE_LANES), device=pose.device, inputs=[frame_poses, pose],
               outputs=[differences])
     wp.launch(closest_code_kernel, dim=code.shape[0], device=pose.device,
               inputs=[differences, codes, float(tolerance)], outputs=[code])
