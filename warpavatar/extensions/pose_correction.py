@@ -25,6 +25,7 @@ from warpavatar._src.cuda_graph import adam_options
 from warpavatar._src.precision import current_mlp_dtype, float32_sums, mlp_matmuls
 from warpavatar.extensions.base import Extension, LossTerm, option
 from warpavatar.geometry import Linear, linear_rows, match_pose, mlp, quat_from_vector, quat_multiply
+from warpavatar.model.frozen import tensor_versions
 from warpavatar.model.parts import AvatarPart
 from warpavatar.model.skinning_field import box_encoding
 
@@ -277,7 +278,7 @@ def _versions(tensors) -> tuple:
     """(the tensors, held so that no other tensor takes their identity; their storage, version counters and
     shapes): what a cache made from them depends on beyond their values."""
     tensors = tuple(tensors)
-    return tensors, tuple((t.data_ptr(), t._version, tuple(t.shape)) for t in tensors)
+    return tensors, tensor_versions(tensors)
 
 
 def _same_versions(a: tuple, b: tuple) -> bool:

@@ -13,9 +13,16 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["FrozenCanonical"]
+__all__ = ["FrozenCanonical", "tensor_versions"]
 
 _CACHED = ("quats", "scales", "opacities", "colors", "weights")
+
+
+def tensor_versions(tensors) -> tuple:
+    """What a cache made from ``tensors`` depends on beyond their values: each one's storage, version counter
+    (bumped by every in-place change: optimizer steps, ``load_state_dict``) and shape. Host values only; the
+    caller holds the tensors themselves where their identity matters (a freed tensor's storage may be reused)."""
+    return tuple((t.data_ptr(), t._version, tuple(t.shape)) for t in tensors)
 
 
 class FrozenCanonical:
@@ -56,7 +63,7 @@ class FrozenCanonical:
             again when it changes.
         """
         tensors = (*gaussians.parameters(), grid)
-        key = (int(sh_degree), tuple((t.data_ptr(), t._version, tuple(t.shape)) for t in tensors))
+        key = (int(sh_degree), tensor_versions(tensors))
         if key != self._key:
             values = {"quats": gaussians.normalized_quats, "scales": gaussians.scales,
                       "opacities": gaussians.opacities, "colors": gaussians.sh_coefficients(sh_degree).contiguous(),

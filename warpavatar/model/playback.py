@@ -29,7 +29,7 @@ import torch
 from warpavatar._src.cuda_graph import capture_or_fall_back, resolve_cuda_graph
 from warpavatar._src.precision import check_matmul_precision, mlp_dtype, mlp_precision
 from warpavatar.model.capacity import IntersectionCapacity
-from warpavatar.model.frozen import FrozenCanonical
+from warpavatar.model.frozen import FrozenCanonical, tensor_versions
 from warpavatar.model.parts import AvatarPart
 
 __all__ = ["Player"]
@@ -138,7 +138,7 @@ class Player:
         avatar = self.avatar
         field = avatar.field
         tensors = list(field.parameters())
-        field_key = (id(field), tuple((t.data_ptr(), t._version, tuple(t.shape)) for t in tensors))
+        field_key = (id(field), tensor_versions(tensors))
         if self._grid is None or field_key != self._field_key:
             with mlp_precision(self.matmul_precision):
                 grid = field.grid_weights()
