@@ -85,9 +85,14 @@ def test_non_finite_inputs_raise_in_the_speculative_mode_too(device, speculation
     cotangents = random_cotangents(sizes, device, 13)
     render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents)
     assert speculation._speculative_capacity(_key(scene, sizes)) is not None
+    assert_bad_value_raises(scene, sizes, cotangents, name, float("nan"))
+
+
+def assert_bad_value_raises(scene, sizes, cotangents, name, value):
+    """A pass whose ``name`` input holds one ``value`` (NaN or infinity) raises a message naming it."""
     bad = dict(scene)
     bad[name] = scene[name].clone()
-    bad[name].view(-1)[7] = float("nan")
+    bad[name].view(-1)[7] = value
     with pytest.raises(ValueError, match=f"non-finite values in {name}"):
         render_and_grad(ops.rasterize_gaussians, bad, sizes, cotangents)
 

@@ -9,7 +9,7 @@ pair count and the flags; the key emission clears the tile ranges), a copy of th
 launches (compositing backward, projection adjoint), one torch fill and no synchronization.
 
 The sort buffers must hold every (Gaussian, tile) pair, a number known only on the device once the projection
-has run (an upper bound would cost far more memory, as any Gaussian may cover the whole image). Three modes:
+has run (an upper bound would cost far more memory, as any Gaussian may cover the whole image). Four modes:
 
 * **Speculative** (CUDA, the default once a call of the same image size and Gaussian count has been seen): the
   buffers get a capacity of :data:`SPECULATIVE_HEADROOM` times the most pairs of the last
@@ -24,6 +24,13 @@ has run (an upper bound would cost far more memory, as any Gaussian may cover th
   captured in a CUDA graph; the pair count and the input flags stay on the device (``info["status"]``) for
   the caller to check when it reads other values anyway (:func:`rasterizer_status`).
 
+* **Replayed** (CUDA, :mod:`warpavatar._src.splat_replay`): once a few consecutive speculative calls of one shape
+  (image size, Gaussian count, SH layout) have fitted their guess, that shape's fixed-capacity pass is captured
+  into a CUDA graph and later calls replay it: their inputs copied in by one concatenation, the graph replayed,
+  its outputs copied out (three copies) and the status read. The host's work per call drops from some twenty
+  launches to five; the results are the speculative mode's. A pass that outgrew the graph is passed again with
+  exact buffers.
+
 In every mode non-finite inputs raise a ``ValueError`` (fixed mode: when the caller checks the status).
 
 Host work per call is kept small: kernel arguments are Warp launch descriptors
@@ -35,15 +42,18 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from typing import NamedTuple
 
 import torch
 import warp as wp
 
+from warpavatar._src.splat_replay import ReplayCache
 from warpavatar._src.warp_utils import (check_tensor, to_warp, torch_stream_scope, warp_descriptor,
                                         write_only_descriptor)
 from warpavatar.kernels import splat as splat_kernels
 
-__all__ = ["rasterize_gaussians", "rasterizer_status", "SPECULATIVE_HEADROOM", "SPECULATIVE_HISTORY"]
+__all__ = ["rasterize_gaussians", "rasterizer_status", "run_pass", "allocate_pass_buffers", "PassBuffers",
+           "SPECULATIVE_HEADROOM", "SPECULATIVE_HISTORY"]
 
 SPECULATIVE_HEADROOM = 1.2
 """Speculative capacity as a multiple of the most pairs of recent calls of the same size (see the module doc)."""
@@ -140,14 +150,17 @@ def _sort_by_depth(depth_sort, tile_ends) -> None:
     wp.utils.array_scan(counts, w_tile_ends, inclusive=True)
 
 
-def _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radii, tile_ranges, *, width, height):
+def _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radii, tile_ranges, *, width, height,
+         ids_out=None):
     """Sort the (Gaussian, tile) pairs; returns the sorted Gaussian ids (one per pair, or per capacity slot).
 
     ``depth_sort`` and ``tile_ends`` [N] are as :func:`_sort_by_depth` left them; ``status`` ([pair count,
-    flags]) is a view that ends with its last entry. Without a ``capacity`` the buffers have the exact size: ``status`` is read from
-    the device (the one host synchronization) and non-finite input raises. With one, nothing is read: unused
-    slots hold a padding key that sorts last and belongs to no tile, and pairs past the capacity are dropped.
-    ``tile_ranges`` [tiles, 2] need not be cleared: the emission kernel (or, without pairs, a fill) does it.
+    flags]) is a view that ends with its last entry. Without a ``capacity`` the buffers have the exact size:
+    ``status`` is read from the device (the one host synchronization) and non-finite input raises. With one,
+    nothing is read: unused slots hold a padding key that sorts last and belongs to no tile, and pairs past the
+    capacity are dropped. ``tile_ranges`` [tiles, 2] need not be cleared: the emission kernel (or, without pairs,
+    a fill) does it. ``ids_out`` (with a ``capacity``): a buffer of ``capacity`` int32 that receives the ids,
+    returned instead of a fresh copy.
     """
     device = tile_ranges.device
     tiles_x, tiles_y = _tile_grid(width, height)
@@ -177,7 +190,133 @@ def _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radi
     # the 8 of the double buffer), copied once the keys' 8 bytes a pair are released. Without Gaussians no
     # tile has a range, and the ids (of a capacity) are never read.
     del sort_keys
+    if ids_out is not None:
+        ids_out.copy_(sorted_ids[:count])
+        return ids_out
     return sorted_ids[:count].clone()
+
+
+class PassBuffers(NamedTuple):
+    """What one forward pass writes that outlives it (the outputs, and what the backward reads).
+
+    Shapes (N Gaussians, H x W pixels, T tiles): ``image`` [H, W, 3], ``alpha`` and ``depth`` [H, W] float32;
+    ``radii`` [N, 2] int32; ``xy_opacity`` and ``conics`` [N, 3], ``color_depth`` [N, 4] float32;
+    ``tile_ranges`` [T, 2] int32; ``final_transmittance`` [H, W] float32 and ``last_index`` [H, W] int32;
+    ``sorted_ids`` [slots] int32 (one per pair, or per slot of a capacity; None until binned when the exact
+    count sizes it); ``status`` [2] int32, the pair count and the non-finite-input flags.
+    """
+
+    image: torch.Tensor
+    alpha: torch.Tensor
+    depth: torch.Tensor
+    radii: torch.Tensor
+    xy_opacity: torch.Tensor
+    color_depth: torch.Tensor
+    status: torch.Tensor | None
+    conics: torch.Tensor
+    tile_ranges: torch.Tensor
+    final_transmittance: torch.Tensor
+    last_index: torch.Tensor
+    sorted_ids: torch.Tensor | None
+
+
+def allocate_pass_buffers(gaussian_count: int, width: int, height: int, device: torch.device) -> PassBuffers:
+    """Separate tensors for one eager pass (no ``status`` or ``sorted_ids`` yet: the pass makes them)."""
+    tiles_x, tiles_y = _tile_grid(width, height)
+    f32, i32 = dict(device=device, dtype=torch.float32), dict(device=device, dtype=torch.int32)
+    # What the backward reads per pixel, in one allocation: the final transmittance and the last index.
+    pixel_state = torch.empty(2, height, width, **i32)
+    return PassBuffers(
+        image=torch.empty(height, width, 3, **f32), alpha=torch.empty(height, width, **f32),
+        depth=torch.empty(height, width, **f32), radii=torch.empty(gaussian_count, 2, **i32),
+        xy_opacity=torch.empty(gaussian_count, 3, **f32), color_depth=torch.empty(gaussian_count, 4, **f32),
+        status=None, conics=torch.empty(gaussian_count, 3, **f32),
+        tile_ranges=torch.empty(tiles_x * tiles_y, 2, **i32),  # cleared by _bin
+        final_transmittance=pixel_state[0].view(torch.float32), last_index=pixel_state[1], sorted_ids=None)
+
+
+def run_pass(means, quats, scales, opacities, coefficients, background, K, world_to_camera, *, width: int,
+             height: int, sh_degree: int, capacity: int | None, speculative: bool,
+             buffers: PassBuffers) -> tuple[PassBuffers, int | None]:
+    """Queue one forward pass into ``buffers`` (see the module doc for the three modes).
+
+    Args:
+        capacity: None for the exact mode; else the sort buffers' size, a guess when ``speculative``.
+        speculative: read the pair count at the end and bin and composite again with exact buffers when the
+            guess was short (raising on non-finite inputs); False with a ``capacity``: nothing is read.
+        buffers: from :func:`allocate_pass_buffers`; a fixed capacity's pass may bring ``status`` [2] and
+            ``sorted_ids`` [capacity] to be filled in place (a captured pass keeps them).
+
+    Returns:
+        ``(buffers, pair_count)``: the buffers with ``status`` and ``sorted_ids`` set, and the pair count where
+        it was read (exact and speculative modes), else None.
+    """
+    device = means.device
+    gaussian_count = means.shape[0]
+    used_coefficients = 1 if sh_degree < 0 else (sh_degree + 1) ** 2
+    i32 = dict(device=device, dtype=torch.int32)
+    # One zeroed int32 allocation: a zero, the inclusive prefix sum of the tile counts in depth order and the
+    # non-finite-input flag; the last two are the pair count and the flag (one read fetches both; 0 pairs
+    # without Gaussians).
+    tile_ends_and_flag = torch.zeros(gaussian_count + 2, **i32)
+    depth_sort = _depth_sort_buffers(gaussian_count, device)
+    out = buffers
+    with torch_stream_scope(device):
+        # Kernel arguments as launch descriptors (a fraction of a wp.array's host cost); the scan and the sort
+        # of warp.utils take wp.arrays.
+        w_xy_opacity = warp_descriptor(out.xy_opacity, wp.vec3)
+        w_conics = warp_descriptor(out.conics, wp.vec3)
+        w_color_depth = warp_descriptor(out.color_depth, wp.vec4)
+        w_radii = warp_descriptor(out.radii, wp.vec2i)
+        tile_ends = tile_ends_and_flag[1:gaussian_count + 1]
+        splat_kernels.launch_project(
+            warp_descriptor(means, wp.vec3), warp_descriptor(quats, wp.vec4), warp_descriptor(scales, wp.vec3),
+            warp_descriptor(opacities), warp_descriptor(coefficients, wp.vec3),
+            warp_descriptor(K.view(1, 3, 3), wp.mat33), warp_descriptor(world_to_camera.view(1, 4, 4), wp.mat44),
+            width=width, height=height, sh_degree=sh_degree, used_coefficients=used_coefficients,
+            xy_opacity=w_xy_opacity, conics=w_conics, color_depth=w_color_depth, radii=w_radii,
+            depth_keys=warp_descriptor(depth_sort[0][:gaussian_count]),
+            depth_order=warp_descriptor(depth_sort[1][:gaussian_count], wp.vec2i),
+            bad_input_flags=warp_descriptor(tile_ends_and_flag[gaussian_count + 1:]),
+        )
+        _sort_by_depth(depth_sort, tile_ends)
+        status = tile_ends_and_flag[gaussian_count:]
+        w_background = warp_descriptor(background.view(1, 3), wp.vec3)
+        w_pixels = dict(image=warp_descriptor(out.image.view(-1, 3), wp.vec3),
+                        alpha=warp_descriptor(out.alpha.view(-1)), depth=warp_descriptor(out.depth.view(-1)),
+                        final_transmittance=warp_descriptor(out.final_transmittance.reshape(-1)),
+                        last_index=warp_descriptor(out.last_index.reshape(-1)))
+
+        def bin_and_composite(capacity, ids_out=None):
+            sorted_ids = _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radii,
+                              out.tile_ranges, width=width, height=height, ids_out=ids_out)
+            splat_kernels.launch_composite_forward(
+                warp_descriptor(out.tile_ranges), warp_descriptor(sorted_ids), w_xy_opacity, w_conics,
+                w_color_depth, w_background, width=width, height=height, **w_pixels)
+            return sorted_ids
+
+        count = None
+        if capacity is not None and not speculative:  # fixed: nothing read
+            sorted_ids = bin_and_composite(capacity, out.sorted_ids)
+            if out.status is not None:
+                out.status.copy_(status)
+                status = out.status
+        else:
+            sorted_ids = bin_and_composite(capacity)
+            if speculative:
+                count, flags = status.tolist()  # the one host sync, once the whole pass is queued
+                _raise_on_bad_inputs(flags)
+                if count > capacity:  # the guess was short: again with exact buffers (the emission clears ranges)
+                    sorted_ids = bin_and_composite(count)
+            else:
+                count = int(sorted_ids.shape[0])  # the exact mode's buffers hold the pair count
+    return out._replace(status=status, sorted_ids=sorted_ids), count
+
+
+_REPLAYS = ReplayCache(run_pass=run_pass, buffer_type=PassBuffers, tile_grid=_tile_grid,
+                       raise_on_bad_inputs=_raise_on_bad_inputs)
+"""The graphs of recently repeated call shapes (:mod:`warpavatar._src.splat_replay`)."""
+
 
 class _RasterizeGaussians(torch.autograd.Function):
     """Autograd wrapper; inputs are already validated, float32 and contiguous (see :func:`rasterize_gaussians`)."""
@@ -187,84 +326,39 @@ class _RasterizeGaussians(torch.autograd.Function):
                 sh_degree, densify_grad_out, intersection_capacity):
         device = means.device
         gaussian_count = means.shape[0]
-        used_coefficients = 1 if sh_degree < 0 else (sh_degree + 1) ** 2
-        tiles_x, tiles_y = _tile_grid(width, height)
-        f32, i32 = dict(device=device, dtype=torch.float32), dict(device=device, dtype=torch.int32)
-
-        xy_opacity = torch.empty(gaussian_count, 3, **f32)
-        conics = torch.empty(gaussian_count, 3, **f32)
-        color_depth = torch.empty(gaussian_count, 4, **f32)
-        radii = torch.empty(gaussian_count, 2, **i32)
-        # One zeroed int32 allocation: a zero, the inclusive prefix sum of the tile counts in depth order and
-        # the non-finite-input flag; the last two are the pair count and the flag (one read fetches both; 0
-        # pairs without Gaussians).
-        tile_ends_and_flag = torch.zeros(gaussian_count + 2, **i32)
-        depth_sort = _depth_sort_buffers(gaussian_count, device)
-        tile_ranges = torch.empty(tiles_x * tiles_y, 2, **i32)  # cleared by _bin
-        image = torch.empty(height, width, 3, **f32)
-        alpha = torch.empty(height, width, **f32)
-        depth = torch.empty(height, width, **f32)
-        # What the backward reads per pixel, in one allocation: the final transmittance and the last index.
-        pixel_state = torch.empty(2, height, width, **i32)
-        final_transmittance = pixel_state[0].view(torch.float32)
-        last_index = pixel_state[1]
-
-        with torch_stream_scope(device):
-            # Kernel arguments as launch descriptors (a fraction of a wp.array's host cost); the scan and the sort
-            # of warp.utils take wp.arrays.
-            w_xy_opacity = warp_descriptor(xy_opacity, wp.vec3)
-            w_conics = warp_descriptor(conics, wp.vec3)
-            w_color_depth = warp_descriptor(color_depth, wp.vec4)
-            w_radii = warp_descriptor(radii, wp.vec2i)
-            tile_ends = tile_ends_and_flag[1:gaussian_count + 1]
-            splat_kernels.launch_project(
-                warp_descriptor(means, wp.vec3), warp_descriptor(quats, wp.vec4), warp_descriptor(scales, wp.vec3),
-                warp_descriptor(opacities), warp_descriptor(coefficients, wp.vec3),
-                warp_descriptor(K.view(1, 3, 3), wp.mat33), warp_descriptor(world_to_camera.view(1, 4, 4), wp.mat44),
-                width=width, height=height, sh_degree=sh_degree, used_coefficients=used_coefficients,
-                xy_opacity=w_xy_opacity, conics=w_conics, color_depth=w_color_depth, radii=w_radii,
-                depth_keys=warp_descriptor(depth_sort[0][:gaussian_count]),
-                depth_order=warp_descriptor(depth_sort[1][:gaussian_count], wp.vec2i),
-                bad_input_flags=warp_descriptor(tile_ends_and_flag[gaussian_count + 1:]),
-            )
-            _sort_by_depth(depth_sort, tile_ends)
-            status = tile_ends_and_flag[gaussian_count:]
+        inputs = (means, quats, scales, opacities, coefficients, background, K, world_to_camera)
+        sizes = dict(width=width, height=height, sh_degree=sh_degree)
+        passed = None
+        if intersection_capacity is None:
             speculation_key = (device, width, height, gaussian_count)
-            capacity = intersection_capacity
-            speculative = capacity is None and (capacity := _speculative_capacity(speculation_key)) is not None
-            w_background = warp_descriptor(background.view(1, 3), wp.vec3)
-            w_pixels = dict(image=warp_descriptor(image.view(-1, 3), wp.vec3), alpha=warp_descriptor(alpha.view(-1)),
-                            depth=warp_descriptor(depth.view(-1)),
-                            final_transmittance=warp_descriptor(final_transmittance.view(-1)),
-                            last_index=warp_descriptor(last_index.view(-1)))
+            capacity = _speculative_capacity(speculation_key)
+            if capacity is not None:
+                # A pass replayed from a CUDA graph once calls of this shape repeat (splat_replay), else queued.
+                passed, count = _REPLAYS.run(inputs, capacity=capacity, **sizes)
+                if passed is None and count is not None:
+                    capacity = count  # the replay's graph was outgrown: this many slots fit, nothing is binned twice
+            if passed is None:
+                buffers = allocate_pass_buffers(gaussian_count, width, height, device)
+                passed, count = run_pass(*inputs, **sizes, capacity=capacity, speculative=capacity is not None,
+                                         buffers=buffers)
+            _remember_pairs(speculation_key, count)
+            if capacity is not None and count <= capacity:
+                _REPLAYS.note_fitting_call(inputs, capacity=capacity, **sizes)
+        else:
+            buffers = allocate_pass_buffers(gaussian_count, width, height, device)
+            passed, _ = run_pass(*inputs, **sizes, capacity=intersection_capacity, speculative=False,
+                                 buffers=buffers)
 
-            def bin_and_composite(capacity):
-                sorted_ids = _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radii,
-                                  tile_ranges, width=width, height=height)
-                splat_kernels.launch_composite_forward(
-                    warp_descriptor(tile_ranges), warp_descriptor(sorted_ids), w_xy_opacity, w_conics, w_color_depth,
-                    w_background, width=width, height=height, **w_pixels)
-                return sorted_ids
-
-            sorted_ids = bin_and_composite(capacity)
-            if speculative:
-                count, flags = status.tolist()  # the one host sync, once the whole pass is queued
-                _raise_on_bad_inputs(flags)
-                if count > capacity:  # the guess was short: again with exact buffers (the emission clears the ranges)
-                    sorted_ids = bin_and_composite(count)
-            elif intersection_capacity is None:
-                count = int(sorted_ids.shape[0])  # the exact mode's buffers hold the pair count
-            if intersection_capacity is None:
-                _remember_pairs(speculation_key, count)
-
-        ctx.save_for_backward(means, quats, scales, coefficients, background, K, world_to_camera, xy_opacity, conics,
-                              color_depth, radii, tile_ranges, sorted_ids, final_transmittance, last_index)
+        ctx.save_for_backward(means, quats, scales, coefficients, background, K, world_to_camera,
+                              passed.xy_opacity, passed.conics, passed.color_depth, passed.radii, passed.tile_ranges,
+                              passed.sorted_ids, passed.final_transmittance, passed.last_index)
         ctx.width, ctx.height, ctx.sh_degree = width, height, sh_degree
         ctx.densify_grad_out = densify_grad_out
         # The per-Gaussian buffers are returned as-is for the info dict (built only when asked for), with the
         # [pair count, bad-input flags] on the device, for a caller that checks them off the hot path.
-        ctx.mark_non_differentiable(radii, xy_opacity, color_depth, status)
-        return image, alpha, depth, radii, xy_opacity, color_depth, status
+        ctx.mark_non_differentiable(passed.radii, passed.xy_opacity, passed.color_depth, passed.status)
+        return passed.image, passed.alpha, passed.depth, passed.radii, passed.xy_opacity, passed.color_depth, \
+            passed.status
 
     @staticmethod
     def backward(ctx, grad_image, grad_alpha, grad_depth, *unused_info_grads):
