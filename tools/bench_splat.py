@@ -234,6 +234,7 @@ def run(device: str, quick: bool) -> list[dict]:
             })
         rows.append(row)
         del scene, parameters
+        splat_bridge._REPLAYS.clear()  # each row alone: no graph of an earlier row's shape held on
         if device.startswith("cuda"):
             torch.cuda.empty_cache()
     return rows

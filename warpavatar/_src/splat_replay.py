@@ -21,7 +21,8 @@ The results are those of the speculative mode with the graph's capacity, bit for
 same buffers sizes; CUDA's atomic additions aside, which only the backward has). The backward is unchanged.
 
 A graph keeps its inputs, outputs and the pass's scratch space (the sort buffers, in the capture's memory
-pool) for as long as it is cached: at most :data:`REPLAYS_KEPT` shapes, the least recently used dropped first.
+pool) for as long as it is cached: at most :data:`REPLAYS_KEPT` shapes, the least recently used dropped first,
+and none that would hold over :data:`REPLAY_MAX_BYTES` (such a shape stays eager).
 A graph whose capacity is over :data:`SHRINK_FACTOR` times what recent calls need is dropped too (its sorts
 would pay for empty slots). A failed capture warns once and leaves that shape eager.
 
@@ -37,13 +38,16 @@ from typing import Callable
 
 import torch
 
-__all__ = ["REPLAY_AFTER", "REPLAYS_KEPT", "SHRINK_FACTOR", "ReplayCache"]
+__all__ = ["REPLAY_AFTER", "REPLAYS_KEPT", "REPLAY_MAX_BYTES", "SHRINK_FACTOR", "ReplayCache", "held_bytes"]
 
 REPLAY_AFTER = 3
 """Consecutive fitting calls of one shape after which its pass is captured (None: never replay)."""
 
-REPLAYS_KEPT = 2
+REPLAYS_KEPT = 1
 """Shapes whose graphs are kept per process (each holds its buffers and sort scratch space)."""
+
+REPLAY_MAX_BYTES = 1 << 30
+"""The most a shape's graph may hold between calls (:func:`held_bytes`); a larger shape stays eager."""
 
 SHRINK_FACTOR = 2.0
 """A graph is dropped when its capacity exceeds this times the capacity recent calls ask for."""
@@ -87,6 +91,15 @@ def pass_layouts(gaussian_count: int, width: int, height: int, tiles: int, capac
     return pixels, results, backward
 
 
+def held_bytes(input_floats: int, gaussian_count: int, width: int, height: int, tiles: int, capacity: int) -> int:
+    """Bytes a graph of one shape holds between calls: its fixed input tensor (``input_floats`` float32), its
+    three output tensors (:func:`pass_layouts`), and the torch buffers its pass allocates inside the capture
+    (prefix sum 4 B and depth sort 24 B a Gaussian, tile keys and ids 16 B a capacity slot), which stay reserved
+    in the capture's memory pool. Warp's sort and scan scratch space comes on top."""
+    outputs = sum(_layout_words(layout) for layout in pass_layouts(gaussian_count, width, height, tiles, capacity))
+    return 4 * (input_floats + outputs) + 4 * (gaussian_count + 2) + 24 * gaussian_count + 16 * capacity
+
+
 class _Replay:
     """One captured shape: its fixed input tensor, its three output tensors and the graph (or, on CPU, the pass
     to run again)."""
@@ -96,7 +109,8 @@ class _Replay:
         means = inputs[0]
         device = means.device
         self.capacity = capacity
-        self.gaussian_count = means.shape[0]
+        self.held = held_bytes(sum(tensor.numel() for tensor in inputs), means.shape[0], width, height, tiles,
+                               capacity)
         self._shapes = [tuple(tensor.shape) for tensor in inputs]
         sizes = [tensor.numel() for tensor in inputs]
         self._inputs = torch.empty(sum(sizes), device=device, dtype=torch.float32)
@@ -181,16 +195,8 @@ class ReplayCache:
         return means.device, width, height, means.shape[0], sh_degree, coefficients.shape[1]
 
     def held_bytes(self) -> int:
-        """Bytes the cached graphs hold between calls: their fixed input and output tensors, plus the torch
-        buffers their passes allocate inside the capture (prefix sum 4 B and depth sort 24 B a Gaussian, tile
-        keys and ids 16 B a capacity slot), which stay reserved in the captures' memory pools. Warp's sort and scan
-        scratch space comes on top."""
-        total = 0
-        for replay in self._replays.values():
-            if replay is not None:
-                total += sum(tensor.numel() * tensor.element_size() for tensor in (replay._inputs, *replay._outputs))
-                total += 4 * (replay.gaussian_count + 2) + 24 * replay.gaussian_count + 16 * replay.capacity
-        return total
+        """Bytes the cached graphs hold between calls (:func:`held_bytes` of each)."""
+        return sum(replay.held for replay in self._replays.values() if replay is not None)
 
     def clear(self) -> None:
         """Drop every graph and streak."""
@@ -244,6 +250,10 @@ class ReplayCache:
             return
         self._streaks.pop(key, None)
         tiles_x, tiles_y = self._tile_grid(width, height)
+        if held_bytes(sum(tensor.numel() for tensor in inputs), inputs[0].shape[0], width, height,
+                      tiles_x * tiles_y, capacity) > REPLAY_MAX_BYTES:
+            self._keep(key, None)  # too large to hold between calls: stays eager
+            return
         try:
             replay = _Replay(inputs, capacity=capacity, width=width, height=height, sh_degree=sh_degree,
                              tiles=tiles_x * tiles_y, run_pass=self._run_pass, buffer_type=self._buffer_type)
@@ -252,6 +262,9 @@ class ReplayCache:
             warnings.warn(f"rasterizer: capturing a replayable pass failed, this shape stays eager: {error}",
                           RuntimeWarning)
             replay = None
+        self._keep(key, replay)
+
+    def _keep(self, key, replay) -> None:
         self._replays[key] = replay
         while len(self._replays) > REPLAYS_KEPT:
             self._replays.popitem(last=False)
