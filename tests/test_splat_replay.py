@@ -202,3 +202,22 @@ def test_a_shape_too_large_to_hold_stays_eager(device, replays, monkeypatch):
     assert replays.captures == 0 and replays.replays == 0 and replays.held_bytes() == 0
     assert list(replays._replays.values()) == [None]  # remembered, so no capture is tried again
     _assert_same_pass(_exact(scene, sizes, cotangents), result)
+
+
+@pytest.mark.parametrize("captured_in_inference", [True, False])
+def test_replays_serve_callers_in_and_out_of_inference_mode(device, replays, captured_in_inference):
+    scene, sizes = make_scene(29, device=device, gaussian_count=160)
+    cotangents = random_cotangents(sizes, device, 29)
+    first_mode = torch.inference_mode() if captured_in_inference else torch.no_grad()
+    with first_mode:
+        for _ in range(1 + splat_replay.REPLAY_AFTER):
+            render(ops.rasterize_gaussians, scene, sizes)
+    assert replays.captures == 1
+    moved = _moved(scene, 5)
+    replayed = render_and_grad(ops.rasterize_gaussians, moved, sizes, cotangents, densify=True)  # with autograd
+    with torch.inference_mode():
+        inferred = render(ops.rasterize_gaussians, moved, sizes)
+    assert replays.replays == 2
+    _assert_same_as_exact(moved, sizes, cotangents, replayed)
+    for a, b in zip(inferred, replayed[0]):
+        assert torch.equal(a, b)

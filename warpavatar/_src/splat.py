@@ -475,7 +475,9 @@ def rasterize_gaussians(
             Gaussian, the sum over pixels of |d loss / d mean2d| per image axis [loss units per pixel].
         return_info: also return a dict of per-Gaussian projection results.
         intersection_capacity: None: size the sort buffers to the exact number of (Gaussian, tile) pairs, read
-            from the device (one host synchronization; non-finite inputs raise). An int: sort in buffers of
+            from the device (one host synchronization; non-finite inputs raise); on CUDA, calls of a shape seen
+            before guess the size and check it at the end, and repeated calls of one shape are replayed from a
+            CUDA graph (the same results; the module doc says what it holds). An int: sort in buffers of
             this many pairs without any host read (capturable in a CUDA graph); pairs past it are dropped, so
             the image is then wrong, and non-finite inputs do not raise: both show in ``info["status"]``, which
             the caller checks off the hot path (:func:`rasterizer_status`).

@@ -106,6 +106,13 @@ class _Replay:
 
     def __init__(self, inputs, *, capacity: int, width: int, height: int, sh_degree: int, tiles: int,
                  run_pass: Callable, buffer_type: type):
+        # The fixed tensors are refilled in place by later calls, whatever their mode: never inference tensors
+        # (inference_mode(False) turns gradients on, so no_grad within).
+        with torch.inference_mode(False), torch.no_grad():
+            self._build(inputs, capacity=capacity, width=width, height=height, sh_degree=sh_degree, tiles=tiles,
+                        run_pass=run_pass, buffer_type=buffer_type)
+
+    def _build(self, inputs, *, capacity, width, height, sh_degree, tiles, run_pass, buffer_type) -> None:
         means = inputs[0]
         device = means.device
         self.capacity = capacity
