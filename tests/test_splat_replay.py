@@ -153,7 +153,6 @@ def test_only_consecutive_fitting_calls_of_one_shape_capture(device, replays):
 
 def test_the_cache_keeps_a_bounded_number_of_shapes(device, replays, monkeypatch):
     monkeypatch.setattr(splat_replay, "REPLAYS_KEPT", 2)
-    cotangents = None
     keys = []
     for index, count in enumerate((90, 110, 130)):
         scene, sizes = make_scene(30 + index, device=device, gaussian_count=count)

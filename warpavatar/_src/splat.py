@@ -328,26 +328,24 @@ class _RasterizeGaussians(torch.autograd.Function):
         gaussian_count = means.shape[0]
         inputs = (means, quats, scales, opacities, coefficients, background, K, world_to_camera)
         sizes = dict(width=width, height=height, sh_degree=sh_degree)
-        passed = None
+        passed = count = None
+        capacity, speculative = intersection_capacity, False
         if intersection_capacity is None:
             speculation_key = (device, width, height, gaussian_count)
             capacity = _speculative_capacity(speculation_key)
-            if capacity is not None:
+            speculative = capacity is not None
+            if speculative:
                 # A pass replayed from a CUDA graph once calls of this shape repeat (splat_replay), else queued.
                 passed, count = _REPLAYS.run(inputs, capacity=capacity, **sizes)
                 if passed is None and count is not None:
                     capacity = count  # the replay's graph was outgrown: this many slots fit, nothing is binned twice
-            if passed is None:
-                buffers = allocate_pass_buffers(gaussian_count, width, height, device)
-                passed, count = run_pass(*inputs, **sizes, capacity=capacity, speculative=capacity is not None,
-                                         buffers=buffers)
+        if passed is None:
+            passed, count = run_pass(*inputs, **sizes, capacity=capacity, speculative=speculative,
+                                     buffers=allocate_pass_buffers(gaussian_count, width, height, device))
+        if intersection_capacity is None:
             _remember_pairs(speculation_key, count)
-            if capacity is not None and count <= capacity:
+            if speculative and count <= capacity:
                 _REPLAYS.note_fitting_call(inputs, capacity=capacity, **sizes)
-        else:
-            buffers = allocate_pass_buffers(gaussian_count, width, height, device)
-            passed, _ = run_pass(*inputs, **sizes, capacity=intersection_capacity, speculative=False,
-                                 buffers=buffers)
 
         ctx.save_for_backward(means, quats, scales, coefficients, background, K, world_to_camera,
                               passed.xy_opacity, passed.conics, passed.color_depth, passed.radii, passed.tile_ranges,

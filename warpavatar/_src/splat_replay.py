@@ -32,6 +32,7 @@ fixed-capacity pass on the same fixed tensors, so everything around the graph is
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections import OrderedDict
 from typing import Callable
@@ -56,14 +57,7 @@ _REPLAY_ON_CPU = False  # CPU has no graphs; the tests set this to run the same 
 
 
 def _layout_words(layout) -> int:
-    return sum(_numel(shape) for _, shape, _ in layout)
-
-
-def _numel(shape) -> int:
-    count = 1
-    for size in shape:
-        count *= size
-    return count
+    return sum(math.prod(shape) for _, shape, _ in layout)
 
 
 def carve(arena: torch.Tensor, layout) -> dict[str, torch.Tensor]:
@@ -71,7 +65,7 @@ def carve(arena: torch.Tensor, layout) -> dict[str, torch.Tensor]:
     laid end to end."""
     views, offset = {}, 0
     for name, shape, dtype in layout:
-        words = _numel(shape)
+        words = math.prod(shape)
         view = arena[offset: offset + words]
         views[name] = (view if dtype == torch.int32 else view.view(dtype)).view(shape)
         offset += words
@@ -104,8 +98,10 @@ class _Replay:
     """One captured shape: its fixed input tensor, its three output tensors and the graph (or, on CPU, the pass
     to run again)."""
 
-    def __init__(self, inputs, *, capacity: int, width: int, height: int, sh_degree: int, tiles: int,
+    def __init__(self, inputs, *, capacity: int, width: int, height: int, sh_degree: int, tiles: int, held: int,
                  run_pass: Callable, buffer_type: type):
+        self.capacity = capacity
+        self.held = held  # :func:`held_bytes` of this shape
         # The fixed tensors are refilled in place by later calls, whatever their mode: never inference tensors
         # (inference_mode(False) turns gradients on, so no_grad within).
         with torch.inference_mode(False), torch.no_grad():
@@ -115,15 +111,11 @@ class _Replay:
     def _build(self, inputs, *, capacity, width, height, sh_degree, tiles, run_pass, buffer_type) -> None:
         means = inputs[0]
         device = means.device
-        self.capacity = capacity
-        self.held = held_bytes(sum(tensor.numel() for tensor in inputs), means.shape[0], width, height, tiles,
-                               capacity)
-        self._shapes = [tuple(tensor.shape) for tensor in inputs]
         sizes = [tensor.numel() for tensor in inputs]
         self._inputs = torch.empty(sum(sizes), device=device, dtype=torch.float32)
         static_inputs, offset = [], 0
-        for shape, size in zip(self._shapes, sizes):
-            static_inputs.append(self._inputs[offset: offset + size].view(shape))
+        for tensor, size in zip(inputs, sizes):
+            static_inputs.append(self._inputs[offset: offset + size].view(tensor.shape))
             offset += size
         self._layouts = pass_layouts(means.shape[0], width, height, tiles, capacity)
         self._outputs = [torch.empty(_layout_words(layout), device=device, dtype=torch.int32)
@@ -155,11 +147,8 @@ class _Replay:
             views.update(carve(arena, layout))
         return self._buffer_type(**views)
 
-    def matches(self, inputs) -> bool:
-        return [tuple(tensor.shape) for tensor in inputs] == self._shapes
-
     def run(self, inputs):
-        """Replay on ``inputs``; returns (buffers of the call's own tensors, pair count)."""
+        """Replay on ``inputs``; returns (buffers of the call's own tensors, pair count, input flags)."""
         self._copy_in(inputs)
         self._replay()
         buffers = self._buffers([output.clone() for output in self._outputs])
@@ -230,15 +219,14 @@ class ReplayCache:
         replay = self._replays.get(key)
         if replay is None:
             return None, None
-        if replay.capacity > SHRINK_FACTOR * capacity or not replay.matches(inputs):
-            del self._replays[key]  # larger than recent calls need (or another coefficient layout)
+        if replay.capacity > SHRINK_FACTOR * capacity:
+            del self._replays[key]  # larger than recent calls need (the key fixes every input's shape)
             return None, None
         self._replays.move_to_end(key)
         buffers, count, flags = replay.run(inputs)
         self._raise_on_bad_inputs(flags)
         if count > replay.capacity:  # outgrown: the caller passes it eagerly; capture again once calls fit
             del self._replays[key]
-            self._streaks.pop(key, None)
             return None, count
         self.replays += 1
         return buffers, count
@@ -257,13 +245,15 @@ class ReplayCache:
             return
         self._streaks.pop(key, None)
         tiles_x, tiles_y = self._tile_grid(width, height)
-        if held_bytes(sum(tensor.numel() for tensor in inputs), inputs[0].shape[0], width, height,
-                      tiles_x * tiles_y, capacity) > REPLAY_MAX_BYTES:
+        held = held_bytes(sum(tensor.numel() for tensor in inputs), inputs[0].shape[0], width, height,
+                          tiles_x * tiles_y, capacity)
+        if held > REPLAY_MAX_BYTES:
             self._keep(key, None)  # too large to hold between calls: stays eager
             return
         try:
             replay = _Replay(inputs, capacity=capacity, width=width, height=height, sh_degree=sh_degree,
-                             tiles=tiles_x * tiles_y, run_pass=self._run_pass, buffer_type=self._buffer_type)
+                             tiles=tiles_x * tiles_y, held=held, run_pass=self._run_pass,
+                             buffer_type=self._buffer_type)
             self.captures += 1
         except Exception as error:  # noqa: BLE001 (any failed capture leaves the shape eager)
             warnings.warn(f"rasterizer: capturing a replayable pass failed, this shape stays eager: {error}",
