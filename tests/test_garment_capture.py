@@ -25,7 +25,7 @@ TINY = dict(iterations=40, image_scale=0.5, max_train_frames=8, init_points_per_
             field_warmup_steps=6, gaussian_only_steps=6, densify_from=8, densify_every=8, densify_until=20,
             checkpoint_every=1000, log_every=1000, preview_frames=0, garment="auto", garment_from=4,
             garment_threshold=0.0005, garment_min_fraction=0.01, garment_voxel=0.12, garment_substep=1.0 / 60.0,
-            garment_window=3, garment_refresh_every=5)
+            garment_window=3, garment_refresh_every=5, garment_frame_states="off")
 
 
 @pytest.fixture(scope="module")

@@ -130,6 +130,13 @@ class GarmentPart(AvatarPart):
         self.register_buffer("frame_poses", torch.zeros(0, 1, 4, 4, device=device))
         self.register_buffer("frame_positions", torch.zeros(0, nodes.shape[0], 3, device=device))
         self.register_buffer("frame_quats", torch.zeros(0, nodes.shape[0], 4, device=device))
+        #: the training frames' cloth states fitted to their images [T,M,3]: each frame's node displacements from
+        #: the skinned rest shape (zero on attached nodes); empty when the fit learns none (``--garment-frame-states
+        #: off``). Used for the training frames' own instants only, never for another pose.
+        self.frame_states = torch.nn.Parameter(torch.zeros(0, nodes.shape[0], 3, device=device))
+        free = torch.ones(nodes.shape[0], 1, device=device)
+        free[torch.as_tensor(attached, device=device).long()] = 0.0
+        self.register_buffer("free_mask", free, persistent=False)
         self._sequence: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
         self._lone: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None  # last settled lone pose
 
@@ -218,6 +225,12 @@ class GarmentPart(AvatarPart):
         from the skinned rest shape, ``x_t - skinned_t(P)`` (what a training window starts from,
         :meth:`GarmentExtension.step_input`)."""
         return torch.stack([x - self.skinned_rest(b) for b, x in zip(bones, positions)])
+
+    def state_positions(self, bones: torch.Tensor, states: torch.Tensor) -> torch.Tensor:
+        """Node positions [K,M,3] of fitted frame states ``states`` [K,M,3] in poses ``bones`` [K,J+E,4,4]: the
+        skinned rest shape plus the states' displacements, attached nodes where the body holds them
+        (differentiable with respect to the states and the rest shape)."""
+        return torch.stack([self.skinned_rest(b) for b in bones]) + states * self.free_mask
 
     @torch.no_grad()
     def rollout(self, bones: torch.Tensor, seconds: list[float], *, progress: bool = False
@@ -343,6 +356,8 @@ class GarmentPart(AvatarPart):
                    rest_bound=hyper.get("rest_bound", 0.0))
         for name in ("anchor", "frame_poses", "frame_positions", "frame_quats"):
             setattr(part, name, weights[name])
+        if "frame_states" in weights:
+            part.frame_states = torch.nn.Parameter(weights["frame_states"].float())
         for name, value in part.state_dict().items():  # (files older than the learned rest shape lack its buffer)
             weights.setdefault(name, value)
         part.load_state_dict(weights)
@@ -446,6 +461,21 @@ class GarmentOptions:
                                                "|offset - mean of its neighbours' offsets|^2 / node spacing^2 "
                                                "(dimensionless; a smooth flare of a ring scores too, so keep it "
                                                "small: it mostly decides where the images say little)")
+    garment_frame_states: str = option("on", "fit every training frame's cloth state to its images ('on'): each "
+                                       "frame's node positions are learned, held to the simulation by "
+                                       "--lambda-garment-dynamics, and drawn for that frame's instant only (its "
+                                       "novel views); the physics learns from them, and novel poses use the "
+                                       "physics alone. 'off': every frame is the simulation's",
+                                       choices=("on", "off"))
+    lr_garment_states: float = option(0.05, "Adam learning rate of the training frames' cloth states, as a fraction "
+                                      "of the node spacing per step")
+    lambda_garment_dynamics: float = option(1.0, "weight of the dynamics residual: mean over free nodes of "
+                                            "|simulated - fitted|^2 / node spacing^2, the simulated state stepped "
+                                            "through the --garment-window frames from the fitted state (and its "
+                                            "velocity, from the two fitted frames before) to the step's frame")
+    lambda_garment_stretch: float = option(1.0, "weight of the fitted states' stretch: mean over stretch edges of "
+                                           "(length / rest-shape length - 1)^2 in the step's frame (cloth does "
+                                           "not stretch much: what one camera cannot see follows what it sees)")
     lambda_garment_rest_collapse: float = option(1.0, "weight of the penalty on rest-shape edges shorter than "
                                                  "half their detected length: mean of max(0, 0.5 - ratio)^2 "
                                                  "(dimensionless)")
@@ -474,12 +504,15 @@ class GarmentExtension(Extension):
         for name in ("garment_threshold", "garment_min_fraction"):
             if not 0.0 < getattr(options, name) < 1.0:
                 raise ValueError(f"--{name.replace('_', '-')} must be in (0, 1), got {getattr(options, name)}")
+        if options.garment_frame_states not in ("on", "off"):
+            raise ValueError(f"--garment-frame-states must be 'on' or 'off', got {options.garment_frame_states!r}")
         if not 0.0 <= options.garment_residual < 1.0:
             raise ValueError(f"--garment-residual must be in [0, 1), got {options.garment_residual}")
-        for name in ("garment_voxel", "garment_substep", "lr_garment", "lr_garment_rest"):
+        for name in ("garment_voxel", "garment_substep", "lr_garment", "lr_garment_rest", "lr_garment_states"):
             if not getattr(options, name) > 0.0:
                 raise ValueError(f"--{name.replace('_', '-')} must be > 0, got {getattr(options, name)}")
-        for name in ("garment_rest_bound", "lambda_garment_rest_smooth", "lambda_garment_rest_collapse"):
+        for name in ("garment_rest_bound", "lambda_garment_rest_smooth", "lambda_garment_rest_collapse",
+                     "lambda_garment_dynamics", "lambda_garment_stretch"):
             if not 0.0 <= getattr(options, name) < math.inf:
                 raise ValueError(f"--{name.replace('_', '-')} must be a number >= 0, got {getattr(options, name)}")
 
@@ -499,6 +532,11 @@ class GarmentExtension(Extension):
         self.step = 0
         self.optimizer: torch.optim.Optimizer | None = None  # the cloth's physics
         self.rest_optimizer: torch.optim.Optimizer | None = None  # its rest shape's offsets, while learned
+        self.states_optimizer: torch.optim.Optimizer | None = None  # the training frames' fitted cloth states
+        #: this step's dynamics residual and fitted positions (the states' losses), set by :meth:`step_input`
+        self.residual: torch.Tensor | None = None
+        self.fitted: torch.Tensor | None = None
+        self.start_seconds = 1.0  # [s] from the frame before a window's start to its start (the start velocity)
         self.training = False  # this step simulates a window (a garment exists)
         window = self.options.garment_window
         #: window slot offsets -W..0 from the training frame (the start state's frame, then each simulated one)
@@ -684,8 +722,24 @@ class GarmentExtension(Extension):
         # starts at the skinned rest shape, so the image loss reaches them there too
         self.rest_optimizer = (None if cloth.rest_offset_logit is None else
                                torch.optim.Adam([cloth.rest_offset_logit], lr=self.options.lr_garment_rest, **options))
+        self.states_optimizer = None  # made once the states exist (the first refresh)
         self.cache = None
         self.bones = None
+
+    @property
+    def fits_states(self) -> bool:
+        """The training frames' cloth states are fitted (``--garment-frame-states on``, a garment exists)."""
+        return self.part is not None and self.options.garment_frame_states == "on"
+
+    def _start_states(self, displacements: torch.Tensor) -> None:
+        """Start the fitted states at the simulated rollout's displacements [T,M,3] (once, at the first refresh),
+        with an Adam of their own (fused, like the cloth's)."""
+        part = self.part
+        part.frame_states = torch.nn.Parameter(displacements.detach().clone() * part.free_mask)
+        lr = self.options.lr_garment_states * part.hyper["voxel_size"]
+        options = {name: value for name, value in adam_options(self.fit.device).items() if name != "foreach"}
+        options["fused"] = True
+        self.states_optimizer = torch.optim.Adam([part.frame_states], lr=lr, **options)
 
     # ------------------------------------------------------------------------------------------ training
     def begin_step(self, step) -> None:
@@ -711,11 +765,16 @@ class GarmentExtension(Extension):
         # they changed
         torch.autograd.graph.increment_version(list(part.cloth.parameters()))
         bones = self._training_bones()
-        positions, velocities = part.rollout(bones, frames.seconds)
         self.bones = _keep_storage(self.bones, bones)
-        cache = self.cache or (None, None)
-        self.cache = (_keep_storage(cache[0], part.displacements(bones, positions)),
-                      _keep_storage(cache[1], velocities))
+        if not (self.fits_states and part.frame_states.shape[0] == bones.shape[0] and self.cache is not None):
+            positions, velocities = part.rollout(bones, frames.seconds)
+            cache = self.cache or (None, None)
+            self.cache = (_keep_storage(cache[0], part.displacements(bones, positions)),
+                          _keep_storage(cache[1], velocities))
+            if self.fits_states and part.frame_states.shape[0] != bones.shape[0]:
+                self._start_states(self.cache[0])
+        if self.fits_states:  # the fitted states are what the training instants show (the rollout only began them)
+            positions = part.state_positions(bones, part.frame_states.detach())
         part.set_training_rollout(frames.bone_transforms, bones, positions)
         self.refreshed = self.step
 
@@ -729,6 +788,9 @@ class GarmentExtension(Extension):
                 step.step - self.refreshed >= self.options.garment_refresh_every:
             self.refresh()
         self.window_seconds = self._window_seconds(step.index)
+        seconds = self.fit.frames.seconds
+        self.start_seconds = (self.uniform_seconds if self.uniform_seconds is not None else
+                              seconds[max(1, step.index - self.options.garment_window)])
         return None
 
     def _window_seconds(self, index: int) -> tuple[float, ...]:
@@ -752,6 +814,8 @@ class GarmentExtension(Extension):
         skips its step, as when no gradient reaches it (the rest offsets still get one)."""
         if not self.training:
             return None
+        if self.fits_states:
+            return self._fitted_window(step)
         part = self.part
         displacements, velocities = self.cache
         self.skip_update.copy_(step.frame == 0)
@@ -774,19 +838,72 @@ class GarmentExtension(Extension):
             velocities.index_copy_(0, rows[1:], torch.stack([velocity for _, velocity in written]))
         return state.positions
 
+    def _fitted_window(self, step) -> torch.Tensor:
+        """The step's frame drawn from its fitted state, and the dynamics residual of the window before it (device
+        work from the step's frame index, like the simulated window; see the module docstring).
+
+        For training frame ``i`` and window ``W``: the fitted positions ``x_k = skinned_k(P) + y_k`` of frames
+        ``s - 1 .. i`` (``s = i - W``, indices clamped at 0) give the start state, ``x_s`` moving at
+        ``(x_s - x_{s-1}) / dt`` (the rollout's settled velocity when ``s`` is frame 0); the simulation steps it
+        through the window with gradients, and each simulated frame's distance to that frame's fitted positions,
+        squared, over the node spacing squared and averaged over the free nodes, is the residual (mean over the
+        window's frames after frame 0). Gradients reach the states of every frame in the window, the physics and
+        the rest shape. Returns ``x_i`` [M,3]."""
+        part = self.part
+        _, velocities = self.cache
+        self.skip_update.copy_(step.frame == 0)
+        rows = step.frame + self.window_offsets  # [W+1]: frames i-W .. i
+        simulated = rows[1:] >= 1  # [W]: a slot whose frame follows frame 0
+        rows = rows.clamp_min(0)
+        frames = torch.cat([(rows[:1] - 1).clamp_min(0), rows])  # [W+2]: the start's previous frame first
+        bones = self.bones.index_select(0, frames)
+        fitted = part.state_positions(bones, part.frame_states.index_select(0, frames))
+        moving = rows[0] >= 1
+        velocity = torch.where(moving, (fitted[1] - fitted[0]) / self.start_seconds, velocities[0])
+        state = ClothState(fitted[1], velocity)
+        free = part.free_mask
+        spacing = part.hyper["voxel_size"]
+        scale = 1.0 / (spacing * spacing * free.sum().clamp_min(1.0))
+        residual = fitted.new_zeros(())
+        for slot, seconds in enumerate(self.window_seconds):
+            stepped = part.step(state, bones[slot + 1], bones[slot + 2], seconds)
+            error = (((stepped.positions - fitted[slot + 2]) ** 2) * free).sum() * scale
+            residual = residual + torch.where(simulated[slot], error, torch.zeros_like(error))
+            state = ClothState(torch.where(simulated[slot], stepped.positions, state.positions),
+                               torch.where(simulated[slot], stepped.velocities, state.velocities))
+        self.residual = residual / len(self.window_seconds)
+        self.fitted = fitted[-1]
+        return self.fitted
+
+    def _stretch(self, positions: torch.Tensor) -> torch.Tensor:
+        """Mean over stretch edges of ``(length / rest-shape length - 1)^2`` at node positions [M,3]."""
+        cloth = self.part.cloth
+        pairs = cloth.pairs[: cloth.stretch_count]
+        lengths = (positions.index_select(0, pairs[:, 0]) - positions.index_select(0, pairs[:, 1])).norm(dim=1)
+        rest = cloth.rest_shape_lengths()[: cloth.stretch_count].clamp_min(1e-9)
+        return ((lengths / rest - 1.0) ** 2).mean()
+
     def losses(self, step) -> dict[str, LossTerm]:
-        """The rest shape's penalties (roughness, collapsed edges), while it is learned: device work, captured
-        with the step."""
-        if self.part is None or self.part.cloth.rest_offset_logit is None:
+        """The rest shape's penalties (roughness, collapsed edges), while it is learned, and the fitted states'
+        (the dynamics residual, stretch): device work, captured with the step."""
+        if self.part is None:
             return {}
         cloth, options = self.part.cloth, self.options
-        return {"garment_rest_smooth": LossTerm(options.lambda_garment_rest_smooth, cloth.rest_shape_roughness()),
-                "garment_rest_collapse": LossTerm(options.lambda_garment_rest_collapse, cloth.rest_shape_collapse())}
+        terms = {}
+        if cloth.rest_offset_logit is not None:
+            terms.update(garment_rest_smooth=LossTerm(options.lambda_garment_rest_smooth, cloth.rest_shape_roughness()),
+                         garment_rest_collapse=LossTerm(options.lambda_garment_rest_collapse,
+                                                        cloth.rest_shape_collapse()))
+        if self.training and self.fits_states:
+            terms.update(garment_dynamics=LossTerm(options.lambda_garment_dynamics, self.residual),
+                         garment_stretch=LossTerm(options.lambda_garment_stretch, self._stretch(self.fitted)))
+        return terms
 
     def optimizers(self, step) -> list[torch.optim.Optimizer]:
         if not self.training:
             return []
-        return [self.optimizer] if self.rest_optimizer is None else [self.optimizer, self.rest_optimizer]
+        optimizers = [self.optimizer] if self.rest_optimizer is None else [self.optimizer, self.rest_optimizer]
+        return optimizers + ([self.states_optimizer] if self.fits_states else [])
 
     def step_capturable(self, step) -> bool:
         """Without a garment (none found, or detection not reached) this extension has no device work in a step;
@@ -802,6 +919,7 @@ class GarmentExtension(Extension):
             return ()
         part = self.part
         tensors = (*self.cache, self.bones, self.skip_update, *part.cloth.buffers(), *part.cloth.parameters(),
+                   part.frame_states, part.free_mask,
                    *(getattr(part, name) for name in ("nodes", "node_weights", "gaussian_ids", "anchor",
                                                       "capsule_start", "capsule_end", "capsule_radius",
                                                       "capsule_ids")))
@@ -849,6 +967,8 @@ class GarmentExtension(Extension):
         if self.part is not None:
             state.update(part=self.part.state_for_file(), optimizer=self.optimizer.state_dict(),
                          rest_optimizer=None if self.rest_optimizer is None else self.rest_optimizer.state_dict(),
+                         states_optimizer=(None if self.states_optimizer is None else
+                                           self.states_optimizer.state_dict()),
                          cache=None if self.cache is None else [tensor.cpu() for tensor in self.cache],
                          cache_holds="displacements")
         return state
@@ -868,6 +988,11 @@ class GarmentExtension(Extension):
             _load_optimizer(self.optimizer, saved)
             if self.rest_optimizer is not None and saved_rest is not None:
                 _load_optimizer(self.rest_optimizer, saved_rest)
+            if self.fits_states and self.part.frame_states.shape[0]:  # (states fitted before the checkpoint)
+                states = self.part.frame_states.detach().clone()
+                self._start_states(states)
+                if state.get("states_optimizer") is not None:
+                    _load_optimizer(self.states_optimizer, state["states_optimizer"])
             if state["cache"] is not None:
                 self.cache = tuple(tensor.to(self.fit.device) for tensor in state["cache"])
                 self.bones = self._training_bones()
