@@ -467,15 +467,23 @@ class GarmentOptions:
                                        "novel views); the physics learns from them, and novel poses use the "
                                        "physics alone. 'off': every frame is the simulation's",
                                        choices=("on", "off"))
-    lr_garment_states: float = option(0.05, "Adam learning rate of the training frames' cloth states, as a fraction "
+    lr_garment_states: float = option(0.1, "Adam learning rate of the training frames' cloth states, as a fraction "
                                       "of the node spacing per step")
-    lambda_garment_dynamics: float = option(1.0, "weight of the dynamics residual: mean over free nodes of "
+    lambda_garment_dynamics: float = option(0.01, "weight of the dynamics residual: mean over free nodes of "
                                             "|simulated - fitted|^2 / node spacing^2, the simulated state stepped "
                                             "through the --garment-window frames from the fitted state (and its "
                                             "velocity, from the two fitted frames before) to the step's frame")
-    lambda_garment_stretch: float = option(1.0, "weight of the fitted states' stretch: mean over stretch edges of "
+    lambda_garment_stretch: float = option(0.2, "weight of the fitted states' stretch: mean over stretch edges of "
                                            "(length / rest-shape length - 1)^2 in the step's frame (cloth does "
                                            "not stretch much: what one camera cannot see follows what it sees)")
+    lambda_garment_silhouette: float = option(1.0, "weight of the fitted states' silhouette terms (on a grid of "
+                                              "about 96 cells a side): free nodes drawn outside the frame's mask are "
+                                              "pulled to its nearest cell, and mask cells the render leaves "
+                                              "uncovered pull the nearest drawn node within 15 %% of the image; "
+                                              "squared distances beyond one cell over the image's longer side "
+                                              "squared, each term a mean. Image gradients only reach cloth that "
+                                              "already covers a pixel: these reach a swing the cloth has not "
+                                              "followed yet (0: off; no effect without masks)")
     lambda_garment_rest_collapse: float = option(1.0, "weight of the penalty on rest-shape edges shorter than "
                                                  "half their detected length: mean of max(0, 0.5 - ratio)^2 "
                                                  "(dimensionless)")
@@ -512,7 +520,7 @@ class GarmentExtension(Extension):
             if not getattr(options, name) > 0.0:
                 raise ValueError(f"--{name.replace('_', '-')} must be > 0, got {getattr(options, name)}")
         for name in ("garment_rest_bound", "lambda_garment_rest_smooth", "lambda_garment_rest_collapse",
-                     "lambda_garment_dynamics", "lambda_garment_stretch"):
+                     "lambda_garment_dynamics", "lambda_garment_stretch", "lambda_garment_silhouette"):
             if not 0.0 <= getattr(options, name) < math.inf:
                 raise ValueError(f"--{name.replace('_', '-')} must be a number >= 0, got {getattr(options, name)}")
 
@@ -544,6 +552,11 @@ class GarmentExtension(Extension):
         #: the training frames' common interval [s] (the largest, when they differ by < 1e-5 of it), or None
         self.uniform_seconds = _common_interval(self.fit.frames.seconds)
         self.window_seconds: tuple[float, ...] = ()  # the lengths [s] of this step's window frames
+        cameras = self.fit.frames.cameras
+        #: the training frames' intrinsics [T,3,3] and world-to-camera transforms [T,4,4] (the silhouette terms read
+        #: the step's by its device index)
+        self.intrinsics = torch.stack([camera.K for camera in cameras])
+        self.world_to_cameras = torch.stack([camera.world_to_camera for camera in cameras])
         #: 1.0 when the step's frame is the first (no window, no gradient to the physics: its Adam skips its update)
         self.skip_update = torch.zeros((), device=self.fit.device)
 
@@ -883,6 +896,51 @@ class GarmentExtension(Extension):
         rest = cloth.rest_shape_lengths()[: cloth.stretch_count].clamp_min(1e-9)
         return ((lengths / rest - 1.0) ** 2).mean()
 
+    def _silhouette(self, step) -> tuple[torch.Tensor, torch.Tensor]:
+        """The fitted state's silhouette terms (``--lambda-garment-silhouette``): device work from the step's mask
+        and render. On a grid of cells ``c`` pixels wide (the frame pooled to about 96 cells a side; a cell is in
+        the mask, or uncovered, when over half its pixels are), with the free nodes projected by the step frame's
+        camera (nodes behind it left out), and ``S`` the image's longer side [px]:
+
+        * ``outside``: mean over the free nodes of ``max(0, d - c)^2 / S^2``, ``d`` the distance to the nearest
+          mask cell's centre;
+        * ``uncovered``: mean over the uncovered mask cells (mask, and the render's alpha under one half) whose
+          nearest node lies within ``0.15 S`` of ``max(0, d - c)^2 / S^2``, ``d`` that node's distance.
+
+        Returns ``(outside, uncovered)``, 0-dim each (zero where nothing counts)."""
+        part = self.part
+        mask = step.mask
+        height, width = mask.shape
+        cell = max(1, round(max(height, width) / 96))
+        pooled = torch.nn.functional.avg_pool2d(torch.stack([mask, step.alpha.detach()])[None], cell,
+                                                ceil_mode=True)[0]
+        rows, columns = pooled.shape[1:]
+        y, x = torch.meshgrid(torch.arange(rows, device=mask.device), torch.arange(columns, device=mask.device),
+                              indexing="ij")
+        centres = (torch.stack([x, y], dim=-1).reshape(-1, 2).float() + 0.5) * cell  # [P,2] pixels
+        inside = pooled[0].reshape(-1) > 0.5
+        uncovered = inside & (pooled[1].reshape(-1) < 0.5)
+        K = self.intrinsics.index_select(0, step.frame.reshape(1))[0]
+        world_to_camera = self.world_to_cameras.index_select(0, step.frame.reshape(1))[0]
+        points = self.fitted @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
+        front = (points[:, 2] > 1e-6) & (part.free_mask[:, 0] > 0)
+        depth = torch.where(front, points[:, 2], torch.ones_like(points[:, 2]))
+        pixels = (points[:, :2] / depth[:, None]) @ K[:2, :2].T + K[:2, 2]  # [M,2]
+        squared = ((pixels[:, None, :] - centres[None, :, :]) ** 2).sum(-1)  # [M,P]
+        size = float(max(height, width))
+        # (a finite stand-in for "none": an infinity would turn the masked-out entries' zero gradients into NaN)
+        none = 1e4 * size * size
+        far = torch.full_like(squared, none)
+        to_mask = torch.where(inside[None, :], squared, far).min(dim=1).values  # [M]
+        counted_nodes = (front & (to_mask < 0.5 * none)).float()  # (no mask cell at all: nothing counts)
+        outside_each = torch.relu(torch.sqrt(to_mask + 1e-12) - cell) ** 2 / size**2
+        outside = (outside_each * counted_nodes).sum() / counted_nodes.sum().clamp_min(1.0)
+        to_node = torch.where(front[:, None], squared, far).min(dim=0).values  # [P]
+        distance = torch.sqrt(to_node + 1e-12)
+        counted = (uncovered & (distance < 0.15 * size)).float()
+        uncovered_each = torch.where(counted > 0, torch.relu(distance - cell) ** 2 / size**2, torch.zeros_like(distance))
+        return outside, uncovered_each.sum() / counted.sum().clamp_min(1.0)
+
     def losses(self, step) -> dict[str, LossTerm]:
         """The rest shape's penalties (roughness, collapsed edges), while it is learned, and the fitted states'
         (the dynamics residual, stretch): device work, captured with the step."""
@@ -897,6 +955,10 @@ class GarmentExtension(Extension):
         if self.training and self.fits_states:
             terms.update(garment_dynamics=LossTerm(options.lambda_garment_dynamics, self.residual),
                          garment_stretch=LossTerm(options.lambda_garment_stretch, self._stretch(self.fitted)))
+            if step.mask is not None and options.lambda_garment_silhouette > 0:
+                outside, uncovered = self._silhouette(step)
+                terms.update(garment_outside=LossTerm(options.lambda_garment_silhouette, outside),
+                             garment_uncovered=LossTerm(options.lambda_garment_silhouette, uncovered))
         return terms
 
     def optimizers(self, step) -> list[torch.optim.Optimizer]:
@@ -919,7 +981,7 @@ class GarmentExtension(Extension):
             return ()
         part = self.part
         tensors = (*self.cache, self.bones, self.skip_update, *part.cloth.buffers(), *part.cloth.parameters(),
-                   part.frame_states, part.free_mask,
+                   part.frame_states, part.free_mask, self.intrinsics, self.world_to_cameras,
                    *(getattr(part, name) for name in ("nodes", "node_weights", "gaussian_ids", "anchor",
                                                       "capsule_start", "capsule_end", "capsule_radius",
                                                       "capsule_ids")))
