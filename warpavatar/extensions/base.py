@@ -120,7 +120,8 @@ class StepContext:
             with gradients when the field trains), read on first use: an extension that changes the field in
             :meth:`Extension.begin_step` does so before the grid is read.
         posed: the posed Gaussians (:class:`~warpavatar.model.avatar.PosedGaussians`), set after the render.
-        image: [H,W,3] the render; ``alpha`` [H,W]; ``target`` [H,W,3] its ground truth; ``mask`` [H,W] or None.
+        image: [H,W,3] the render; ``alpha`` [H,W]; ``depth`` [H,W] the composited camera-space depth, not
+            normalized by alpha [world units]; ``target`` [H,W,3] its ground truth; ``mask`` [H,W] or None.
     """
 
     step: int
@@ -131,6 +132,7 @@ class StepContext:
     posed: Any = None
     image: torch.Tensor | None = None
     alpha: torch.Tensor | None = None
+    depth: torch.Tensor | None = None
     target: torch.Tensor | None = None
     mask: torch.Tensor | None = None
 

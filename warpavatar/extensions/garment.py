@@ -364,6 +364,71 @@ class GarmentPart(AvatarPart):
         return part
 
 
+FLOW_SIDE = 192
+"""Longer side [px] of the stored optical flows (computed at up to 512 px, stored coarser: a fit keeps one pair of
+fields per training frame on its device)."""
+
+
+def training_flows(images, *, device="cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    """Dense optical flow between consecutive frames (OpenCV's DIS, medium preset, on grey levels).
+
+    Args:
+        images: uint8 ``[T, H, W, 3]`` (T >= 2), the training frames in order.
+
+    Returns:
+        ``(forward, backward)``, float16 ``[T, h, w, 2]`` each on ``device`` (``h, w``: the frame scaled to a
+        longer side of :data:`FLOW_SIDE` at most): ``forward[t]`` moves a pixel of frame ``t`` to frame ``t + 1``,
+        ``backward[t]`` to frame ``t - 1``, as ``(dx, dy)`` in pixels of the full frame (``forward[T-1]`` and
+        ``backward[0]`` are zero: no such frame).
+    """
+    import cv2
+    import numpy as np
+
+    count, height, width = images.shape[:3]
+    work = min(1.0, 512.0 / max(height, width))
+    keep = min(1.0, FLOW_SIDE / max(height, width))
+    work_size = (max(1, round(width * work)), max(1, round(height * work)))
+    keep_size = (max(1, round(width * keep)), max(1, round(height * keep)))
+    grey = [cv2.resize(cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY), work_size,
+                       interpolation=cv2.INTER_AREA) for image in images]
+    solver = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    forward = np.zeros((count, keep_size[1], keep_size[0], 2), np.float16)
+    backward = np.zeros_like(forward)
+
+    def stored(flow):
+        return cv2.resize(flow, keep_size, interpolation=cv2.INTER_AREA) / work
+
+    for t in range(count - 1):
+        forward[t] = stored(solver.calc(grey[t], grey[t + 1], None))
+        backward[t + 1] = stored(solver.calc(grey[t + 1], grey[t], None))
+    return torch.from_numpy(forward).to(device), torch.from_numpy(backward).to(device)
+
+
+def project(points: torch.Tensor, K: torch.Tensor, world_to_camera: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixels [M,2] (OpenCV: pixel centres at integers) and camera-space depths [M] of world points [M,3]; points
+    behind the camera get depth <= 0 and a pixel computed at depth 1 (finite, for the caller to mask)."""
+    camera = points @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
+    depth = camera[:, 2]
+    safe = torch.where(depth > 1e-6, depth, torch.ones_like(depth))
+    return (camera[:, :2] / safe[:, None]) @ K[:2, :2].T + K[:2, 2], depth
+
+
+def sample_image(image: torch.Tensor, pixels: torch.Tensor, *, mode: str = "bilinear") -> torch.Tensor:
+    """Values [M,C] of ``image`` [h,w,C] at points [M,2] given as :func:`normalized` coordinates of the frame it
+    covers (any resolution of it; outside: zeros)."""
+    grid = pixels[None, None].to(image.dtype)
+    values = torch.nn.functional.grid_sample(image.permute(2, 0, 1)[None], grid, mode=mode, padding_mode="zeros",
+                                             align_corners=True)
+    return values[0, :, 0].T
+
+
+def normalized(pixels: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """Frame pixels [M,2] as grid_sample coordinates (-1 and 1 at the first and last pixel centres)."""
+    # (two column scalings, not a tensor made from host values: no upload inside a captured step)
+    return torch.stack([pixels[:, 0] * (2.0 / max(width - 1, 1)), pixels[:, 1] * (2.0 / max(height - 1, 1))],
+                       dim=1) - 1.0
+
+
 def _common_interval(seconds: list[float]) -> float | None:
     """The interval [s] of evenly timed frames (the largest, where they differ by less than 1e-5 of it), or None.
     The first frame's interval is no step of a window and is left out."""
@@ -484,6 +549,13 @@ class GarmentOptions:
                                               "squared, each term a mean. Image gradients only reach cloth that "
                                               "already covers a pixel: these reach a swing the cloth has not "
                                               "followed yet (0: off; no effect without masks)")
+    lambda_garment_flow: float = option(10.0, "weight of the fitted states' optical-flow term: the free nodes the "
+                                        "step's render shows (in the mask, at the rendered depth within two node "
+                                        "spacings) are carried by the video's optical flow (OpenCV's DIS, between "
+                                        "consecutive training frames) to where the neighbouring frames must draw "
+                                        "them; mean squared miss over the image's longer side squared. It makes "
+                                        "the nodes follow the cloth's material, so its texture stays put on it "
+                                        "(0: off)")
     lambda_garment_rest_collapse: float = option(1.0, "weight of the penalty on rest-shape edges shorter than "
                                                  "half their detected length: mean of max(0, 0.5 - ratio)^2 "
                                                  "(dimensionless)")
@@ -520,7 +592,8 @@ class GarmentExtension(Extension):
             if not getattr(options, name) > 0.0:
                 raise ValueError(f"--{name.replace('_', '-')} must be > 0, got {getattr(options, name)}")
         for name in ("garment_rest_bound", "lambda_garment_rest_smooth", "lambda_garment_rest_collapse",
-                     "lambda_garment_dynamics", "lambda_garment_stretch", "lambda_garment_silhouette"):
+                     "lambda_garment_dynamics", "lambda_garment_stretch", "lambda_garment_silhouette",
+                     "lambda_garment_flow"):
             if not 0.0 <= getattr(options, name) < math.inf:
                 raise ValueError(f"--{name.replace('_', '-')} must be a number >= 0, got {getattr(options, name)}")
 
@@ -541,6 +614,9 @@ class GarmentExtension(Extension):
         self.optimizer: torch.optim.Optimizer | None = None  # the cloth's physics
         self.rest_optimizer: torch.optim.Optimizer | None = None  # its rest shape's offsets, while learned
         self.states_optimizer: torch.optim.Optimizer | None = None  # the training frames' fitted cloth states
+        #: the training frames' optical flows to the next and to the previous frame [T,h,w,2] each (float16, in
+        #: pixels of the frames), made with the states (:func:`training_flows`)
+        self.flows: tuple[torch.Tensor, torch.Tensor] | None = None
         #: this step's dynamics residual and fitted positions (the states' losses), set by :meth:`step_input`
         self.residual: torch.Tensor | None = None
         self.fitted: torch.Tensor | None = None
@@ -753,6 +829,9 @@ class GarmentExtension(Extension):
         options = {name: value for name, value in adam_options(self.fit.device).items() if name != "foreach"}
         options["fused"] = True
         self.states_optimizer = torch.optim.Adam([part.frame_states], lr=lr, **options)
+        if self.options.lambda_garment_flow > 0 and self.flows is None and self.fit.frames.count >= 2:
+            frames = self.fit.frames
+            self.flows = training_flows(frames.video.images[frames.indices], device=self.fit.device)
 
     # ------------------------------------------------------------------------------------------ training
     def begin_step(self, step) -> None:
@@ -917,15 +996,13 @@ class GarmentExtension(Extension):
         rows, columns = pooled.shape[1:]
         y, x = torch.meshgrid(torch.arange(rows, device=mask.device), torch.arange(columns, device=mask.device),
                               indexing="ij")
-        centres = (torch.stack([x, y], dim=-1).reshape(-1, 2).float() + 0.5) * cell  # [P,2] pixels
+        centres = (torch.stack([x, y], dim=-1).reshape(-1, 2).float() + 0.5) * cell - 0.5  # [P,2] (OpenCV pixels)
         inside = pooled[0].reshape(-1) > 0.5
         uncovered = inside & (pooled[1].reshape(-1) < 0.5)
         K = self.intrinsics.index_select(0, step.frame.reshape(1))[0]
         world_to_camera = self.world_to_cameras.index_select(0, step.frame.reshape(1))[0]
-        points = self.fitted @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
-        front = (points[:, 2] > 1e-6) & (part.free_mask[:, 0] > 0)
-        depth = torch.where(front, points[:, 2], torch.ones_like(points[:, 2]))
-        pixels = (points[:, :2] / depth[:, None]) @ K[:2, :2].T + K[:2, 2]  # [M,2]
+        pixels, depth = project(self.fitted, K, world_to_camera)  # [M,2], [M]
+        front = (depth > 1e-6) & (part.free_mask[:, 0] > 0)
         squared = ((pixels[:, None, :] - centres[None, :, :]) ** 2).sum(-1)  # [M,P]
         size = float(max(height, width))
         # (a finite stand-in for "none": an infinity would turn the masked-out entries' zero gradients into NaN)
@@ -941,6 +1018,47 @@ class GarmentExtension(Extension):
         uncovered_each = torch.where(counted > 0, torch.relu(distance - cell) ** 2 / size**2, torch.zeros_like(distance))
         return outside, uncovered_each.sum() / counted.sum().clamp_min(1.0)
 
+    def _flow(self, step) -> torch.Tensor:
+        """The fitted states' optical-flow term (``--lambda-garment-flow``): device work from the step's render.
+
+        The free nodes of frame ``i``'s fitted state that its render shows (projected inside the image, in front of
+        the camera, on a mask pixel, at the rendered depth within two node spacings: the cloth's near side) are
+        moved by the video's flow from frame ``i`` to frame ``i + 1`` and to frame ``i - 1``; each neighbouring
+        frame's fitted state must draw them there. Returns the mean over those nodes and neighbours of the squared
+        miss [px^2] over the frame's longer side squared (0-dim; the targets carry no gradient)."""
+        part = self.part
+        forward, backward = self.flows
+        frame = step.frame.reshape(1)
+        count = forward.shape[0]
+        height, width = step.alpha.shape
+        K = self.intrinsics.index_select(0, frame)[0]
+        world_to_camera = self.world_to_cameras.index_select(0, frame)[0]
+        with torch.no_grad():
+            pixels, depth = project(self.fitted.detach(), K, world_to_camera)
+            grid = normalized(pixels, width, height)
+            inside = (grid.abs() <= 1.0).all(dim=1) & (depth > 1e-6) & (part.free_mask[:, 0] > 0)
+            rendered = torch.stack([step.depth, step.alpha] + ([] if step.mask is None else [step.mask]), dim=-1)
+            seen = sample_image(rendered, grid, mode="nearest")  # [M, 2 or 3]
+            surface = seen[:, 0] / seen[:, 1].clamp_min(1e-6)
+            visible = inside & (seen[:, 1] > 0.5) & ((depth - surface).abs() < 2.0 * part.hyper["voxel_size"])
+            if step.mask is not None:
+                visible = visible & (seen[:, 2] > 0.5)
+        total = pixels.new_zeros(())
+        weight = pixels.new_zeros(())
+        for offset, flows in ((1, forward), (-1, backward)):
+            neighbour = (frame + offset).clamp(0, count - 1)
+            valid = ((frame + offset >= 0) & (frame + offset < count)).float()
+            with torch.no_grad():
+                target = pixels + sample_image(flows.index_select(0, frame)[0], grid).float()
+            bones = self.bones.index_select(0, neighbour)
+            positions = part.state_positions(bones, part.frame_states.index_select(0, neighbour))[0]
+            drawn, _ = project(positions, self.intrinsics.index_select(0, neighbour)[0],
+                               self.world_to_cameras.index_select(0, neighbour)[0])
+            miss = ((drawn - target) ** 2).sum(dim=1) * visible.float()
+            total = total + valid * miss.sum()
+            weight = weight + valid * visible.float().sum()
+        return total / (weight.clamp_min(1.0) * float(max(height, width)) ** 2)
+
     def losses(self, step) -> dict[str, LossTerm]:
         """The rest shape's penalties (roughness, collapsed edges), while it is learned, and the fitted states'
         (the dynamics residual, stretch): device work, captured with the step."""
@@ -955,6 +1073,8 @@ class GarmentExtension(Extension):
         if self.training and self.fits_states:
             terms.update(garment_dynamics=LossTerm(options.lambda_garment_dynamics, self.residual),
                          garment_stretch=LossTerm(options.lambda_garment_stretch, self._stretch(self.fitted)))
+            if self.flows is not None and options.lambda_garment_flow > 0:
+                terms["garment_flow"] = LossTerm(options.lambda_garment_flow, self._flow(step))
             if step.mask is not None and options.lambda_garment_silhouette > 0:
                 outside, uncovered = self._silhouette(step)
                 terms.update(garment_outside=LossTerm(options.lambda_garment_silhouette, outside),
@@ -982,6 +1102,7 @@ class GarmentExtension(Extension):
         part = self.part
         tensors = (*self.cache, self.bones, self.skip_update, *part.cloth.buffers(), *part.cloth.parameters(),
                    part.frame_states, part.free_mask, self.intrinsics, self.world_to_cameras,
+                   *(self.flows or ()),
                    *(getattr(part, name) for name in ("nodes", "node_weights", "gaussian_ids", "anchor",
                                                       "capsule_start", "capsule_end", "capsule_radius",
                                                       "capsule_ids")))

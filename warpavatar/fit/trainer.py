@@ -155,7 +155,7 @@ class Trainer:
         step.target, step.mask = frames.target_of(buffers.image, buffers.mask)
         grad_out = torch.zeros(self.gaussians.count, 2, device=self.device)
         step.posed = self.avatar.pose(buffers.bones, grid=step.grid, inputs=inputs, sh_degree=degree)
-        step.image, step.alpha, _, info = self.avatar.rasterize(
+        step.image, step.alpha, step.depth, info = self.avatar.rasterize(
             step.posed, buffers.camera, background=frames.background, densify_grad_out=grad_out, return_info=True,
             intersection_capacity=self.capacity.value)
         terms = self._core_losses(step)
@@ -185,7 +185,7 @@ class Trainer:
         terms["loss"] = LossTerm(1.0, loss.detach())
         step.posed = type(step.posed)({name: value.detach() if isinstance(value, torch.Tensor) else value
                                        for name, value in step.posed.items()})
-        step.image, step.alpha = step.image.detach(), step.alpha.detach()
+        step.image, step.alpha, step.depth = step.image.detach(), step.alpha.detach(), step.depth.detach()
         return step.image, step.alpha, terms
 
     def _graph_key(self, step: StepContext, degree: int, buffers, optimizers: list) -> tuple:
