@@ -336,9 +336,6 @@ def test_resume_gives_the_same_avatar_bit_for_bit(forced, video, tmp_path):
     for (name, a), b in zip(whole.avatar.part("garment").cloth.named_parameters(),
                             resumed.avatar.part("garment").cloth.parameters()):
         assert torch.equal(a, b), name
-    states = whole.avatar.part("garment").frame_states
-    assert states.shape[0] == whole.frames.count and states.abs().sum() > 0  # (fitted by default)
-    assert torch.equal(states, resumed.avatar.part("garment").frame_states)
 
 
 def _motion(video, count=6):

@@ -161,3 +161,17 @@ def test_a_steady_states_step_reads_nothing_from_the_device(video, tmp_path):
 def test_bad_state_options_are_rejected(name, value):
     with pytest.raises(ValueError, match=name.replace("_", "-")):
         GarmentExtension.check(GarmentOptions(**{name: value}), None)
+
+
+def test_resume_gives_the_same_states_bit_for_bit(video, tmp_path):
+    config = preset("quick", **{**STATES, "garment_attach": video.skeleton.names[0], "iterations": 24,
+                                "checkpoint_every": 16})
+    whole = Trainer(video, config, tmp_path / "whole")
+    whole.fit(progress=False)
+    Trainer(video, config, tmp_path / "parts").fit(progress=False, stop_at=18)
+    resumed = Trainer(video, config, tmp_path / "parts")
+    resumed.fit(resume=True, progress=False)
+    states = whole.avatar.part("garment").frame_states
+    assert states.shape[0] == whole.frames.count and states.abs().sum() > 0
+    assert torch.equal(states, resumed.avatar.part("garment").frame_states)
+    assert torch.equal(whole.gaussians.means, resumed.gaussians.means)

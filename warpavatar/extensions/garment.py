@@ -32,8 +32,20 @@ before its training frame from the cached state, with gradients, so the image lo
 parameters through those substeps. The cloth's rest shape is learned too (``--garment-rest-bound``): the cache
 holds each frame's displacement from the skinned rest shape, so a window starts at ``skinned(P) + d`` and the
 image loss of every step reaches the rest positions ``P`` (and, through the simulated frames, the rest lengths
-they define); each refresh rolls the motion out again from the settled new rest shape. Nothing is learned per
+they define); each refresh rolls the motion out again from the settled new rest shape. By default nothing is learned per
 training frame: novel poses use the same physics and rest shape.
+
+Fitted frame states (``--garment-frame-states on``). Every training frame ``t`` gets its own cloth state: node
+displacements ``y_t`` from the skinned rest shape (attached nodes: none), started at the first refresh's rollout.
+A step draws its frame at ``x_i = skinned_i(P) + y_i`` (the image loss moves ``y_i`` directly) and simulates the
+``--garment-window`` frames before it from the fitted state at ``s = i - W`` (moving at ``(x_s - x_{s-1}) / dt``);
+the squared distance of each simulated frame to its fitted state, over the node spacing squared, is the dynamics
+residual (``--lambda-garment-dynamics``): the physics is fitted to predict the fitted motion one window ahead
+(multiple shooting) and the states are held to what it can predict. Three more terms guide the states: their
+stretch against the rest shape's edge lengths, a silhouette term (nodes drawn outside the mask, mask cells the
+render leaves uncovered) and an optical-flow term (the nodes the render shows, carried by the video's flow to the
+neighbouring frames, which must draw them there). The states are drawn only at their own instants (the training
+frames and novel views of them, through the table); a new motion or pose is simulated from the physics alone.
 
 A training step's window is device work only (:meth:`GarmentExtension.step_input`), so on CUDA it is captured
 with the rest of the step and replayed: the frame comes from the step's buffers as a device index, which
@@ -526,11 +538,13 @@ class GarmentOptions:
                                                "|offset - mean of its neighbours' offsets|^2 / node spacing^2 "
                                                "(dimensionless; a smooth flare of a ring scores too, so keep it "
                                                "small: it mostly decides where the images say little)")
-    garment_frame_states: str = option("on", "fit every training frame's cloth state to its images ('on'): each "
+    garment_frame_states: str = option("off", "fit every training frame's cloth state to its images ('on'): each "
                                        "frame's node positions are learned, held to the simulation by "
-                                       "--lambda-garment-dynamics, and drawn for that frame's instant only (its "
-                                       "novel views); the physics learns from them, and novel poses use the "
-                                       "physics alone. 'off': every frame is the simulation's",
+                                       "--lambda-garment-dynamics and guided by the silhouette and optical-flow "
+                                       "terms, and drawn for that frame's instant only (its novel views); the "
+                                       "physics learns from them, and novel poses use the physics alone. 'off' "
+                                       "(default until it measurably helps: README, 'Not done yet'): every frame "
+                                       "is the simulation's",
                                        choices=("on", "off"))
     lr_garment_states: float = option(0.1, "Adam learning rate of the training frames' cloth states, as a fraction "
                                       "of the node spacing per step")
