@@ -642,11 +642,10 @@ class GarmentExtension(Extension):
         #: the training frames' common interval [s] (the largest, when they differ by < 1e-5 of it), or None
         self.uniform_seconds = _common_interval(self.fit.frames.seconds)
         self.window_seconds: tuple[float, ...] = ()  # the lengths [s] of this step's window frames
-        cameras = self.fit.frames.cameras
-        #: the training frames' intrinsics [T,3,3] and world-to-camera transforms [T,4,4] (the silhouette terms read
-        #: the step's by its device index)
-        self.intrinsics = torch.stack([camera.K for camera in cameras])
-        self.world_to_cameras = torch.stack([camera.world_to_camera for camera in cameras])
+        #: the training frames' intrinsics [T,3,3] and world-to-camera transforms [T,4,4], made with the states (their
+        #: silhouette and flow terms read the step's by its device index)
+        self.intrinsics: torch.Tensor | None = None
+        self.world_to_cameras: torch.Tensor | None = None
         #: 1.0 when the step's frame is the first (no window, no gradient to the physics: its Adam skips its update)
         self.skip_update = torch.zeros((), device=self.fit.device)
 
@@ -843,6 +842,9 @@ class GarmentExtension(Extension):
         options = {name: value for name, value in adam_options(self.fit.device).items() if name != "foreach"}
         options["fused"] = True
         self.states_optimizer = torch.optim.Adam([part.frame_states], lr=lr, **options)
+        cameras = self.fit.frames.cameras
+        self.intrinsics = torch.stack([camera.K for camera in cameras])
+        self.world_to_cameras = torch.stack([camera.world_to_camera for camera in cameras])
         if self.options.lambda_garment_flow > 0 and self.flows is None and self.fit.frames.count >= 2:
             frames = self.fit.frames
             self.flows = training_flows(frames.video.images[frames.indices], device=self.fit.device)
@@ -1115,7 +1117,8 @@ class GarmentExtension(Extension):
             return ()
         part = self.part
         tensors = (*self.cache, self.bones, self.skip_update, *part.cloth.buffers(), *part.cloth.parameters(),
-                   part.frame_states, part.free_mask, self.intrinsics, self.world_to_cameras,
+                   part.frame_states, part.free_mask,
+                   *(tensor for tensor in (self.intrinsics, self.world_to_cameras) if tensor is not None),
                    *(self.flows or ()),
                    *(getattr(part, name) for name in ("nodes", "node_weights", "gaussian_ids", "anchor",
                                                       "capsule_start", "capsule_end", "capsule_radius",
