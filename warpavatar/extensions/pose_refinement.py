@@ -62,7 +62,8 @@ from warpavatar.geometry import match_pose
 from warpavatar.model.kinematics import ancestor_jumps, corrected_transforms, posed_pivots, smoothing_corrections
 from warpavatar.model.parts import AvatarPart
 
-__all__ = ["PoseRefinement", "PoseRefinementOptions", "PoseRefinementExtension", "refinement_last_step"]
+__all__ = ["PoseRefinement", "PoseRefinementOptions", "PoseRefinementExtension", "VectorAdam",
+           "refinement_last_step"]
 
 
 def _acceleration(values: torch.Tensor, gaps: torch.Tensor) -> torch.Tensor:
@@ -71,6 +72,51 @@ def _acceleration(values: torch.Tensor, gaps: torch.Tensor) -> torch.Tensor:
     gaps = gaps.reshape(-1, *([1] * (values.dim() - 1)))
     slopes = (values[1:] - values[:-1]) / gaps
     return (slopes[1:] - slopes[:-1]) * (2.0 / (gaps[1:] + gaps[:-1]))
+
+
+class VectorAdam(torch.optim.Optimizer):
+    """Adam whose second moment is shared by the components of each vector (the last dimension of a parameter):
+    a joint's axis-angle correction, a root's offset.
+
+    Plain Adam divides every component by its own gradient scale, so a direction the images barely constrain (a
+    joint turning towards the camera, whose gradient is a small fraction of the in-plane ones) moves as far per
+    step as the best-seen one, and its noise drifts. Sharing the scale across the vector keeps the gradient's
+    direction: an unconstrained component moves in proportion to its share of the gradient. The step length per
+    vector stays about the learning rate, as with Adam.
+
+    Args:
+        params: parameters (or groups) whose last dimension holds the vectors.
+        lr: learning rate (the step length of a vector whose gradient is steady, in its units).
+        betas: decay rates of the first and second moments.
+        eps: added to the square root of the second moment.
+    """
+
+    def __init__(self, params, lr: float = 1e-3, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
+        if not lr > 0:
+            raise ValueError(f"lr must be > 0, got {lr}")
+        super().__init__(params, dict(lr=lr, betas=betas, eps=eps))
+
+    @torch.no_grad()
+    def step(self, closure=None):
+        for group in self.param_groups:
+            beta1, beta2 = group["betas"]
+            for parameter in group["params"]:
+                if parameter.grad is None:
+                    continue
+                gradient = parameter.grad
+                state = self.state[parameter]
+                if not state:
+                    state["step"] = 0
+                    state["exp_avg"] = torch.zeros_like(parameter)
+                    state["exp_avg_sq"] = torch.zeros_like(parameter[..., :1])
+                state["step"] += 1
+                state["exp_avg"].mul_(beta1).add_(gradient, alpha=1.0 - beta1)
+                state["exp_avg_sq"].mul_(beta2).add_(gradient.square().mean(-1, keepdim=True), alpha=1.0 - beta2)
+                corrected_first = 1.0 - beta1 ** state["step"]
+                corrected_second = 1.0 - beta2 ** state["step"]
+                scale = (state["exp_avg_sq"] / corrected_second).sqrt().add_(group["eps"])
+                parameter.addcdiv_(state["exp_avg"], scale, value=-group["lr"] / corrected_first)
+        return None
 
 
 _DEPTH_WINDOW = 5
@@ -176,6 +222,10 @@ class PoseRefinementOptions:
     lr_pose_rotation: float = option(2e-3, "Adam learning rate of the joints' correction angles [rad]")
     lr_pose_translation: float = option(1e-3, "Adam learning rate of the root's correction, times the canonical "
                                         "extent")
+    pose_moments: str = option("vector", "Adam's gradient scale for the pose corrections: one per vector (a "
+                               "joint's rotation, a root's offset: a direction the images barely see moves in "
+                               "proportion to its share of the gradient) or one per component (plain Adam: every "
+                               "direction moves as far per step)", choices=("vector", "component"))
     lr_pose_final: float = option(0.01, "fraction of the pose learning rates left at the last refining step (they "
                                   "decay exponentially from --refine-poses-from on): Adam moves every frame's "
                                   "pose by about ten times its rate at each of its visits, signal or noise, so "
@@ -207,6 +257,8 @@ class PoseRefinementOptions:
                      "lambda_pose_depth", "pose_prior_window"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
+        if self.pose_moments not in ("vector", "component"):
+            raise ValueError(f"pose_moments must be 'vector' or 'component', got {self.pose_moments!r}")
         if not 0 < self.lr_pose_final <= 1:
             raise ValueError(f"lr_pose_final must lie in (0, 1], got {self.lr_pose_final}")
         if self.refine_poses_from < 0:
@@ -272,8 +324,9 @@ class PoseRefinementExtension(Extension):
             self.target_pivots = posed_pivots(part.refined(slice(None)), part.heads) / fit.extent
             self.view_axes = torch.stack([camera.world_to_camera[2, :3] for camera in fit.frames.cameras]).float()
         self.base_lr = (self.options.lr_pose_rotation, self.options.lr_pose_translation * fit.extent)
-        self.optimizer = torch.optim.Adam([{"params": [part.rotation], "lr": self.base_lr[0]},
-                                           {"params": [part.translation], "lr": self.base_lr[1]}])
+        optimizer = VectorAdam if self.options.pose_moments == "vector" else torch.optim.Adam
+        self.optimizer = optimizer([{"params": [part.rotation], "lr": self.base_lr[0]},
+                                    {"params": [part.translation], "lr": self.base_lr[1]}])
 
     def _prior_target(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The corrections [T,J,3], [T,3] that bring the training frames to the given motion smoothed in time (every
