@@ -361,7 +361,7 @@ def test_joints_the_images_barely_see_stay_nearer_their_prior_target(noisy_fit):
     # pixels) near their target while the images move the well seen ones
     barely, well = angles[order[:5]].mean(), angles[order[-5:]].mean()
     assert barely < 0.5 * well, (barely, well)
-    assert well > math.radians(1.0)
+    assert well > math.radians(0.5)  # (the target, smoothed over up to 0.45 s, is already nearer the truth)
 
 
 def test_refinement_is_deterministic_and_resumes_exactly(tmp_path):

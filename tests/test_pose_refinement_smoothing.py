@@ -13,6 +13,9 @@ from warpavatar import data
 from warpavatar.fit import Trainer, preset
 from warpavatar.model.kinematics import (ancestor_jumps, axis_angle_from_matrix, axis_angle_to_matrix,
                                          corrected_transforms, local_rotations, posed_pivots, smoothing_corrections)
+from warpavatar.extensions.pose_refinement import PoseRefinementOptions
+
+DEFAULT_WINDOW = PoseRefinementOptions().pose_prior_window  # [s], the widest window of the fit's default
 
 PARENTS = [-1, 0, 1, 2, 1, 4, 0, 6]
 FPS = 30.0
@@ -67,27 +70,27 @@ def test_axis_angle_from_matrix_inverts_axis_angle_to_matrix():
 
 @pytest.mark.parametrize("fps, bound", [(30.0, 0.6), (60.0, 0.45)])
 def test_smoothed_target_removes_most_of_independent_noise(fps, bound):
-    # 3 s of motion; 5 degrees per joint and 2 cm at the root, independent per frame. The default window (0.15 s
-    # either side) fits 9 frames at 30 fps, 19 at 60: a quadratic fit over them keeps 0.51 / 0.36 of white noise
-    # (Savitzky-Golay's centre coefficient), a little more at the ends of the motion
+    # 3 s of motion; 5 degrees per joint and 2 cm at the root, independent per frame. The default windows (up to
+    # 0.45 s either side, where the motion allows) fit up to 27 frames at 30 fps: a quadratic fit over 9 frames
+    # keeps 0.51 of white noise (Savitzky-Golay's centre coefficient), over 27 about 0.3, a little more at the ends
     frame_count = int(3 * fps)
     clean, heads, times = _smooth_motion(frame_count, fps=fps)
     turns, offsets = _noise(frame_count, degrees=5.0, metres=0.02, seed=1)
     noisy = corrected_transforms(clean, heads, ancestor_jumps(PARENTS), turns, offsets)
     given_angles, given_offsets = _errors(noisy, clean, heads)
     assert torch.allclose(given_angles, torch.full_like(given_angles, 5.0), atol=1e-6)  # the noise is exact
-    angles, offsets = _errors(_smoothed(noisy, heads, times, window=0.15), clean, heads)
+    angles, offsets = _errors(_smoothed(noisy, heads, times, window=DEFAULT_WINDOW), clean, heads)
     assert angles.mean() < bound * 5.0, float(angles.mean())
     assert offsets.mean() < bound * 0.02, float(offsets.mean())
     # every frame a window away from the ends is clearly better (at the ends the fit extrapolates from one side,
     # which keeps about 0.9 of the noise)
-    inner = angles[int(0.15 * fps):-int(0.15 * fps)].mean(1)
+    inner = angles[int(DEFAULT_WINDOW * fps):-int(DEFAULT_WINDOW * fps)].mean(1)
     assert inner.max() < 0.75 * 5.0, float(inner.max())
 
 
 def test_smoothed_target_leaves_a_clean_motion_nearly_as_it_is():
     clean, heads, times = _smooth_motion(90)
-    angles, offsets = _errors(_smoothed(clean, heads, times, window=0.15), clean, heads)
+    angles, offsets = _errors(_smoothed(clean, heads, times, window=DEFAULT_WINDOW), clean, heads)
     # components up to 1.5 Hz, up to 0.5 rad: a quadratic fit over +-0.13 s keeps them to within a few 0.01 deg
     assert angles.mean() < 0.1 and angles.max() < 0.5, (float(angles.mean()), float(angles.max()))
     assert offsets.max() < 1e-4  # the root's sway at 0.16 and 0.48 Hz and its steady walk [m]
@@ -102,12 +105,12 @@ def test_a_sudden_move_without_noise_is_kept():
     kick = torch.zeros(90, len(PARENTS), 3, dtype=torch.float64)
     kick[:, 3, 0] = angle
     kicked = corrected_transforms(clean, heads, ancestor_jumps(PARENTS), kick, torch.zeros(90, 3, dtype=torch.float64))
-    angles, _ = _errors(_smoothed(kicked, heads, times, window=0.15), kicked, heads)
+    angles, _ = _errors(_smoothed(kicked, heads, times, window=DEFAULT_WINDOW), kicked, heads)
     assert angles.max() < 3.5 and angles.mean() < 0.1, (float(angles.max()), float(angles.mean()))
     # with noise, the same motion is still averaged around the kick (the noise hides the corners)
     turns, offsets = _noise(90, degrees=5.0, metres=0.02, seed=1)
     noisy = corrected_transforms(kicked, heads, ancestor_jumps(PARENTS), turns, offsets)
-    angles, _ = _errors(_smoothed(noisy, heads, times, window=0.15), kicked, heads)
+    angles, _ = _errors(_smoothed(noisy, heads, times, window=DEFAULT_WINDOW), kicked, heads)
     assert angles[25:40, 3].mean() < 0.8 * 5.0 and angles.mean() < 0.6 * 5.0
 
 
@@ -117,8 +120,8 @@ def test_single_wild_frames_do_not_drag_their_neighbours():
     turns, offsets = _noise(90, degrees=5.0, metres=0.02, seed=2)
     turns[5::11] *= 8.0
     noisy = corrected_transforms(clean, heads, ancestor_jumps(PARENTS), turns, offsets)
-    robust, _ = _errors(_smoothed(noisy, heads, times, window=0.15), clean, heads)
-    plain, _ = _errors(_smoothed(noisy, heads, times, window=0.15, robust_passes=0), clean, heads)
+    robust, _ = _errors(_smoothed(noisy, heads, times, window=DEFAULT_WINDOW), clean, heads)
+    plain, _ = _errors(_smoothed(noisy, heads, times, window=DEFAULT_WINDOW, robust_passes=0), clean, heads)
     given, _ = _errors(noisy, clean, heads)
     assert robust.mean() < 0.65 * plain.mean(), (float(robust.mean()), float(plain.mean()))
     assert robust[5::11].mean() < 0.15 * given[5::11].mean()  # the wild frames themselves come back

@@ -18,18 +18,19 @@ which no image of that camera sees, to that smoothed motion. After each step the
 is removed: a correction shared by every frame is one the canonical shape can take up just as well, so only frame-to-frame
 errors are corrected.
 
-The prior's target (``--pose-prior-window``, 0.15 s): a pose estimator's jitter is mostly independent from frame
-to frame, while a body's motion is smooth over a few frames, so the given motion smoothed in time
+The prior's target (``--pose-prior-window``, up to 0.45 s): a pose estimator's jitter is mostly independent from
+frame to frame, while a body's motion is smooth over a few frames, so the given motion smoothed in time
 (:func:`warpavatar.model.kinematics.smoothing_corrections`: a robust local quadratic fit of every joint's rotation,
-on the rotation manifold, and of the root's position, over the video folder's frames within the window either
+on the rotation manifold, and of the root's position, over the video folder's frames within a window either
 side) is closer to the true motion than the given poses are. The corrections start at that target (the Gaussians
 are fitted on the smoothed poses from the first step) and the prior holds them near it where the images do not say
-otherwise: a turn one camera cannot see keeps the smoothed value, not the frame's noise. A quadratic fit over
-+-0.15 s keeps 97 % of a component varying at 2 Hz and 70 % at 3.7 Hz (the gain at frequency ``f`` is that of
-Savitzky-Golay's filter: everyday joint motion is mostly below 2-3 Hz, while a few degrees of white per-frame
-noise dominate the spectrum above about 4 Hz) and halves independent noise at 30 fps (9 frames; more frames at a
-higher rate). Where a move is too fast for the window (a kick stopped within a few frames) and the noise does not
-hide it, the fit narrows the window for those frames and joints, so exact poses stay nearly as given. With the
+otherwise: a turn one camera cannot see keeps the smoothed value, not the frame's noise. Each frame and joint
+takes the widest of six windows, from 0.075 to 0.45 s either side, that agrees with the narrower ones: a quadratic
+fit over +-0.075 s keeps 97 % of a component varying at 4 Hz (the gain at frequency ``f`` is that of
+Savitzky-Golay's filter), over +-0.45 s it keeps 70 % at 1.2 Hz and averages independent noise over 27 frames at
+30 fps (about 0.3 of it left, against 0.5 at +-0.15 s). Where a move is too fast for the wide windows (a kick
+stopped within a few frames) and the noise does not hide it, the narrower windows disagree with them and the
+frame keeps a narrow one, so exact poses stay nearly as given. With the
 window at 0 the target is the given motion and the corrections start at zero.
 
 The corrected skinning transforms are rebuilt down the skeleton
@@ -235,12 +236,13 @@ class PoseRefinementOptions:
                                       "offset in units of the canonical extent): keeps the poses near the given "
                                       "motion smoothed in time (--pose-prior-window) where the images do not "
                                       "need otherwise")
-    pose_prior_window: float = option(0.15, "half-width [s] of the time window over which the given motion is "
-                                      "smoothed into the prior's target and the corrections' start (a robust "
-                                      "local quadratic fit over the folder's frames within it either side, from "
-                                      "meta.json's fps and the frame numbers, narrowed where a fast move "
-                                      "stands out of the noise): removes per-frame jitter of the pose estimate, "
-                                      "keeps 97 % of 2 Hz motion; 0: the given poses themselves")
+    pose_prior_window: float = option(0.45, "widest half-width [s] of the time window over which the given "
+                                      "motion is smoothed into the prior's target and the corrections' start (a "
+                                      "robust local quadratic fit over the folder's frames within it either "
+                                      "side, from meta.json's fps and the frame numbers; per frame and joint the "
+                                      "widest of six windows down to a sixth of this that agrees with the "
+                                      "narrower ones, so fast moves keep a narrow one): removes per-frame "
+                                      "jitter of the pose estimate; 0: the given poses themselves")
     lambda_pose_smooth: float = option(1.0, "weight of the refined motion's mean squared acceleration over all "
                                        "frames (joints' positions in units of the canonical extent, and "
                                        "rotation matrices, per video frame squared, from the frame numbers of the "

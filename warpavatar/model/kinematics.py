@@ -135,8 +135,10 @@ def local_rotations(bone_transforms: torch.Tensor, parents) -> torch.Tensor:
 _ROBUST_SCALE = 6.0
 """Residuals beyond this many times the median residual of a joint get no weight in the robust passes."""
 
-_WINDOW_FRACTIONS = (0.5, 0.75, 1.0)
-"""The windows :func:`smoothing_corrections` chooses from, as fractions of the widest."""
+_WINDOW_FRACTIONS = (1.0 / 6.0, 0.25, 1.0 / 3.0, 0.5, 2.0 / 3.0, 1.0)
+"""The windows :func:`smoothing_corrections` chooses from, as fractions of the widest (a ladder of ratio 1.33-1.5:
+the choice rounds a motion's fast part off by little, and averages a slow one's noise over up to six times the
+narrowest window)."""
 
 _CONFIDENCE = 2.5
 """Half-width of the confidence intervals of the window choice, in standard deviations of each estimate."""
@@ -203,14 +205,15 @@ def smoothing_corrections(bone_transforms: torch.Tensor, heads: torch.Tensor, pa
     * the roots' mean pivot is fitted in the world; the correction moves the roots by the difference.
 
     A quadratic fit keeps a steady turn and a steady acceleration exactly, also at the ends of the motion and next
-    to missing frames, and keeps 70 % of a component varying at 0.5 / ``window`` Hz, less of faster ones; a frame
-    with fewer than four frames within the window keeps its own pose (zero correction). Where the motion changes
-    faster than that (a kick stopped within a few frames), the widest window would round it off by more than the
-    noise: each frame and joint takes the widest of the windows ``window`` x (1/2, 3/4, 1) whose estimate agrees
-    with those of all narrower ones (the intersection of confidence intervals rule of adaptive local polynomial
-    regression: intervals of +-2.5 standard deviations, the noise's level per joint estimated from the widest
-    fit's residuals at the frames themselves). A motion with no noise thus keeps its fast moves, and noise is
-    averaged wherever the motion allows.
+    to missing frames, and keeps 70 % of a component varying at 0.5 / ``w`` Hz over a window of half-width ``w``,
+    less of faster ones; a frame with fewer than four frames within a window keeps its own pose there (zero
+    correction). Where the motion changes faster than that (a kick stopped within a few frames), a wide window
+    would round it off by more than the noise: each frame and joint takes the widest of the windows ``window`` x
+    (1/6, 1/4, 1/3, 1/2, 2/3, 1) whose estimate agrees with those of all narrower ones (the intersection of
+    confidence intervals rule of adaptive local polynomial regression: intervals of +-2.5 standard deviations,
+    the noise's level per joint estimated from the residuals at the frames themselves of the narrowest window that
+    fits at least half of the frames). A motion with no noise thus keeps its fast moves, and noise is averaged over
+    up to ``window`` either side wherever the motion allows.
 
     Args:
         bone_transforms: [T,J,4,4] the poses, in the order of ``times``.
@@ -261,13 +264,20 @@ def smoothing_corrections(bone_transforms: torch.Tensor, heads: torch.Tensor, pa
 def _widest_agreeing(fits: list[tuple[torch.Tensor, torch.Tensor]]) -> torch.Tensor:
     """Per frame and channel, the estimate [T,C,3] of the widest window whose confidence interval meets those of
     every narrower window (``fits``: :func:`_local_quadratic_fits` of windows from narrowest to widest)."""
-    widest, widest_variance = fits[-1]
-    # the noise's variance per channel: the widest fit's residual at the frame itself is minus its estimate, of
-    # variance (1 - leverage) per component; robust to the frames where the motion is too fast for the window
-    fitted = widest_variance < 1.0 - 1e-9  # [T,C] frames with enough neighbours (the others keep their own)
-    residual = widest.square().sum(-1) / (1.0 - widest_variance.clamp(max=0.95))
+    # The noise's variance per channel, from the narrowest window that fits at least half of the frames (a wider
+    # one's residuals carry the motion's own curvature where it is fast, which would read as noise and let the
+    # widest windows round fast moves off): the fit's residual at the frame itself is minus its estimate, of
+    # variance (1 - leverage) per component; the median over the frames is robust to the fastest of them.
+    source, source_variance = fits[-1]
+    for value, variance in fits:
+        if float((variance < 1.0 - 1e-9).float().mean()) >= 0.5:
+            source, source_variance = value, variance
+            break
+    fitted = source_variance < 1.0 - 1e-9  # [T,C] frames with enough neighbours (the others keep their own)
+    residual = source.square().sum(-1) / (1.0 - source_variance.clamp(max=0.95))
     noise = torch.stack([residual[:, c][fitted[:, c]].median() if bool(fitted[:, c].any()) else residual.new_zeros(())
-                         for c in range(widest.shape[1])]) / _CHI2_3_MEDIAN  # [C]
+                         for c in range(source.shape[1])]) / _CHI2_3_MEDIAN  # [C]
+    widest = fits[-1][0]
     low = high = chosen = None
     agree = torch.ones(widest.shape[:2], dtype=torch.bool, device=widest.device)
     for value, variance in fits:
