@@ -175,3 +175,26 @@ def test_resume_gives_the_same_states_bit_for_bit(video, tmp_path):
     assert states.shape[0] == whole.frames.count and states.abs().sum() > 0
     assert torch.equal(states, resumed.avatar.part("garment").frame_states)
     assert torch.equal(whole.gaussians.means, resumed.gaussians.means)
+
+
+def test_training_flows_follow_a_shifted_texture():
+    """Frame 1 is frame 0 moved by (+6, +4) px: the forward flow of frame 0 and the backward flow of frame 1
+    carry the textured middle by that and its opposite (in full-frame pixels, at the stored resolution); the flows
+    out of the sequence are zero."""
+    from warpavatar.extensions.garment import training_flows
+
+    generator = torch.Generator().manual_seed(0)
+    texture = torch.nn.functional.interpolate(torch.rand(1, 3, 40, 40, generator=generator), size=(240, 240),
+                                              mode="bilinear", align_corners=False)[0].permute(1, 2, 0)
+    base = (texture * 255).to(torch.uint8).numpy()
+    frames = torch.zeros(2, 200, 200, 3, dtype=torch.uint8).numpy()
+    frames[0] = base[20:220, 20:220]
+    frames[1] = base[16:216, 14:214]  # content moves right by 6 and down by 4
+    forward, backward = training_flows(frames)
+    assert forward.shape == backward.shape == (2, 192, 192, 2) and forward.dtype == torch.float16
+    middle = slice(48, 144)
+    torch.testing.assert_close(forward[0, middle, middle].float().mean((0, 1)), torch.tensor([6.0, 4.0]), atol=0.5,
+                               rtol=0)
+    torch.testing.assert_close(backward[1, middle, middle].float().mean((0, 1)), torch.tensor([-6.0, -4.0]),
+                               atol=0.5, rtol=0)
+    assert forward[1].abs().max() == 0 and backward[0].abs().max() == 0

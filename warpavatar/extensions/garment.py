@@ -77,7 +77,7 @@ from warpavatar.sim import (Capsules, ClothGraph, ClothModel, ClothState, capsul
                             fit_body_capsules, nearest_nodes, node_rotations, pose_capsules, ride_on_nodes)
 from warpavatar.sim.capsules import select
 
-__all__ = ["GarmentPart", "GarmentOptions", "GarmentExtension", "body_detection_options"]
+__all__ = ["GarmentPart", "GarmentOptions", "GarmentExtension", "body_detection_options", "training_flows"]
 
 
 class GarmentPart(AvatarPart):
@@ -416,7 +416,7 @@ def training_flows(images, *, device="cpu") -> tuple[torch.Tensor, torch.Tensor]
     return torch.from_numpy(forward).to(device), torch.from_numpy(backward).to(device)
 
 
-def project(points: torch.Tensor, K: torch.Tensor, world_to_camera: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _project(points: torch.Tensor, K: torch.Tensor, world_to_camera: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Pixels [M,2] (OpenCV: pixel centres at integers) and camera-space depths [M] of world points [M,3]; points
     behind the camera get depth <= 0 and a pixel computed at depth 1 (finite, for the caller to mask)."""
     camera = points @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
@@ -425,8 +425,8 @@ def project(points: torch.Tensor, K: torch.Tensor, world_to_camera: torch.Tensor
     return (camera[:, :2] / safe[:, None]) @ K[:2, :2].T + K[:2, 2], depth
 
 
-def sample_image(image: torch.Tensor, pixels: torch.Tensor, *, mode: str = "bilinear") -> torch.Tensor:
-    """Values [M,C] of ``image`` [h,w,C] at points [M,2] given as :func:`normalized` coordinates of the frame it
+def _sample_image(image: torch.Tensor, pixels: torch.Tensor, *, mode: str = "bilinear") -> torch.Tensor:
+    """Values [M,C] of ``image`` [h,w,C] at points [M,2] given as :func:`_normalized` coordinates of the frame it
     covers (any resolution of it; outside: zeros)."""
     grid = pixels[None, None].to(image.dtype)
     values = torch.nn.functional.grid_sample(image.permute(2, 0, 1)[None], grid, mode=mode, padding_mode="zeros",
@@ -434,7 +434,7 @@ def sample_image(image: torch.Tensor, pixels: torch.Tensor, *, mode: str = "bili
     return values[0, :, 0].T
 
 
-def normalized(pixels: torch.Tensor, width: int, height: int) -> torch.Tensor:
+def _normalized(pixels: torch.Tensor, width: int, height: int) -> torch.Tensor:
     """Frame pixels [M,2] as grid_sample coordinates (-1 and 1 at the first and last pixel centres)."""
     # (two column scalings, not a tensor made from host values: no upload inside a captured step)
     return torch.stack([pixels[:, 0] * (2.0 / max(width - 1, 1)), pixels[:, 1] * (2.0 / max(height - 1, 1))],
@@ -1017,7 +1017,7 @@ class GarmentExtension(Extension):
         uncovered = inside & (pooled[1].reshape(-1) < 0.5)
         K = self.intrinsics.index_select(0, step.frame.reshape(1))[0]
         world_to_camera = self.world_to_cameras.index_select(0, step.frame.reshape(1))[0]
-        pixels, depth = project(self.fitted, K, world_to_camera)  # [M,2], [M]
+        pixels, depth = _project(self.fitted, K, world_to_camera)  # [M,2], [M]
         front = (depth > 1e-6) & (part.free_mask[:, 0] > 0)
         squared = ((pixels[:, None, :] - centres[None, :, :]) ** 2).sum(-1)  # [M,P]
         size = float(max(height, width))
@@ -1050,11 +1050,11 @@ class GarmentExtension(Extension):
         K = self.intrinsics.index_select(0, frame)[0]
         world_to_camera = self.world_to_cameras.index_select(0, frame)[0]
         with torch.no_grad():
-            pixels, depth = project(self.fitted.detach(), K, world_to_camera)
-            grid = normalized(pixels, width, height)
+            pixels, depth = _project(self.fitted.detach(), K, world_to_camera)
+            grid = _normalized(pixels, width, height)
             inside = (grid.abs() <= 1.0).all(dim=1) & (depth > 1e-6) & (part.free_mask[:, 0] > 0)
             rendered = torch.stack([step.depth, step.alpha] + ([] if step.mask is None else [step.mask]), dim=-1)
-            seen = sample_image(rendered, grid, mode="nearest")  # [M, 2 or 3]
+            seen = _sample_image(rendered, grid, mode="nearest")  # [M, 2 or 3]
             surface = seen[:, 0] / seen[:, 1].clamp_min(1e-6)
             visible = inside & (seen[:, 1] > 0.5) & ((depth - surface).abs() < 2.0 * part.hyper["voxel_size"])
             if step.mask is not None:
@@ -1065,10 +1065,10 @@ class GarmentExtension(Extension):
             neighbour = (frame + offset).clamp(0, count - 1)
             valid = ((frame + offset >= 0) & (frame + offset < count)).float()
             with torch.no_grad():
-                target = pixels + sample_image(flows.index_select(0, frame)[0], grid).float()
+                target = pixels + _sample_image(flows.index_select(0, frame)[0], grid).float()
             bones = self.bones.index_select(0, neighbour)
             positions = part.state_positions(bones, part.frame_states.index_select(0, neighbour))[0]
-            drawn, _ = project(positions, self.intrinsics.index_select(0, neighbour)[0],
+            drawn, _ = _project(positions, self.intrinsics.index_select(0, neighbour)[0],
                                self.world_to_cameras.index_select(0, neighbour)[0])
             miss = ((drawn - target) ** 2).sum(dim=1) * visible.float()
             total = total + valid * miss.sum()
