@@ -220,3 +220,26 @@ def test_replays_serve_callers_in_and_out_of_inference_mode(device, replays, cap
     _assert_same_as_exact(moved, sizes, cotangents, replayed)
     for a, b in zip(inferred, replayed[0]):
         assert torch.equal(a, b)
+
+
+def test_the_public_switch_turns_replays_off_and_releases_their_memory(device, replays, monkeypatch):
+    """``ops.rasterizer_replays``: ``after=None`` keeps every call eager; a number sets the streak that captures;
+    each call returns the bytes the cached graphs held and releases them; bad values are clear errors."""
+    monkeypatch.setattr(splat_replay, "REPLAY_AFTER", splat_replay.REPLAY_AFTER)  # (restored after the test)
+    monkeypatch.setattr(splat_replay, "REPLAY_MAX_BYTES", splat_replay.REPLAY_MAX_BYTES)
+    scene, sizes = make_scene(23, device=device, gaussian_count=200)
+    cotangents = random_cotangents(sizes, device, 23)
+    assert ops.rasterizer_replays(after=None) == 0
+    for _ in range(6):
+        render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents)
+    assert replays.captures == 0 and replays.held_bytes() == 0
+    ops.rasterizer_replays(after=1)
+    for _ in range(3):  # an exact call, one speculative, then the replay's capture
+        render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents)
+    assert replays.captures == 1
+    held = replays.held_bytes()
+    assert held > 0 and ops.rasterizer_replays() == held and replays.held_bytes() == 0
+    assert splat_replay.REPLAY_AFTER == 3
+    for bad in (dict(after=0), dict(after=1.5), dict(max_bytes=0)):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            ops.rasterizer_replays(**bad)

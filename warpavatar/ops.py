@@ -18,12 +18,13 @@ from warpavatar._src.correction import apply_correction, frame_bias, match_frame
 from warpavatar._src.knn import knn_graph
 from warpavatar._src.shading import view_colors
 from warpavatar._src.skinning import inverse_lbs, lbs, sample_grid
-from warpavatar._src.splat import rasterize_gaussians, rasterizer_status
+from warpavatar._src.splat import rasterize_gaussians, rasterizer_replays, rasterizer_status
 from warpavatar._src.springs import damping_loss, isometry_loss, spring_step
 
 __all__ = [
     "rasterize_gaussians",
     "rasterizer_status",
+    "rasterizer_replays",
     "knn_graph",
     "spring_step",
     "isometry_loss",
