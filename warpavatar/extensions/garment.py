@@ -558,7 +558,7 @@ class GarmentOptions:
     lambda_garment_silhouette: float = option(1.0, "weight of the fitted states' silhouette terms (on a grid of "
                                               "about 96 cells a side): free nodes drawn outside the frame's mask are "
                                               "pulled to its nearest cell, and mask cells the render leaves "
-                                              "uncovered pull the nearest drawn node within 15 %% of the image; "
+                                              "uncovered pull the nearest drawn node within 15 % of the image; "
                                               "squared distances beyond one cell over the image's longer side "
                                               "squared, each term a mean. Image gradients only reach cloth that "
                                               "already covers a pixel: these reach a swing the cloth has not "
