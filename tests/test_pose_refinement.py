@@ -476,3 +476,34 @@ def test_refinement_stops_three_quarters_of_the_way_by_default():
     assert refinement_last_step(PoseRefinementOptions(refine_poses_from=400), 2000) == 1600
     assert refinement_last_step(PoseRefinementOptions(refine_poses_from=10, refine_poses_until=30), 50) == 30
     assert refinement_last_step(PoseRefinementOptions(refine_poses_from=10, refine_poses_until=50), 50) == 50
+
+
+def test_vector_adam_keeps_each_vector_s_direction():
+    """VectorAdam: with vectors of one component it is Adam, step for step; with 3-vectors its first step is each
+    gradient's own direction, of root-mean-square length ``lr`` per vector (Adam's would be ``lr`` per component,
+    whatever the gradient's direction); a bad learning rate is a clear error."""
+    from warpavatar.extensions.pose_refinement import VectorAdam
+
+    generator = torch.Generator().manual_seed(11)
+    start = torch.randn(40, 1, generator=generator, dtype=torch.float64)
+    weights = torch.rand(40, 1, generator=generator, dtype=torch.float64) + 0.1
+    ours, theirs = start.clone().requires_grad_(), start.clone().requires_grad_()
+    optimizers = VectorAdam([ours], lr=0.01), torch.optim.Adam([theirs], lr=0.01)
+    for _ in range(25):
+        for parameter, optimizer in zip((ours, theirs), optimizers):
+            optimizer.zero_grad()
+            (weights * (parameter - 0.3) ** 2).sum().backward()
+            optimizer.step()
+    torch.testing.assert_close(ours, theirs, rtol=1e-12, atol=1e-12)
+
+    vectors = torch.randn(30, 3, generator=generator, dtype=torch.float64).requires_grad_()
+    gradient = torch.randn(30, 3, generator=generator, dtype=torch.float64) * torch.tensor([1.0, 0.1, 0.01],
+                                                                                         dtype=torch.float64)
+    before = vectors.detach().clone()
+    optimizer = VectorAdam([vectors], lr=0.02, eps=0.0)
+    vectors.grad = gradient.clone()
+    optimizer.step()
+    step = vectors.detach() - before
+    torch.testing.assert_close(step, -0.02 * gradient / gradient.square().mean(-1, keepdim=True).sqrt())
+    with pytest.raises(ValueError, match="lr must be > 0"):
+        VectorAdam([vectors], lr=0.0)

@@ -814,8 +814,7 @@ class GarmentExtension(Extension):
         self.part = self.fit.avatar.add_part(part)
         # fused on every device: its step takes a device flag that skips the update (``found_inf``, the flag a
         # gradient scaler sets), which a step at the first frame raises without a host branch
-        options = {name: value for name, value in adam_options(self.fit.device).items() if name != "foreach"}
-        options["fused"] = True
+        options = self._fused_adam_options()
         cloth = part.cloth
         physics = [p for name, p in cloth.named_parameters() if name != "rest_offset_logit"]
         self.optimizer = torch.optim.Adam(physics, lr=self.options.lr_garment, **options)
@@ -828,6 +827,12 @@ class GarmentExtension(Extension):
         self.cache = None
         self.bones = None
 
+    def _fused_adam_options(self) -> dict:
+        """The fit's Adam options for this device, fused (what every optimizer of the garment uses)."""
+        options = {name: value for name, value in adam_options(self.fit.device).items() if name != "foreach"}
+        options["fused"] = True
+        return options
+
     @property
     def fits_states(self) -> bool:
         """The training frames' cloth states are fitted (``--garment-frame-states on``, a garment exists)."""
@@ -839,9 +844,7 @@ class GarmentExtension(Extension):
         part = self.part
         part.frame_states = torch.nn.Parameter(displacements.detach().clone() * part.free_mask)
         lr = self.options.lr_garment_states * part.hyper["voxel_size"]
-        options = {name: value for name, value in adam_options(self.fit.device).items() if name != "foreach"}
-        options["fused"] = True
-        self.states_optimizer = torch.optim.Adam([part.frame_states], lr=lr, **options)
+        self.states_optimizer = torch.optim.Adam([part.frame_states], lr=lr, **self._fused_adam_options())
         cameras = self.fit.frames.cameras
         self.intrinsics = torch.stack([camera.K for camera in cameras])
         self.world_to_cameras = torch.stack([camera.world_to_camera for camera in cameras])
@@ -896,9 +899,10 @@ class GarmentExtension(Extension):
                 step.step - self.refreshed >= self.options.garment_refresh_every:
             self.refresh()
         self.window_seconds = self._window_seconds(step.index)
-        seconds = self.fit.frames.seconds
-        self.start_seconds = (self.uniform_seconds if self.uniform_seconds is not None else
-                              seconds[max(1, step.index - self.options.garment_window)])
+        if self.fits_states:
+            seconds = self.fit.frames.seconds
+            self.start_seconds = (self.uniform_seconds if self.uniform_seconds is not None else
+                                  seconds[max(1, step.index - self.options.garment_window)])
         return None
 
     def _window_seconds(self, index: int) -> tuple[float, ...]:
@@ -991,11 +995,19 @@ class GarmentExtension(Extension):
         rest = cloth.rest_shape_lengths()[: cloth.stretch_count].clamp_min(1e-9)
         return ((lengths / rest - 1.0) ** 2).mean()
 
-    def _silhouette(self, step) -> tuple[torch.Tensor, torch.Tensor]:
+    def _step_projection(self, step) -> tuple[torch.Tensor, torch.Tensor]:
+        """Pixels [M,2] and camera-space depths [M] of the step frame's fitted nodes (differentiable), by that
+        frame's camera, gathered by its device index."""
+        frame = step.frame.reshape(1)
+        return _project(self.fitted, self.intrinsics.index_select(0, frame)[0],
+                        self.world_to_cameras.index_select(0, frame)[0])
+
+    def _silhouette(self, step, pixels: torch.Tensor, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The fitted state's silhouette terms (``--lambda-garment-silhouette``): device work from the step's mask
         and render. On a grid of cells ``c`` pixels wide (the frame pooled to about 96 cells a side; a cell is in
-        the mask, or uncovered, when over half its pixels are), with the free nodes projected by the step frame's
-        camera (nodes behind it left out), and ``S`` the image's longer side [px]:
+        the mask, or uncovered, when over half its pixels are), with the free nodes at ``pixels`` [M,2] and
+        ``depth`` [M] (:meth:`_step_projection`; nodes behind the camera left out), and ``S`` the image's longer
+        side [px]:
 
         * ``outside``: mean over the free nodes of ``max(0, d - c)^2 / S^2``, ``d`` the distance to the nearest
           mask cell's centre;
@@ -1015,9 +1027,6 @@ class GarmentExtension(Extension):
         centres = (torch.stack([x, y], dim=-1).reshape(-1, 2).float() + 0.5) * cell - 0.5  # [P,2] (OpenCV pixels)
         inside = pooled[0].reshape(-1) > 0.5
         uncovered = inside & (pooled[1].reshape(-1) < 0.5)
-        K = self.intrinsics.index_select(0, step.frame.reshape(1))[0]
-        world_to_camera = self.world_to_cameras.index_select(0, step.frame.reshape(1))[0]
-        pixels, depth = _project(self.fitted, K, world_to_camera)  # [M,2], [M]
         front = (depth > 1e-6) & (part.free_mask[:, 0] > 0)
         squared = ((pixels[:, None, :] - centres[None, :, :]) ** 2).sum(-1)  # [M,P]
         size = float(max(height, width))
@@ -1034,8 +1043,9 @@ class GarmentExtension(Extension):
         uncovered_each = torch.where(counted > 0, torch.relu(distance - cell) ** 2 / size**2, torch.zeros_like(distance))
         return outside, uncovered_each.sum() / counted.sum().clamp_min(1.0)
 
-    def _flow(self, step) -> torch.Tensor:
-        """The fitted states' optical-flow term (``--lambda-garment-flow``): device work from the step's render.
+    def _flow(self, step, pixels: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        """The fitted states' optical-flow term (``--lambda-garment-flow``): device work from the step's render and
+        the step frame's fitted nodes at ``pixels`` [M,2] and ``depth`` [M] (:meth:`_step_projection`).
 
         The free nodes of frame ``i``'s fitted state that its render shows (projected inside the image, in front of
         the camera, on a mask pixel, at the rendered depth within two node spacings: the cloth's near side) are
@@ -1047,10 +1057,8 @@ class GarmentExtension(Extension):
         frame = step.frame.reshape(1)
         count = forward.shape[0]
         height, width = step.alpha.shape
-        K = self.intrinsics.index_select(0, frame)[0]
-        world_to_camera = self.world_to_cameras.index_select(0, frame)[0]
+        pixels, depth = pixels.detach(), depth.detach()  # (the neighbours' states are what this term moves)
         with torch.no_grad():
-            pixels, depth = _project(self.fitted.detach(), K, world_to_camera)
             grid = _normalized(pixels, width, height)
             inside = (grid.abs() <= 1.0).all(dim=1) & (depth > 1e-6) & (part.free_mask[:, 0] > 0)
             rendered = torch.stack([step.depth, step.alpha] + ([] if step.mask is None else [step.mask]), dim=-1)
@@ -1077,7 +1085,7 @@ class GarmentExtension(Extension):
 
     def losses(self, step) -> dict[str, LossTerm]:
         """The rest shape's penalties (roughness, collapsed edges), while it is learned, and the fitted states'
-        (the dynamics residual, stretch): device work, captured with the step."""
+        (the dynamics residual, stretch, optical flow, silhouette): device work, captured with the step."""
         if self.part is None:
             return {}
         cloth, options = self.part.cloth, self.options
@@ -1089,10 +1097,14 @@ class GarmentExtension(Extension):
         if self.training and self.fits_states:
             terms.update(garment_dynamics=LossTerm(options.lambda_garment_dynamics, self.residual),
                          garment_stretch=LossTerm(options.lambda_garment_stretch, self._stretch(self.fitted)))
-            if self.flows is not None and options.lambda_garment_flow > 0:
-                terms["garment_flow"] = LossTerm(options.lambda_garment_flow, self._flow(step))
-            if step.mask is not None and options.lambda_garment_silhouette > 0:
-                outside, uncovered = self._silhouette(step)
+            flow = self.flows is not None and options.lambda_garment_flow > 0
+            silhouette = step.mask is not None and options.lambda_garment_silhouette > 0
+            if flow or silhouette:
+                pixels, depth = self._step_projection(step)
+            if flow:
+                terms["garment_flow"] = LossTerm(options.lambda_garment_flow, self._flow(step, pixels, depth))
+            if silhouette:
+                outside, uncovered = self._silhouette(step, pixels, depth)
                 terms.update(garment_outside=LossTerm(options.lambda_garment_silhouette, outside),
                              garment_uncovered=LossTerm(options.lambda_garment_silhouette, uncovered))
         return terms
