@@ -14,9 +14,9 @@ The pipeline of one forward pass (conventions in ``docs/conventions.md``):
    the order (tile, depth, Gaussian index) of one sort of 64-bit ``tile | depth`` keys, with 4-byte keys:
    the records are sorted by their depth keys (:data:`DEPTH_SORT_BITS` bits, N entries; equal depths keep
    the index order); an inclusive prefix sum of their tile counts in that order (``wp.utils.array_scan``,
-   read in place from the records) gives every Gaussian its slots; :func:`launch_emit_tile_keys` (one
-   thread per depth-ordered Gaussian) writes an int32 key, the tile id, and the Gaussian of each reached
-   (Gaussian, tile) pair into them, so the slots are in (depth, index) order (its threads also pad the
+   read in place from the records) gives every Gaussian its slots; :func:`launch_emit_tile_keys`
+   (:data:`EMIT_THREADS` threads per depth-ordered Gaussian, one tile row each in turn) writes an int32
+   key, the tile id, and the Gaussian of each reached (Gaussian, tile) pair into them, so the slots are in (depth, index) order (its threads also pad the
    unused slots of a fixed capacity and clear the tile ranges); the keys are sorted on their
    :func:`tile_key_bits` low bits (two 8-bit CUB passes up to 65k tiles), which keeps that order within each
    tile, and :func:`launch_tile_ranges` finds each tile's ``[start, end)`` range in the sorted list.
@@ -77,6 +77,7 @@ __all__ = [
     "launch_project_backward",
     "tile_key_bits",
     "DEPTH_SORT_BITS",
+    "EMIT_THREADS",
 ]
 
 TILE_SIZE = wp.constant(16)
@@ -539,6 +540,12 @@ def tile_key_bits(tile_count: int) -> int:
     return max(int(tile_count).bit_length(), 1)
 
 
+EMIT_THREADS = 4
+"""Threads that emit one Gaussian's pairs (:data:`emit_tile_keys_kernel`): thread ``r`` of a Gaussian writes its
+tile rows ``r, r + 4, ...``. Large Gaussians (a close-up at 1080p lists dozens of tiles each) then write their
+pairs four at a time instead of one thread writing them all while the rest of its warp waits."""
+
+
 @wp.kernel(enable_backward=False)
 def emit_tile_keys_kernel(
     xy_opacity: wp.array(dtype=wp.vec3),
@@ -554,8 +561,10 @@ def emit_tile_keys_kernel(
     gaussian_ids: wp.array(dtype=wp.int32),
     tile_ranges: wp.array2d(dtype=wp.int32),
 ):
-    """Thread ``j`` writes the tile id (key) and the Gaussian of every pair of the ``j``-th Gaussian in depth
-    order into its slots ``[tile_ends[j] - count, tile_ends[j])``, its tiles in increasing id.
+    """Threads ``EMIT_THREADS j .. EMIT_THREADS j + 3`` write the tile id (key) and the Gaussian of every pair of
+    the ``j``-th Gaussian in depth order into its slots ``[tile_ends[j] - count, tile_ends[j])``, its tiles in
+    increasing id (row by row): each thread walks all the Gaussian's rows for their spans (a few flops each) and
+    writes the pairs of every ``EMIT_THREADS``-th row, so each pair still lands in the slot of its rank.
 
     ``depth_order[j]`` is the depth-sorted record (Gaussian, tile count) and ``tile_ends`` the inclusive prefix
     sum of those counts. A pair is emitted for each tile of the radius box in the rows' :func:`row_tile_span`,
@@ -564,24 +573,27 @@ def emit_tile_keys_kernel(
     Gaussian's slots get the tile id ``tiles_x * tiles_y``, which sorts last and :data:`tile_ranges_kernel`
     ignores; more are never written. Nothing is written past the end of ``keys`` (buffers sized by a capacity
     below the pair count), and the slots past the pair count (buffers of a larger capacity) get the padding
-    key ``tiles_x * tiles_y`` and Gaussian -1, shared out over the threads (slot ``pair count + j + k N``).
-    The threads also clear ``tile_ranges`` ([tiles, 2], for :data:`tile_ranges_kernel`, which writes only the
-    tiles present), in the same way: one torch fill less a pass.
+    key ``tiles_x * tiles_y`` and Gaussian -1, shared out over the threads (slot ``pair count + t + k T``, ``T``
+    threads). The threads also clear ``tile_ranges`` ([tiles, 2], for :data:`tile_ranges_kernel`, which writes
+    only the tiles present), in the same way: one torch fill less a pass.
     """
-    j = wp.tid()
+    t = wp.tid()
     gaussian_count = depth_order.shape[0]
+    thread_count = gaussian_count * EMIT_THREADS
     slot_count = keys.shape[0]
     tile_count = tiles_x * tiles_y
-    padding = tile_ends[gaussian_count - 1] + j
+    padding = tile_ends[gaussian_count - 1] + t
     while padding < slot_count:
         keys[padding] = tile_count
         gaussian_ids[padding] = -1
-        padding += gaussian_count
-    tile = j
+        padding += thread_count
+    tile = t
     while tile < tile_count:
         tile_ranges[tile, 0] = 0
         tile_ranges[tile, 1] = 0
-        tile += gaussian_count
+        tile += thread_count
+    j = t // EMIT_THREADS
+    row_phase = t - j * EMIT_THREADS
     record = depth_order[j]
     i = record[0]
     slot = tile_ends[j] - record[1]
@@ -595,20 +607,22 @@ def emit_tile_keys_kernel(
     box = tile_box(center, radii[i], tiles_x, tiles_y)
     for ty in range(box[2], box[3]):
         span = row_tile_span(center, conic, max_sigma, ty, box, width, height)
-        for tx in range(span[0], span[1]):
-            if slot < end:
-                keys[slot] = ty * tiles_x + tx
-                gaussian_ids[slot] = i
-                slot += 1
-    while slot < end:
-        keys[slot] = tile_count
-        gaussian_ids[slot] = i
-        slot += 1
+        if (ty - box[2]) % EMIT_THREADS == row_phase:
+            for tx in range(span[0], span[1]):
+                if slot + tx - span[0] < end:
+                    keys[slot + tx - span[0]] = ty * tiles_x + tx
+                    gaussian_ids[slot + tx - span[0]] = i
+        slot += span[1] - span[0]
+    if row_phase == 0:
+        while slot < end:
+            keys[slot] = tile_count
+            gaussian_ids[slot] = i
+            slot += 1
 
 
 def launch_emit_tile_keys(xy_opacity, conics, radii, depth_order, tile_ends, *, width: int, height: int, keys,
                           gaussian_ids, tile_ranges) -> None:
-    """Launch :data:`emit_tile_keys_kernel` over the depth-ordered Gaussians.
+    """Launch :data:`emit_tile_keys_kernel` over the depth-ordered Gaussians (``EMIT_THREADS`` threads each).
 
     ``xy_opacity``, ``conics`` and ``radii`` are :data:`project_kernel`'s outputs (indexed by Gaussian),
     ``depth_order`` the first half of the depth sort's values after the sort and ``tile_ends`` the inclusive
@@ -633,7 +647,7 @@ def launch_emit_tile_keys(xy_opacity, conics, radii, depth_order, tile_ends, *, 
         return
     wp.launch(
         emit_tile_keys_kernel,
-        dim=gaussian_count,
+        dim=gaussian_count * EMIT_THREADS,
         inputs=[xy_opacity, conics, radii, depth_order, tile_ends, width, height, tiles_x, tiles_y],
         outputs=[keys, gaussian_ids, tile_ranges],
         block_dim=launch_block_dim(_device_of(keys)),

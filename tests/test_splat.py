@@ -194,6 +194,10 @@ def test_info_matches_reference(device):
     torch.testing.assert_close(info["means2d"][kept], ref_info["means2d"][kept], atol=1e-3, rtol=1e-5)
     assert torch.all(info["means2d"][~kept] == 0)
     torch.testing.assert_close(info["depths"], ref_info["depths"].float(), atol=1e-5, rtol=1e-5)
+    assert set(info) == set(ref_info) and len(info) == len(ref_info) == 4
+    assert info["means2d"] is info["means2d"], "made once, when first read"
+    with pytest.raises(KeyError):
+        info["conics"]
 
 
 def test_saturated_piles_need_several_batches(device):

@@ -15,7 +15,11 @@ Times, side by side in one run:
   torch profiler records them;
 * playback at 1920x1080 (:class:`warpavatar.model.playback.Player`: pose + shade + rasterize) in frames per
   second over the training motion, eager and from a CUDA graph (on CUDA once with the per-Gaussian MLP in float16,
-  the player's default there, and once in float32: ``Player(mlp_dtype=...)``).
+  the player's default there, and once in float32: ``Player(mlp_dtype=...)``). FPS is the throughput of a
+  sequence: the frames of the motion drawn one after the other (the player's own capacity checks included) with
+  one synchronization at the end, timed by CUDA events around the whole sequence, as a player that hands its
+  frames on without waiting for each sees it. The notes add each frame's latency alone (the host's work of one
+  ``render`` call plus its GPU work, timed by events around one call and a synchronization, median).
 
 Without ``--avatar`` (as ``--quick`` on CPU does) the avatar is the one a fresh fit of the video starts from.
 ``--video`` defaults to the built-in demo subject. Times are medians (``bench_common.time_function``).
@@ -31,6 +35,7 @@ import itertools
 import os
 import sys
 import tempfile
+import time
 import traceback
 
 import torch
@@ -250,6 +255,24 @@ def _step_row(trainer, video, device, warmup, repeats) -> dict:
             "ours": milliseconds, "gsplat": None, "ratio": None, "notes": notes + f"; top ops: {counts['top_ops']}"}
 
 
+def _sequence_ms(draw, *, device: str, frames: int) -> float:
+    """Mean milliseconds a frame of ``frames`` calls of ``draw()`` in a row, with one synchronization at the end
+    (CUDA events around the whole sequence; wall time on CPU)."""
+    if not device.startswith("cuda"):
+        start = time.perf_counter()
+        for _ in range(frames):
+            draw()
+        return (time.perf_counter() - start) * 1e3 / frames
+    torch.cuda.synchronize(device)
+    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+    start.record()
+    for _ in range(frames):
+        draw()
+    end.record()
+    end.synchronize()
+    return start.elapsed_time(end) / frames
+
+
 def _playback_rows(avatar, video, device, repeats, quick, modes=("off",), *, precision: str,
                    mlp_dtypes=(None,)) -> list[dict]:
     width, height = (160, 90) if quick else (1920, 1080)
@@ -264,15 +287,18 @@ def _playback_rows(avatar, video, device, repeats, quick, modes=("off",), *, pre
         def draw():
             player.render(bones[next(frame) % bones.shape[0]])
 
+        frames = max(repeats, 3 if quick else 300)
         try:
-            milliseconds = time_function(draw, device=device, warmup=3, repeats=max(repeats, 3 if quick else 200))
+            latency = time_function(draw, device=device, warmup=3, repeats=frames)
+            milliseconds = _sequence_ms(draw, device=device, frames=frames)
         except Exception as error:  # noqa: BLE001 (a failed CUDA graph capture is a result to report)
             rows.append(_failed_row("playback FPS (CUDA graph)", f"{width}x{height}", error))
             continue
         counts = count_step_work(draw, device=device)
         rows.append({"measure": f"playback FPS ({'CUDA graph' if player.use_graph else 'eager'})",
                      "size": f"{width}x{height}", "ours": 1000.0 / milliseconds, "gsplat": None, "ratio": None,
-                     "notes": f"{milliseconds:.3f} ms/frame (MLPs in {precision}, per-Gaussian MLP in "
+                     "notes": f"{milliseconds:.3f} ms/frame over {frames} frames in sequence, {latency:.3f} ms one "
+                              f"frame alone (MLPs in {precision}, per-Gaussian MLP in "
                               f"{player.mlp_dtype}); per frame: {counts['warp']:g} "
                               f"Warp launches, {counts['torch_ops']:g} torch ops, {counts['host_reads']:g} host reads"
                               + (f", {counts['cuda_syncs']:g} syncs" if "cuda_syncs" in counts else "")})

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Mapping
 from typing import NamedTuple
 
 import torch
@@ -52,8 +53,8 @@ from warpavatar._src.warp_utils import (check_tensor, to_warp, torch_stream_scop
                                         write_only_descriptor)
 from warpavatar.kernels import splat as splat_kernels
 
-__all__ = ["rasterize_gaussians", "rasterizer_replays", "rasterizer_status", "run_pass", "allocate_pass_buffers", "PassBuffers",
-           "SPECULATIVE_HEADROOM", "SPECULATIVE_HISTORY"]
+__all__ = ["rasterize_gaussians", "RasterInfo", "rasterizer_replays", "rasterizer_status", "run_pass",
+           "allocate_pass_buffers", "PassBuffers", "SPECULATIVE_HEADROOM", "SPECULATIVE_HISTORY"]
 
 SPECULATIVE_HEADROOM = 1.2
 """Speculative capacity as a multiple of the most pairs of recent calls of the same size (see the module doc)."""
@@ -483,8 +484,8 @@ def rasterize_gaussians(
     Returns:
         ``(image, alpha, depth)``: float32 tensors of shapes [H, W, 3] (RGB), [H, W] (1 - final transmittance)
         and [H, W] (sum over composited Gaussians of weight times camera-space z, not normalized by alpha).
-        With ``return_info`` a fourth item: ``{"radii": [N, 2] int32 per-axis radius in pixels (0 = culled),
-        "means2d": [N, 2] float32 projected centres in pixels (pixel centres at integers; 0 where culled),
+        With ``return_info`` a fourth item, a read-only mapping (:class:`RasterInfo`): ``{"radii": [N, 2] int32
+        per-axis radius in pixels (0 = culled), "means2d": [N, 2] float32 projected centres in pixels (pixel centres at integers; 0 where culled),
         "depths": [N] float32 camera-space z, "status": [2] int32 on the device: the number of (Gaussian, tile)
         pairs the image needs and the non-finite-input flags (0 = none)}`` (not differentiable).
 
@@ -542,11 +543,39 @@ def rasterize_gaussians(
         densify_grad_out, intersection_capacity,
     )
     if return_info:
-        kept = radii.detach().bool().any(dim=1, keepdim=True)
-        means2d = torch.where(kept, xy_opacity.detach()[:, :2] - 0.5, 0.0)  # back to integer pixel centres
-        return image, alpha, depth, {"radii": radii, "means2d": means2d, "depths": color_depth.detach()[:, 3].clone(),
-                                     "status": status}
+        return image, alpha, depth, RasterInfo(radii, xy_opacity.detach(), color_depth.detach(), status)
     return image, alpha, depth
+
+
+class RasterInfo(Mapping):
+    """The info of :func:`rasterize_gaussians` (a read-only mapping): ``radii`` and ``status`` as the pass wrote
+    them, ``means2d`` and ``depths`` made from its per-Gaussian records when first read (four small kernels
+    that a training step or a playback frame, which read only the first two, do not run)."""
+
+    __slots__ = ("_values", "_records")
+
+    def __init__(self, radii: torch.Tensor, xy_opacity: torch.Tensor, color_depth: torch.Tensor,
+                 status: torch.Tensor):
+        self._values = {"radii": radii, "status": status}
+        self._records = (xy_opacity, color_depth)
+
+    def __getitem__(self, name: str) -> torch.Tensor:
+        if name not in self._values:
+            xy_opacity, color_depth = self._records
+            if name == "means2d":
+                kept = self._values["radii"].detach().bool().any(dim=1, keepdim=True)
+                self._values[name] = torch.where(kept, xy_opacity[:, :2] - 0.5, 0.0)  # integer pixel centres
+            elif name == "depths":
+                self._values[name] = color_depth[:, 3].clone()
+            else:
+                raise KeyError(name)
+        return self._values[name]
+
+    def __iter__(self):
+        return iter(("radii", "means2d", "depths", "status"))
+
+    def __len__(self) -> int:
+        return 4
 
 
 def rasterizer_replays(*, after: int | None = 3, max_bytes: int = 1 << 30) -> int:
