@@ -154,30 +154,48 @@ def pose_rotation_kernel(bones: wp.array(dtype=wp.mat44), parent_index: wp.array
     rotations[i] = value
 
 
+REDUCE_LANES = 64
+"""Threads of a block of :data:`pose_feature_kernel` and :data:`first_bias_kernel` on CUDA: a block makes one
+output, its threads taking every 64th product, then one block sum (the products of a thread are a short chain,
+not the whole row: one output per thread was a chain of ~150 dependent loads)."""
+
+
 @wp.kernel(enable_backward=False)
 def pose_feature_kernel(rotations: wp.array(dtype=wp.float32), encoder_weight: wp.array2d(dtype=wp.float32),
                         encoder_bias: wp.array(dtype=wp.float32), code: wp.array(dtype=wp.float32),
                         feature: wp.array(dtype=wp.float32)):
-    j = wp.tid()
+    """One block per feature entry ``j`` (launched tiled): ``encoder_bias[j] + encoder_weight[j] . rotations``
+    for the encoded pose, the frame code's entry after it."""
+    j, lane = wp.tid()
     width = encoder_bias.shape[0]
-    if j >= width:  # the frame code follows the encoded pose
-        feature[j] = code[j - width]
+    if j >= width:  # the frame code follows the encoded pose (block-uniform)
+        if lane == 0:
+            feature[j] = code[j - width]
         return
-    total = encoder_bias[j]
-    for i in range(rotations.shape[0]):  # every thread reads the same entry: one broadcast load
-        total = total + encoder_weight[j, i] * rotations[i]
-    feature[j] = total
+    partial = float(0.0)
+    for i in range(lane, rotations.shape[0], wp.block_dim()):
+        partial += encoder_weight[j, i] * rotations[i]
+    total = wp.tile_sum(wp.tile(partial))
+    if lane == 0:
+        feature[j] = encoder_bias[j] + total[0]
 
 
 @wp.kernel(enable_backward=False)
 def first_bias_kernel(feature: wp.array(dtype=wp.float32), weight: wp.array2d(dtype=wp.float32),
                       bias: wp.array(dtype=wp.float32), low: wp.array(dtype=wp.float32),
                       high: wp.array(dtype=wp.float32), out: wp.array(dtype=Any)):
-    h = wp.tid()
-    total = bias[h]
-    for j in range(feature.shape[0]):
-        total = total + weight[h, j] * feature[j]
-    out[h] = out.dtype(wp.clamp(total, low[h], high[h]))
+    """One block per hidden unit ``h`` (launched tiled): ``clamp(bias[h] + weight[h] . feature, low, high)``."""
+    h, lane = wp.tid()
+    partial = float(0.0)
+    for j in range(lane, feature.shape[0], wp.block_dim()):
+        partial += weight[h, j] * feature[j]
+    total = wp.tile_sum(wp.tile(partial))
+    if lane == 0:
+        out[h] = out.dtype(wp.clamp(bias[h] + total[0], low[h], high[h]))
+
+
+def _reduce_lanes(device) -> int:
+    return REDUCE_LANES if wp.get_device(device).is_cuda else 1
 
 
 def frame_bias(bones: wp.array, parent_index: wp.array, encoder_weight: wp.array, encoder_bias: wp.array,
@@ -211,7 +229,8 @@ def frame_bias(bones: wp.array, parent_index: wp.array, encoder_weight: wp.array
         raise ValueError(f"rotations has {rotations.shape[0]} entries, expected 6 * {joints} joints")
     wp.launch(pose_rotation_kernel, dim=6 * joints, device=bones.device, inputs=[bones, parent_index],
               outputs=[rotations])
-    wp.launch(pose_feature_kernel, dim=feature.shape[0], device=bones.device,
-              inputs=[rotations, encoder_weight, encoder_bias, code], outputs=[feature])
-    wp.launch(first_bias_kernel, dim=hidden, device=bones.device, inputs=[feature, weight, bias, low, high],
-              outputs=[out])
+    lanes = _reduce_lanes(bones.device)
+    wp.launch_tiled(pose_feature_kernel, dim=[feature.shape[0]], device=bones.device,
+                    inputs=[rotations, encoder_weight, encoder_bias, code], outputs=[feature], block_dim=lanes)
+    wp.launch_tiled(first_bias_kernel, dim=[hidden], device=bones.device, inputs=[feature, weight, bias, low, high],
+                    outputs=[out], block_dim=lanes)

@@ -15,9 +15,10 @@ The pipeline of one forward pass (conventions in ``docs/conventions.md``):
    the records are sorted by their depth keys (:data:`DEPTH_SORT_BITS` bits, N entries; equal depths keep
    the index order); an inclusive prefix sum of their tile counts in that order (``wp.utils.array_scan``,
    read in place from the records) gives every Gaussian its slots; :func:`launch_emit_tile_keys`
-   (:data:`EMIT_THREADS` threads per depth-ordered Gaussian, one tile row each in turn) writes an int32
-   key, the tile id, and the Gaussian of each reached (Gaussian, tile) pair into them, so the slots are in (depth, index) order (its threads also pad the
-   unused slots of a fixed capacity and clear the tile ranges); the keys are sorted on their
+   (:data:`EMIT_THREADS` threads per depth-ordered Gaussian, each an equal run of its slots) writes an
+   int32 key, the tile id, and the Gaussian of each reached (Gaussian, tile) pair into them, so the slots
+   are in (depth, index) order (its threads also pad the unused slots of a fixed capacity and clear the
+   tile ranges); the keys are sorted on their
    :func:`tile_key_bits` low bits (two 8-bit CUB passes up to 65k tiles), which keeps that order within each
    tile, and :func:`launch_tile_ranges` finds each tile's ``[start, end)`` range in the sorted list.
 3. :func:`launch_composite_forward` (one 256-thread block per tile, one thread per pixel): front-to-back
@@ -540,10 +541,10 @@ def tile_key_bits(tile_count: int) -> int:
     return max(int(tile_count).bit_length(), 1)
 
 
-EMIT_THREADS = 4
-"""Threads that emit one Gaussian's pairs (:data:`emit_tile_keys_kernel`): thread ``r`` of a Gaussian writes its
-tile rows ``r, r + 4, ...``. Large Gaussians (a close-up at 1080p lists dozens of tiles each) then write their
-pairs four at a time instead of one thread writing them all while the rest of its warp waits."""
+EMIT_THREADS = 8
+"""Threads that emit one Gaussian's pairs (:data:`emit_tile_keys_kernel`): thread ``r`` of a Gaussian writes the
+``r``-th of eight equal runs of its slots. Large Gaussians (a close-up at 1080p lists dozens of tiles each) then
+write their pairs eight at a time instead of one thread writing them all while the rest of its warp waits."""
 
 
 @wp.kernel(enable_backward=False)
@@ -561,10 +562,11 @@ def emit_tile_keys_kernel(
     gaussian_ids: wp.array(dtype=wp.int32),
     tile_ranges: wp.array2d(dtype=wp.int32),
 ):
-    """Threads ``EMIT_THREADS j .. EMIT_THREADS j + 3`` write the tile id (key) and the Gaussian of every pair of
-    the ``j``-th Gaussian in depth order into its slots ``[tile_ends[j] - count, tile_ends[j])``, its tiles in
-    increasing id (row by row): each thread walks all the Gaussian's rows for their spans (a few flops each) and
-    writes the pairs of every ``EMIT_THREADS``-th row, so each pair still lands in the slot of its rank.
+    """Threads ``EMIT_THREADS j`` to ``EMIT_THREADS (j + 1) - 1`` write the tile id (key) and the Gaussian of every
+    pair of the ``j``-th Gaussian in depth order into its slots ``[tile_ends[j] - count, tile_ends[j])``, its
+    tiles in increasing id (row by row): each thread walks all the Gaussian's rows for their spans (a few flops
+    each) and writes the pairs that fall in its run of the slots (``ceil(count / EMIT_THREADS)`` slots each),
+    so each pair still lands in the slot of its rank.
 
     ``depth_order[j]`` is the depth-sorted record (Gaussian, tile count) and ``tile_ends`` the inclusive prefix
     sum of those counts. A pair is emitted for each tile of the radius box in the rows' :func:`row_tile_span`,
@@ -593,31 +595,34 @@ def emit_tile_keys_kernel(
         tile_ranges[tile, 1] = 0
         tile += thread_count
     j = t // EMIT_THREADS
-    row_phase = t - j * EMIT_THREADS
+    run = t - j * EMIT_THREADS
     record = depth_order[j]
     i = record[0]
-    slot = tile_ends[j] - record[1]
-    end = wp.min(tile_ends[j], slot_count)
-    if slot >= end:
-        return  # no tile, or every slot past the capacity
+    first = tile_ends[j] - record[1]
+    run_length = (record[1] + EMIT_THREADS - 1) // EMIT_THREADS
+    run_start = first + run * run_length  # this thread's slots: [run_start, run_end)
+    run_end = wp.min(wp.min(run_start + run_length, tile_ends[j]), slot_count)
+    if run_start >= run_end:
+        return  # no tile, a short Gaussian's spare thread, or every slot past the capacity
     xyo = xy_opacity[i]
     center = wp.vec2(xyo[0], xyo[1])
     conic = conics[i]
     max_sigma = reach_sigma(xyo[2])
     box = tile_box(center, radii[i], tiles_x, tiles_y)
+    slot = first
     for ty in range(box[2], box[3]):
+        if slot >= run_end:
+            break
         span = row_tile_span(center, conic, max_sigma, ty, box, width, height)
-        if (ty - box[2]) % EMIT_THREADS == row_phase:
-            for tx in range(span[0], span[1]):
-                if slot + tx - span[0] < end:
-                    keys[slot + tx - span[0]] = ty * tiles_x + tx
-                    gaussian_ids[slot + tx - span[0]] = i
-        slot += span[1] - span[0]
-    if row_phase == 0:
-        while slot < end:
-            keys[slot] = tile_count
-            gaussian_ids[slot] = i
-            slot += 1
+        row_end = slot + span[1] - span[0]
+        if row_end > run_start:
+            for s in range(wp.max(slot, run_start), wp.min(row_end, run_end)):
+                keys[s] = ty * tiles_x + span[0] + s - slot
+                gaussian_ids[s] = i
+        slot = row_end
+    for s in range(wp.max(slot, run_start), run_end):  # spans shorter than counted: padding of this Gaussian
+        keys[s] = tile_count
+        gaussian_ids[s] = i
 
 
 def launch_emit_tile_keys(xy_opacity, conics, radii, depth_order, tile_ends, *, width: int, height: int, keys,

@@ -755,3 +755,27 @@ def test_backward_keeps_one_sorted_id_per_pair_and_no_per_gaussian_scratch(devic
     assert grads[0].untyped_storage().data_ptr() == grads[1].untyped_storage().data_ptr()
     assert grads[0].untyped_storage().nbytes() == (10 + 13) * 4 * n
     assert grads[0].abs().sum() > 0 and grads[1].abs().sum() > 0
+
+
+def test_a_pass_without_gradients_keeps_its_sorted_ids_in_place(device, monkeypatch):
+    # No backward will read a pass whose inputs need no gradient: its sorted ids stay a view of the sort's
+    # double buffer (no copy), and its outputs are those of a pass that keeps the compact copy.
+    monkeypatch.setattr(splat_bridge, "_RECENT_PAIRS", {})
+    scene, sizes = make_scene(5, device=device, gaussian_count=160)
+    inputs = [scene[name] for name in ("means", "quats", "scales", "opacities")] + [scene["colors"].reshape(160, 1, 3)]
+    background = torch.zeros(3, device=device)
+    args = (*inputs, background, scene["K"], scene["world_to_camera"])
+    kept, count = splat_bridge.run_pass(*args, width=sizes["width"], height=sizes["height"], sh_degree=-1,
+                                        capacity=None, speculative=False, compact_ids=True,
+                                        buffers=splat_bridge.allocate_pass_buffers(160, sizes["width"],
+                                                                                   sizes["height"], device))
+    in_place, same_count = splat_bridge.run_pass(*args, width=sizes["width"], height=sizes["height"], sh_degree=-1,
+                                                 capacity=None, speculative=False, compact_ids=False,
+                                                 buffers=splat_bridge.allocate_pass_buffers(160, sizes["width"],
+                                                                                            sizes["height"], device))
+    assert count == same_count > 100
+    assert kept.sorted_ids.untyped_storage().nbytes() == 4 * count
+    assert in_place.sorted_ids.untyped_storage().nbytes() == 8 * count
+    assert torch.equal(kept.sorted_ids, in_place.sorted_ids)
+    for name in ("image", "alpha", "depth"):
+        assert torch.equal(getattr(kept, name), getattr(in_place, name))

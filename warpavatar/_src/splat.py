@@ -152,7 +152,7 @@ def _sort_by_depth(depth_sort, tile_ends) -> None:
 
 
 def _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radii, tile_ranges, *, width, height,
-         ids_out=None):
+         ids_out=None, compact=True):
     """Sort the (Gaussian, tile) pairs; returns the sorted Gaussian ids (one per pair, or per capacity slot).
 
     ``depth_sort`` and ``tile_ends`` [N] are as :func:`_sort_by_depth` left them; ``status`` ([pair count,
@@ -161,7 +161,8 @@ def _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radi
     nothing is read: unused slots hold a padding key that sorts last and belongs to no tile, and pairs past the
     capacity are dropped. ``tile_ranges`` [tiles, 2] need not be cleared: the emission kernel (or, without pairs,
     a fill) does it. ``ids_out`` (with a ``capacity``): a buffer of ``capacity`` int32 that receives the ids,
-    returned instead of a fresh copy.
+    returned instead of a fresh copy. ``compact=False`` (nothing reads the ids after the pass: no backward)
+    returns them in place, a view of the sort's double buffer, without the copy.
     """
     device = tile_ranges.device
     tiles_x, tiles_y = _tile_grid(width, height)
@@ -194,7 +195,7 @@ def _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radi
     if ids_out is not None:
         ids_out.copy_(sorted_ids[:count])
         return ids_out
-    return sorted_ids[:count].clone()
+    return sorted_ids[:count].clone() if compact else sorted_ids[:count]
 
 
 class PassBuffers(NamedTuple):
@@ -238,7 +239,7 @@ def allocate_pass_buffers(gaussian_count: int, width: int, height: int, device: 
 
 def run_pass(means, quats, scales, opacities, coefficients, background, K, world_to_camera, *, width: int,
              height: int, sh_degree: int, capacity: int | None, speculative: bool,
-             buffers: PassBuffers) -> tuple[PassBuffers, int | None]:
+             buffers: PassBuffers, compact_ids: bool = True) -> tuple[PassBuffers, int | None]:
     """Queue one forward pass into ``buffers`` (see the module doc for the three modes).
 
     Args:
@@ -247,6 +248,8 @@ def run_pass(means, quats, scales, opacities, coefficients, background, K, world
             guess was short (raising on non-finite inputs); False with a ``capacity``: nothing is read.
         buffers: from :func:`allocate_pass_buffers`; a fixed capacity's pass may bring ``status`` [2] and
             ``sorted_ids`` [capacity] to be filled in place (a captured pass keeps them).
+        compact_ids: False when no backward will read the pass (no gradient asked for): the sorted ids then
+            stay in the sort's buffer (8 bytes a pair, released with the pass) instead of a 4-byte copy.
 
     Returns:
         ``(buffers, pair_count)``: the buffers with ``status`` and ``sorted_ids`` set, and the pair count where
@@ -290,7 +293,7 @@ def run_pass(means, quats, scales, opacities, coefficients, background, K, world
 
         def bin_and_composite(capacity, ids_out=None):
             sorted_ids = _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radii,
-                              out.tile_ranges, width=width, height=height, ids_out=ids_out)
+                              out.tile_ranges, width=width, height=height, ids_out=ids_out, compact=compact_ids)
             splat_kernels.launch_composite_forward(
                 warp_descriptor(out.tile_ranges), warp_descriptor(sorted_ids), w_xy_opacity, w_conics,
                 w_color_depth, w_background, width=width, height=height, **w_pixels)
@@ -342,7 +345,8 @@ class _RasterizeGaussians(torch.autograd.Function):
                     capacity = count  # the replay's graph was outgrown: this many slots fit, nothing is binned twice
         if passed is None:
             passed, count = run_pass(*inputs, **sizes, capacity=capacity, speculative=speculative,
-                                     buffers=allocate_pass_buffers(gaussian_count, width, height, device))
+                                     buffers=allocate_pass_buffers(gaussian_count, width, height, device),
+                                     compact_ids=any(ctx.needs_input_grad[:5]))
         if intersection_capacity is None:
             _remember_pairs(speculation_key, count)
             if speculative and count <= capacity:
