@@ -98,15 +98,25 @@ def pose_difference_kernel(frame_poses: wp.array2d(dtype=wp.float32), pose: wp.a
 @wp.kernel(enable_backward=False)
 def closest_code_kernel(differences: wp.array(dtype=wp.float32), codes: wp.array2d(dtype=wp.float32),
                         tolerance: wp.float32, code: wp.array(dtype=wp.float32)):
-    c = wp.tid()
-    best = int(0)
-    for t in range(1, differences.shape[0]):
-        if differences[t] < differences[best]:
-            best = t
+    """One block (launched tiled): the first frame of the smallest difference, found by two block reductions
+    (the smallest difference, then the first frame that has it), its code written when within ``tolerance``,
+    else zeros."""
+    _, lane = wp.tid()
+    frame_count = differences.shape[0]
+    smallest = float(wp.inf)
+    for t in range(lane, frame_count, wp.block_dim()):
+        smallest = wp.min(smallest, differences[t])
+    least = wp.tile_min(wp.tile(smallest))[0]
+    first = int(frame_count)
+    for t in range(lane, frame_count, wp.block_dim()):
+        if differences[t] == least and t < first:
+            first = t
+    best = wp.tile_min(wp.tile(first))[0]
     matched = wp.float32(0.0)
     if differences[best] <= tolerance:
         matched = wp.float32(1.0)
-    code[c] = codes[best, c] * matched
+    for c in range(lane, code.shape[0], wp.block_dim()):
+        code[c] = codes[best, c] * matched
 
 
 def match_frame_code(frame_poses: wp.array, pose: wp.array, codes: wp.array, tolerance: float,
@@ -132,8 +142,8 @@ def match_frame_code(frame_poses: wp.array, pose: wp.array, codes: wp.array, tol
         return
     wp.launch(pose_difference_kernel, dim=(count, DIFFERENCE_LANES), device=pose.device, inputs=[frame_poses, pose],
               outputs=[differences])
-    wp.launch(closest_code_kernel, dim=code.shape[0], device=pose.device,
-              inputs=[differences, codes, float(tolerance)], outputs=[code])
+    wp.launch_tiled(closest_code_kernel, dim=[1], device=pose.device, inputs=[differences, codes, float(tolerance)],
+                    outputs=[code], block_dim=_reduce_lanes(pose.device))
 
 
 @wp.kernel(enable_backward=False)
@@ -155,9 +165,9 @@ def pose_rotation_kernel(bones: wp.array(dtype=wp.mat44), parent_index: wp.array
 
 
 REDUCE_LANES = 64
-"""Threads of a block of :data:`pose_feature_kernel` and :data:`first_bias_kernel` on CUDA: a block makes one
-output, its threads taking every 64th product, then one block sum (the products of a thread are a short chain,
-not the whole row: one output per thread was a chain of ~150 dependent loads)."""
+"""Threads of a block of :data:`pose_feature_kernel`, :data:`first_bias_kernel` and :data:`closest_code_kernel`
+on CUDA: a block makes one output, its threads taking every 64th term, then one block reduction (a thread's
+terms are a short chain, not the whole row: one output per thread was a chain of ~150 dependent loads)."""
 
 
 @wp.kernel(enable_backward=False)

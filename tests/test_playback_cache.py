@@ -278,6 +278,23 @@ def test_frame_code_kernels_give_the_torch_code(device):
         assert not ops.match_frame_code(part.frame_poses, poses[1] + 3e-4, part.frame_codes).any()  # none
 
 
+def test_frame_code_kernels_take_the_first_of_tied_frames_among_many(device):
+    # More training frames than a block has threads, two of them the same pose: the earlier one's code.
+    from tests.test_mlp_paths import _random_correction, _random_poses
+    from warpavatar import ops
+
+    part = _random_correction(device, frame_count=150, seed=11)
+    poses = _random_poses(150, torch.Generator().manual_seed(5)).to(device)
+    poses[137] = poses[71]
+    part.set_frame_poses(poses)
+    with torch.no_grad():
+        for frame in (71, 137, 149, 3):
+            ours = ops.match_frame_code(part.frame_poses, poses[frame], part.frame_codes)
+            assert torch.equal(ours, part.frame_code(poses[frame]))
+            expected = part.frame_codes[71 if frame == 137 else frame]
+            assert torch.equal(ours, expected) and expected.abs().max() > 0
+
+
 @pytest.mark.parametrize("frame_count", [0, 4])
 def test_frame_bias_kernels_give_the_torch_bias(device, frame_count):
     from tests.test_mlp_paths import _random_correction, _random_poses
