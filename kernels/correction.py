@@ -30,6 +30,16 @@ LOG_SCALE_LIMIT = 3.0
 _LOG_SCALE_LIMIT = wp.constant(LOG_SCALE_LIMIT)
 
 
+REDUCE_LANES = 64
+"""Threads of a block of :data:`pose_feature_kernel`, :data:`first_bias_kernel` and :data:`closest_code_kernel`
+on CUDA: a block makes one output, its threads taking every 64th term, then one block reduction (a thread's
+terms are a short chain, not the whole row: one output per thread was a chain of ~150 dependent loads)."""
+
+
+def _reduce_lanes(device) -> int:
+    return REDUCE_LANES if wp.get_device(device).is_cuda else 1
+
+
 @wp.kernel(enable_backward=False)
 def apply_correction_kernel(outputs: wp.array2d(dtype=Any), means: wp.array(dtype=wp.vec3),
                             quats: wp.array(dtype=wp.vec4), scales: wp.array(dtype=wp.vec3),
@@ -164,12 +174,6 @@ def pose_rotation_kernel(bones: wp.array(dtype=wp.mat44), parent_index: wp.array
     rotations[i] = value
 
 
-REDUCE_LANES = 64
-"""Threads of a block of :data:`pose_feature_kernel`, :data:`first_bias_kernel` and :data:`closest_code_kernel`
-on CUDA: a block makes one output, its threads taking every 64th term, then one block reduction (a thread's
-terms are a short chain, not the whole row: one output per thread was a chain of ~150 dependent loads)."""
-
-
 @wp.kernel(enable_backward=False)
 def pose_feature_kernel(rotations: wp.array(dtype=wp.float32), encoder_weight: wp.array2d(dtype=wp.float32),
                         encoder_bias: wp.array(dtype=wp.float32), code: wp.array(dtype=wp.float32),
@@ -202,10 +206,6 @@ def first_bias_kernel(feature: wp.array(dtype=wp.float32), weight: wp.array2d(dt
     total = wp.tile_sum(wp.tile(partial))
     if lane == 0:
         out[h] = out.dtype(wp.clamp(bias[h] + total[0], low[h], high[h]))
-
-
-def _reduce_lanes(device) -> int:
-    return REDUCE_LANES if wp.get_device(device).is_cuda else 1
 
 
 def frame_bias(bones: wp.array, parent_index: wp.array, encoder_weight: wp.array, encoder_bias: wp.array,

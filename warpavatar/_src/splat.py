@@ -4,8 +4,9 @@ One forward pass makes four Warp kernel launches (projection, key emission, tile
 three ``warp.utils`` calls (the depth sort of the Gaussians, the prefix sum of their tile counts in depth order,
 the sort of the (Gaussian, tile) pairs by tile: two radix sorts over 4-byte keys that give the order of one
 over 8-byte (tile, depth) keys, see ``kernels/splat.py``), one small torch fill (the prefix sum's buffer with the
-pair count and the flags; the key emission clears the tile ranges), a copy of the sorted ids (the backward keeps
-4 bytes a pair, not the sort's double buffer), and one host synchronization. One backward pass makes two Warp
+pair count and the flags; the key emission clears the tile ranges), a copy of the sorted ids when a backward may
+follow (it keeps 4 bytes a pair, not the sort's double buffer; a pass whose inputs need no gradient skips it),
+and one host synchronization. One backward pass makes two Warp
 launches (compositing backward, projection adjoint), one torch fill and no synchronization.
 
 The sort buffers must hold every (Gaussian, tile) pair, a number known only on the device once the projection
