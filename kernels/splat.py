@@ -15,7 +15,7 @@ The pipeline of one forward pass (conventions in ``docs/conventions.md``):
    the records are sorted by their depth keys (:data:`DEPTH_SORT_BITS` bits, N entries; equal depths keep
    the index order); an inclusive prefix sum of their tile counts in that order (``wp.utils.array_scan``,
    read in place from the records) gives every Gaussian its slots; :func:`launch_emit_tile_keys`
-   (:data:`EMIT_THREADS` threads per depth-ordered Gaussian, each an equal run of its slots) writes an
+   (:data:`EMIT_THREADS` threads per depth-ordered Gaussian on CUDA, each a run of its slots) writes an
    int32 key, the tile id, and the Gaussian of each reached (Gaussian, tile) pair into them, so the slots
    are in (depth, index) order (its threads also pad the unused slots of a fixed capacity and clear the
    tile ranges); the keys are sorted on their
@@ -542,9 +542,10 @@ def tile_key_bits(tile_count: int) -> int:
 
 
 EMIT_THREADS = 8
-"""Threads that emit one Gaussian's pairs (:data:`emit_tile_keys_kernel`): thread ``r`` of a Gaussian writes the
-``r``-th of eight equal runs of its slots. Large Gaussians (a close-up at 1080p lists dozens of tiles each) then
-write their pairs eight at a time instead of one thread writing them all while the rest of its warp waits."""
+"""Threads that emit one Gaussian's pairs on CUDA (:data:`emit_tile_keys_kernel`; one on a CPU, where threads do
+not wait for each other): thread ``r`` of a Gaussian writes the ``r``-th of eight equal runs of its slots. Large
+Gaussians (a close-up at 1080p lists dozens of tiles each) then write their pairs eight at a time instead of one
+thread writing them all while the rest of its warp waits."""
 
 
 @wp.kernel(enable_backward=False)
@@ -558,15 +559,16 @@ def emit_tile_keys_kernel(
     height: int,
     tiles_x: int,
     tiles_y: int,
+    threads_per_gaussian: int,
     keys: wp.array(dtype=wp.int32),
     gaussian_ids: wp.array(dtype=wp.int32),
     tile_ranges: wp.array2d(dtype=wp.int32),
 ):
-    """Threads ``EMIT_THREADS j`` to ``EMIT_THREADS (j + 1) - 1`` write the tile id (key) and the Gaussian of every
-    pair of the ``j``-th Gaussian in depth order into its slots ``[tile_ends[j] - count, tile_ends[j])``, its
-    tiles in increasing id (row by row): each thread walks all the Gaussian's rows for their spans (a few flops
-    each) and writes the pairs that fall in its run of the slots (``ceil(count / EMIT_THREADS)`` slots each),
-    so each pair still lands in the slot of its rank.
+    """Threads ``P j`` to ``P (j + 1) - 1`` (``P = threads_per_gaussian``) write the tile id (key) and the Gaussian
+    of every pair of the ``j``-th Gaussian in depth order into its slots ``[tile_ends[j] - count, tile_ends[j])``,
+    its tiles in increasing id (row by row): each thread walks the Gaussian's rows for their spans (a few flops
+    each) and writes the pairs that fall in its run of the slots (``ceil(count / P)`` slots each), so each pair
+    still lands in the slot of its rank.
 
     ``depth_order[j]`` is the depth-sorted record (Gaussian, tile count) and ``tile_ends`` the inclusive prefix
     sum of those counts. A pair is emitted for each tile of the radius box in the rows' :func:`row_tile_span`,
@@ -581,7 +583,7 @@ def emit_tile_keys_kernel(
     """
     t = wp.tid()
     gaussian_count = depth_order.shape[0]
-    thread_count = gaussian_count * EMIT_THREADS
+    thread_count = gaussian_count * threads_per_gaussian
     slot_count = keys.shape[0]
     tile_count = tiles_x * tiles_y
     padding = tile_ends[gaussian_count - 1] + t
@@ -594,12 +596,12 @@ def emit_tile_keys_kernel(
         tile_ranges[tile, 0] = 0
         tile_ranges[tile, 1] = 0
         tile += thread_count
-    j = t // EMIT_THREADS
-    run = t - j * EMIT_THREADS
+    j = t // threads_per_gaussian
+    run = t - j * threads_per_gaussian
     record = depth_order[j]
     i = record[0]
     first = tile_ends[j] - record[1]
-    run_length = (record[1] + EMIT_THREADS - 1) // EMIT_THREADS
+    run_length = (record[1] + threads_per_gaussian - 1) // threads_per_gaussian
     run_start = first + run * run_length  # this thread's slots: [run_start, run_end)
     run_end = wp.min(wp.min(run_start + run_length, tile_ends[j]), slot_count)
     if run_start >= run_end:
@@ -626,8 +628,9 @@ def emit_tile_keys_kernel(
 
 
 def launch_emit_tile_keys(xy_opacity, conics, radii, depth_order, tile_ends, *, width: int, height: int, keys,
-                          gaussian_ids, tile_ranges) -> None:
-    """Launch :data:`emit_tile_keys_kernel` over the depth-ordered Gaussians (``EMIT_THREADS`` threads each).
+                          gaussian_ids, tile_ranges, threads_per_gaussian: int | None = None) -> None:
+    """Launch :data:`emit_tile_keys_kernel` over the depth-ordered Gaussians, ``threads_per_gaussian`` threads each
+    (default: :data:`EMIT_THREADS` on CUDA, 1 on a CPU; the pairs are the same for any count >= 1).
 
     ``xy_opacity``, ``conics`` and ``radii`` are :data:`project_kernel`'s outputs (indexed by Gaussian),
     ``depth_order`` the first half of the depth sort's values after the sort and ``tile_ends`` the inclusive
@@ -650,10 +653,16 @@ def launch_emit_tile_keys(xy_opacity, conics, radii, depth_order, tile_ends, *, 
         raise ValueError(f"tile_ranges must be an int32 array of shape [{tiles_x * tiles_y}, 2]")
     if gaussian_count == 0 or keys.shape[0] == 0:
         return
+    device = wp.get_device(_device_of(keys))
+    if threads_per_gaussian is None:
+        threads_per_gaussian = EMIT_THREADS if device.is_cuda else 1
+    if threads_per_gaussian < 1:
+        raise ValueError(f"threads_per_gaussian must be >= 1, got {threads_per_gaussian}")
     wp.launch(
         emit_tile_keys_kernel,
-        dim=gaussian_count * EMIT_THREADS,
-        inputs=[xy_opacity, conics, radii, depth_order, tile_ends, width, height, tiles_x, tiles_y],
+        dim=gaussian_count * threads_per_gaussian,
+        inputs=[xy_opacity, conics, radii, depth_order, tile_ends, width, height, tiles_x, tiles_y,
+                threads_per_gaussian],
         outputs=[keys, gaussian_ids, tile_ranges],
         block_dim=launch_block_dim(_device_of(keys)),
     )

@@ -5,6 +5,7 @@ behind the camera or on the near plane, very anisotropic, sub-pixel, and piles t
 """
 
 import contextlib
+import itertools
 import math
 
 import pytest
@@ -496,7 +497,7 @@ def kernel_depth_sort(projection):
     return records[:n], ends
 
 
-def kernel_emit(projection, records, ends, sizes, keys, ids):
+def kernel_emit(projection, records, ends, sizes, keys, ids, threads_per_gaussian=None):
     """The key emission over ``records`` (the Gaussians in some order, with their counts) into ``keys``/``ids``;
     asserts that it cleared a tile-ranges buffer full of garbage."""
     tile_count = math.ceil(sizes["width"] / 16) * math.ceil(sizes["height"] / 16)
@@ -506,7 +507,7 @@ def kernel_emit(projection, records, ends, sizes, keys, ids):
                                       to_warp(projection["conics"], wp.vec3), to_warp(projection["radii"], wp.vec2i),
                                       to_warp(records, wp.vec2i), to_warp(ends), width=sizes["width"],
                                       height=sizes["height"], keys=to_warp(keys), gaussian_ids=to_warp(ids),
-                                      tile_ranges=to_warp(ranges))
+                                      tile_ranges=to_warp(ranges), threads_per_gaussian=threads_per_gaussian)
     assert torch.all(ranges == 0)
 
 
@@ -689,14 +690,18 @@ def test_depth_sort_and_emission_match_reference(device):
     records, ends = kernel_depth_sort(projection)
     assert torch.equal(records[:, 0].cpu().long(), order)
     assert torch.equal(ends.cpu(), torch.cumsum(counts[order], 0).to(torch.int32))
-    # The emission in depth order: exact, dropping pairs past a small capacity, padding a large one.
-    for capacity in (None, 2 * pair_count // 3, pair_count + 37):
+    # The emission in depth order: exact, dropping pairs past a small capacity, padding a large one; with the
+    # device's threads per Gaussian and with one, three and eight (runs of slots that split rows).
+    assert mask.sum(dim=1).max() > 8, "some Gaussian should have more pairs than threads"
+    for capacity, threads in itertools.product((None, 2 * pair_count // 3, pair_count + 37), (None, 1, 3, 8)):
         size = pair_count if capacity is None else capacity
         keys, ids = (torch.full((size + 5,), -7, dtype=torch.int32, device=device) for _ in range(2))
-        kernel_emit(projection, records, ends, sizes, keys[:size], ids[:size])
+        kernel_emit(projection, records, ends, sizes, keys[:size], ids[:size], threads_per_gaussian=threads)
         expected_tiles, expected_ids = reference.emit_tile_keys(mask, order, capacity=capacity)
         assert torch.equal(keys[:size].cpu(), expected_tiles) and torch.equal(ids[:size].cpu(), expected_ids)
         assert torch.all(keys[size:] == -7) and torch.all(ids[size:] == -7), "written past the buffer"
+    with pytest.raises(ValueError, match="threads_per_gaussian must be >= 1, got 0"):
+        kernel_emit(projection, records, ends, sizes, keys[:size], ids[:size], threads_per_gaussian=0)
 
 
 @pytest.mark.parametrize("mode", ["exact", "padded capacity", "small capacity"])
