@@ -767,7 +767,8 @@ def test_a_pass_without_gradients_keeps_its_sorted_ids_in_place(device, monkeypa
     # double buffer (no copy), and its outputs are those of a pass that keeps the compact copy.
     monkeypatch.setattr(splat_bridge, "_RECENT_PAIRS", {})
     scene, sizes = make_scene(5, device=device, gaussian_count=160)
-    inputs = [scene[name] for name in ("means", "quats", "scales", "opacities")] + [scene["colors"].reshape(160, 1, 3)]
+    inputs = [scene[name] for name in ("means", "quats", "scales", "opacities")]
+    inputs.append(scene["colors"].reshape(160, 1, 3))  # RGB as one coefficient (sh_degree -1), as the bridge passes it
     background = torch.zeros(3, device=device)
     args = (*inputs, background, scene["K"], scene["world_to_camera"])
     kept, count = splat_bridge.run_pass(*args, width=sizes["width"], height=sizes["height"], sh_degree=-1,

@@ -490,9 +490,10 @@ def rasterize_gaussians(
         ``(image, alpha, depth)``: float32 tensors of shapes [H, W, 3] (RGB), [H, W] (1 - final transmittance)
         and [H, W] (sum over composited Gaussians of weight times camera-space z, not normalized by alpha).
         With ``return_info`` a fourth item, a read-only mapping (:class:`RasterInfo`): ``{"radii": [N, 2] int32
-        per-axis radius in pixels (0 = culled), "means2d": [N, 2] float32 projected centres in pixels (pixel centres at integers; 0 where culled),
-        "depths": [N] float32 camera-space z, "status": [2] int32 on the device: the number of (Gaussian, tile)
-        pairs the image needs and the non-finite-input flags (0 = none)}`` (not differentiable).
+        per-axis radius in pixels (0 = culled), "means2d": [N, 2] float32 projected centres in pixels (pixel
+        centres at integers; 0 where culled), "depths": [N] float32 camera-space z, "status": [2] int32 on the
+        device: the number of (Gaussian, tile) pairs the image needs and the non-finite-input flags (0 =
+        none)}`` (not differentiable).
 
     Raises:
         TypeError: a tensor argument is not a floating-point tensor, or a size is not an int.
@@ -554,8 +555,8 @@ def rasterize_gaussians(
 
 class RasterInfo(Mapping):
     """The info of :func:`rasterize_gaussians` (a read-only mapping): ``radii`` and ``status`` as the pass wrote
-    them, ``means2d`` and ``depths`` made from its per-Gaussian records when first read (four small kernels
-    that a training step or a playback frame, which read only the first two, do not run)."""
+    them, ``means2d`` and ``depths`` made from its per-Gaussian records when first read (six small kernels on
+    CUDA, which a training step or a playback frame, reading only the first two, no longer runs)."""
 
     __slots__ = ("_values", "_records")
 
