@@ -49,6 +49,7 @@ from typing import NamedTuple
 import torch
 import warp as wp
 
+from warpavatar._src import splat_replay
 from warpavatar._src.splat_replay import ReplayCache
 from warpavatar._src.warp_utils import (check_tensor, to_warp, torch_stream_scope, warp_descriptor,
                                         write_only_descriptor)
@@ -608,8 +609,6 @@ def rasterizer_replays(*, after: int | None = 3, max_bytes: int = 1 << 30) -> in
         raise ValueError(f"after must be an integer >= 1 or None, got {after!r}")
     if not max_bytes > 0:
         raise ValueError(f"max_bytes must be > 0, got {max_bytes!r}")
-    from warpavatar._src import splat_replay
-
     held = _REPLAYS.held_bytes()
     _REPLAYS.clear()
     splat_replay.REPLAY_AFTER = None if after is None else int(after)
@@ -617,7 +616,7 @@ def rasterizer_replays(*, after: int | None = 3, max_bytes: int = 1 << 30) -> in
     return held
 
 
-def rasterizer_status(info: dict) -> int:
+def rasterizer_status(info: Mapping) -> int:
     """Check a rasterization's device-side status (one host read): the number of (Gaussian, tile) pairs it
     needed.
 

@@ -54,7 +54,7 @@ def option(default, help_text: str, *, product: bool = False, choices: tuple | N
         default: the value when neither the preset nor the command line sets one.
         help_text: what ``--help`` says, with the unit where there is one.
         product: a main option of the product (listed first by ``--help``) rather than a research knob.
-        choices: the values the flag accepts, when they are few (the options class still checks its values).
+        choices: the values the flag accepts, when they are few (a config with other values is refused).
     """
     if isinstance(default, (list, dict, set)):
         raise TypeError("options hold plain values")

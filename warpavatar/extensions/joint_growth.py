@@ -347,8 +347,6 @@ class JointGrowthOptions:
     lr_extra_joints: float = option(1e-3, "Adam learning rate of the grown joints' position and rotation MLPs")
 
     def __post_init__(self):
-        if self.grow_criterion not in ("gradient", "history"):
-            raise ValueError(f"grow_criterion must be 'gradient' or 'history', got {self.grow_criterion!r}")
         if self.grow_threshold <= 0 or not 0.0 <= self.grow_motion_mix <= 1.0:
             raise ValueError(f"grow_threshold must be positive and grow_motion_mix lie in [0, 1], got "
                              f"{self.grow_threshold} and {self.grow_motion_mix}")

@@ -259,8 +259,6 @@ class PoseRefinementOptions:
                      "lambda_pose_depth", "pose_prior_window"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
-        if self.pose_moments not in ("vector", "component"):
-            raise ValueError(f"pose_moments must be 'vector' or 'component', got {self.pose_moments!r}")
         if not 0 < self.lr_pose_final <= 1:
             raise ValueError(f"lr_pose_final must lie in (0, 1], got {self.lr_pose_final}")
         if self.refine_poses_from < 0:

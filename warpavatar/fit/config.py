@@ -31,6 +31,16 @@ def _core(default, help_text: str, *, group: str, product: bool = False, choices
                                             "choices": choices})
 
 
+def _check_choices(values) -> None:
+    """Raise ValueError when a dataclass field declared with ``choices`` (core fields, extension options) holds
+    another value."""
+    for option in fields(values):
+        choices = option.metadata.get("choices")
+        if choices and getattr(values, option.name) not in choices:
+            words = " or ".join([", ".join(repr(c) for c in choices[:-1]), repr(choices[-1])])
+            raise ValueError(f"{option.name} must be {words}, got {getattr(values, option.name)!r}")
+
+
 @dataclass
 class FitConfig:
     """Every knob of a fit. Iteration counts are optimizer steps (one training frame each)."""
@@ -140,11 +150,7 @@ class FitConfig:
 
     def __post_init__(self):
         _check_ranges(self)
-        for option in fields(self):
-            choices = option.metadata.get("choices")
-            if choices and getattr(self, option.name) not in choices:
-                words = " or ".join([", ".join(repr(c) for c in choices[:-1]), repr(choices[-1])])
-                raise ValueError(f"{option.name} must be {words}, got {getattr(self, option.name)!r}")
+        _check_choices(self)
         if not self.skinning_prior_temperature > 0.0:
             raise ValueError(f"skinning_prior_temperature must be positive, got {self.skinning_prior_temperature}")
         # the registry's order, whatever order they were given in
@@ -156,6 +162,7 @@ class FitConfig:
             cls = get_extension(name)
             if not isinstance(options, cls.options_type):
                 raise TypeError(f"the options of {name!r} must be a {cls.options_type.__name__}, got {options!r}")
+            _check_choices(options)
             for other, reason in cls.conflicts.items():
                 if other in self.extensions:
                     raise ValueError(reason)
