@@ -31,9 +31,10 @@ _LOG_SCALE_LIMIT = wp.constant(LOG_SCALE_LIMIT)
 
 
 REDUCE_LANES = 64
-"""Threads of a block of :data:`pose_feature_kernel`, :data:`first_bias_kernel` and :data:`closest_code_kernel`
-on CUDA: a block makes one output, its threads taking every 64th term, then one block reduction (a thread's
-terms are a short chain, not the whole row: one output per thread was a chain of ~150 dependent loads)."""
+"""Threads of a block of :data:`pose_difference_kernel`, :data:`pose_feature_kernel`, :data:`first_bias_kernel` and
+:data:`closest_code_kernel` on CUDA: a block makes one output, its threads taking every 64th term, then one
+block reduction (a thread's terms are a short chain, not the whole row: one output per thread was a chain of
+~150 dependent loads)."""
 
 
 def _reduce_lanes(device) -> int:
@@ -89,20 +90,18 @@ def apply_correction(outputs: wp.array, means: wp.array, quats: wp.array, scales
               inputs=[outputs, means, quats, scales, offset_scale], outputs=[means_out, quats_out, scales_out])
 
 
-DIFFERENCE_LANES = 32
-"""Threads per frame of :data:`pose_difference_kernel` (each takes every 32nd entry, then one atomic maximum)."""
-
-
 @wp.kernel(enable_backward=False)
 def pose_difference_kernel(frame_poses: wp.array2d(dtype=wp.float32), pose: wp.array(dtype=wp.float32),
                            differences: wp.array(dtype=wp.float32)):
-    """:data:`DIFFERENCE_LANES` threads per frame: ``differences[t]`` (zeroed by the caller) becomes the largest
-    absolute entry difference (a maximum: the same in any order)."""
+    """One block per frame ``t`` (launched tiled): ``differences[t]`` = the largest absolute entry difference, each
+    thread taking every block-size-th entry, then one block reduction (a maximum: the same in any order)."""
     t, lane = wp.tid()
     largest = wp.float32(0.0)
-    for k in range(lane, frame_poses.shape[1], DIFFERENCE_LANES):
+    for k in range(lane, frame_poses.shape[1], wp.block_dim()):
         largest = wp.max(largest, wp.abs(frame_poses[t, k] - pose[k]))
-    wp.atomic_max(differences, t, largest)
+    total = wp.tile_max(wp.tile(largest))
+    if lane == 0:
+        differences[t] = total[0]
 
 
 @wp.kernel(enable_backward=False)
@@ -139,7 +138,7 @@ def match_frame_code(frame_poses: wp.array, pose: wp.array, codes: wp.array, tol
         pose: [K'] this frame's pose, flattened (K' >= K: only the first K entries are compared).
         codes: [T, C] the frames' codes.
         tolerance: largest entry difference of a match.
-        differences: [T] scratch, zeroed: each frame's largest entry difference.
+        differences: [T] scratch: each frame's largest entry difference (written, not read first).
         code: [C] output.
     """
     count, width = frame_poses.shape
@@ -150,18 +149,17 @@ def match_frame_code(frame_poses: wp.array, pose: wp.array, codes: wp.array, tol
         raise ValueError(f"pose has {pose.shape[0]} entries, the frames' poses {width}")
     if count == 0 or code.shape[0] == 0:
         return
-    wp.launch(pose_difference_kernel, dim=(count, DIFFERENCE_LANES), device=pose.device, inputs=[frame_poses, pose],
-              outputs=[differences])
+    lanes = _reduce_lanes(pose.device)
+    wp.launch_tiled(pose_difference_kernel, dim=[count], device=pose.device, inputs=[frame_poses, pose],
+                    outputs=[differences], block_dim=lanes)
     wp.launch_tiled(closest_code_kernel, dim=[1], device=pose.device, inputs=[differences, codes, float(tolerance)],
-                    outputs=[code], block_dim=_reduce_lanes(pose.device))
+                    outputs=[code], block_dim=lanes)
 
 
-@wp.kernel(enable_backward=False)
-def pose_rotation_kernel(bones: wp.array(dtype=wp.mat44), parent_index: wp.array(dtype=wp.int32),
-                         rotations: wp.array(dtype=wp.float32)):
-    """One thread per (joint, row, column): ``rotations[joint * 6 + row * 2 + column]`` = (R_parent^T R - I)[row,
-    column] over the first two columns (the 6D feature of ``relative_rotations_6d``)."""
-    i = wp.tid()
+@wp.func
+def relative_rotation_entry(bones: wp.array(dtype=wp.mat44), parent_index: wp.array(dtype=wp.int32), i: int):
+    """Entry ``i`` of the pose feature (``relative_rotations_6d``): ``(R_parent^T R - I)[row, column]`` of joint
+    ``i // 6`` over the first two columns (``row, column = divmod(i % 6, 2)``)."""
     joint = i // 6
     row = (i - joint * 6) // 2
     column = i - joint * 6 - row * 2
@@ -171,15 +169,16 @@ def pose_rotation_kernel(bones: wp.array(dtype=wp.mat44), parent_index: wp.array
         parent[2, row] * rotation[2, column]
     if row == column:
         value = value - 1.0
-    rotations[i] = value
+    return value
 
 
 @wp.kernel(enable_backward=False)
-def pose_feature_kernel(rotations: wp.array(dtype=wp.float32), encoder_weight: wp.array2d(dtype=wp.float32),
-                        encoder_bias: wp.array(dtype=wp.float32), code: wp.array(dtype=wp.float32),
-                        feature: wp.array(dtype=wp.float32)):
-    """One block per feature entry ``j`` (launched tiled): ``encoder_bias[j] + encoder_weight[j] . rotations``
-    for the encoded pose, the frame code's entry after it."""
+def pose_feature_kernel(bones: wp.array(dtype=wp.mat44), parent_index: wp.array(dtype=wp.int32),
+                        encoder_weight: wp.array2d(dtype=wp.float32), encoder_bias: wp.array(dtype=wp.float32),
+                        code: wp.array(dtype=wp.float32), feature: wp.array(dtype=wp.float32)):
+    """One block per feature entry ``j`` (launched tiled): ``encoder_bias[j] + encoder_weight[j] . f`` with ``f``
+    the pose feature (:func:`relative_rotation_entry`, made where it is read: a few loads an entry) for the
+    encoded pose, the frame code's entry after it."""
     j, lane = wp.tid()
     width = encoder_bias.shape[0]
     if j >= width:  # the frame code follows the encoded pose (block-uniform)
@@ -187,8 +186,8 @@ def pose_feature_kernel(rotations: wp.array(dtype=wp.float32), encoder_weight: w
             feature[j] = code[j - width]
         return
     partial = float(0.0)
-    for i in range(lane, rotations.shape[0], wp.block_dim()):
-        partial += encoder_weight[j, i] * rotations[i]
+    for i in range(lane, encoder_weight.shape[1], wp.block_dim()):
+        partial += encoder_weight[j, i] * relative_rotation_entry(bones, parent_index, i)
     total = wp.tile_sum(wp.tile(partial))
     if lane == 0:
         feature[j] = encoder_bias[j] + total[0]
@@ -210,7 +209,7 @@ def first_bias_kernel(feature: wp.array(dtype=wp.float32), weight: wp.array2d(dt
 
 def frame_bias(bones: wp.array, parent_index: wp.array, encoder_weight: wp.array, encoder_bias: wp.array,
                code: wp.array, weight: wp.array, bias: wp.array, low: wp.array, high: wp.array, feature: wp.array,
-               out: wp.array, rotations: wp.array) -> None:
+               out: wp.array) -> None:
     """Write a frame's first-layer bias of the pose correction's network:
     ``clamp(bias + weight @ [encoder_bias + encoder_weight @ pose6d(bones), code], low, high)``.
 
@@ -222,7 +221,6 @@ def frame_bias(bones: wp.array, parent_index: wp.array, encoder_weight: wp.array
         weight: [H, P+C] the first layer's pose and code columns (contiguous); bias: [H] its bias.
         low, high: [H] the clamp (+-inf for none).
         feature: [P+C] scratch: the encoded pose and the code.
-        rotations: [6J] scratch: the pose feature.
         out: [H] float32 or float16 output.
     """
     joints, width = parent_index.shape[0], encoder_bias.shape[0]
@@ -235,12 +233,9 @@ def frame_bias(bones: wp.array, parent_index: wp.array, encoder_weight: wp.array
     hidden = bias.shape[0]
     if weight.shape[0] != hidden or low.shape[0] != hidden or high.shape[0] != hidden or out.shape[0] != hidden:
         raise ValueError(f"weight {weight.shape}, bias, bounds and out must have {hidden} rows")
-    if rotations.shape[0] != 6 * joints:
-        raise ValueError(f"rotations has {rotations.shape[0]} entries, expected 6 * {joints} joints")
-    wp.launch(pose_rotation_kernel, dim=6 * joints, device=bones.device, inputs=[bones, parent_index],
-              outputs=[rotations])
     lanes = _reduce_lanes(bones.device)
     wp.launch_tiled(pose_feature_kernel, dim=[feature.shape[0]], device=bones.device,
-                    inputs=[rotations, encoder_weight, encoder_bias, code], outputs=[feature], block_dim=lanes)
+                    inputs=[bones, parent_index, encoder_weight, encoder_bias, code], outputs=[feature],
+                    block_dim=lanes)
     wp.launch_tiled(first_bias_kernel, dim=[hidden], device=bones.device, inputs=[feature, weight, bias, low, high],
                     outputs=[out], block_dim=lanes)

@@ -743,6 +743,7 @@ def composite_forward_kernel(
     width: int,
     height: int,
     tiles_x: int,
+    pixel_state: int,
     image: wp.array(dtype=wp.vec3),
     alpha: wp.array(dtype=wp.float32),
     depth: wp.array(dtype=wp.float32),
@@ -752,8 +753,9 @@ def composite_forward_kernel(
     """Front-to-back compositing of one pixel per thread, one tile per block (launch dim [tiles, 256]).
 
     Per pixel (row-major ``y * width + x``): ``image`` = sum w_i c_i + T background, ``alpha`` = 1 - T,
-    ``depth`` = sum w_i z_i, ``final_transmittance`` = T, ``last_index`` = position in the sorted list of the
-    last composited Gaussian (-1 when none).
+    ``depth`` = sum w_i z_i and, when ``pixel_state`` is nonzero (what the backward pass reads),
+    ``final_transmittance`` = T and ``last_index`` = position in the sorted list of the last composited Gaussian
+    (-1 when none).
     """
     tile, lane = wp.tid()
     tile_row = tile // tiles_x
@@ -810,8 +812,9 @@ def composite_forward_kernel(
         image[pixel] = color + transmittance * background[0]
         alpha[pixel] = 1.0 - transmittance
         depth[pixel] = depth_sum
-        final_transmittance[pixel] = transmittance
-        last_index[pixel] = last
+        if pixel_state != 0:
+            final_transmittance[pixel] = transmittance
+            last_index[pixel] = last
 
 
 def _check_pixel_arrays(width: int, height: int, **arrays) -> None:
@@ -821,10 +824,13 @@ def _check_pixel_arrays(width: int, height: int, **arrays) -> None:
 
 
 def launch_composite_forward(tile_ranges, sorted_ids, xy_opacity, conics, color_depth, background, *, width: int,
-                             height: int, image, alpha, depth, final_transmittance, last_index) -> None:
+                             height: int, image, alpha, depth, final_transmittance, last_index,
+                             pixel_state: bool = True) -> None:
     """Launch :data:`composite_forward_kernel` over all tiles of a ``width`` x ``height`` image.
 
-    ``background`` holds one vec3; the pixel arrays are flat (``width * height`` entries).
+    ``background`` holds one vec3; the pixel arrays are flat (``width * height`` entries). ``pixel_state=False``
+    (no backward pass will run) leaves ``final_transmittance`` and ``last_index`` unwritten: 8 bytes a pixel
+    less to store.
     """
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
     tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
@@ -837,7 +843,8 @@ def launch_composite_forward(tile_ranges, sorted_ids, xy_opacity, conics, color_
     wp.launch(
         composite_forward_kernel,
         dim=(tiles_x * tiles_y, int(PIXELS_PER_TILE)),
-        inputs=[tile_ranges, sorted_ids, xy_opacity, conics, color_depth, background, width, height, tiles_x],
+        inputs=[tile_ranges, sorted_ids, xy_opacity, conics, color_depth, background, width, height, tiles_x,
+                int(pixel_state)],
         outputs=[image, alpha, depth, final_transmittance, last_index],
         block_dim=launch_block_dim(_device_of(image)),
     )

@@ -764,7 +764,8 @@ def test_backward_keeps_one_sorted_id_per_pair_and_no_per_gaussian_scratch(devic
 
 def test_a_pass_without_gradients_keeps_its_sorted_ids_in_place(device, monkeypatch):
     # No backward will read a pass whose inputs need no gradient: its sorted ids stay a view of the sort's
-    # double buffer (no copy), and its outputs are those of a pass that keeps the compact copy.
+    # double buffer (no copy), its per-pixel state (final transmittance, last index) is not written, and its
+    # outputs are those of a pass that keeps the compact copy and the state.
     monkeypatch.setattr(splat_bridge, "_RECENT_PAIRS", {})
     scene, sizes = make_scene(5, device=device, gaussian_count=160)
     inputs = [scene[name] for name in ("means", "quats", "scales", "opacities")]
@@ -775,13 +776,17 @@ def test_a_pass_without_gradients_keeps_its_sorted_ids_in_place(device, monkeypa
                                         capacity=None, speculative=False, compact_ids=True,
                                         buffers=splat_bridge.allocate_pass_buffers(160, sizes["width"],
                                                                                    sizes["height"], device))
+    untouched = splat_bridge.allocate_pass_buffers(160, sizes["width"], sizes["height"], device)
+    untouched.final_transmittance.fill_(-7.0)
+    untouched.last_index.fill_(-7)
     in_place, same_count = splat_bridge.run_pass(*args, width=sizes["width"], height=sizes["height"], sh_degree=-1,
                                                  capacity=None, speculative=False, compact_ids=False,
-                                                 buffers=splat_bridge.allocate_pass_buffers(160, sizes["width"],
-                                                                                            sizes["height"], device))
+                                                 pixel_state=False, buffers=untouched)
     assert count == same_count > 100
     assert kept.sorted_ids.untyped_storage().nbytes() == 4 * count
     assert in_place.sorted_ids.untyped_storage().nbytes() == 8 * count
     assert torch.equal(kept.sorted_ids, in_place.sorted_ids)
     for name in ("image", "alpha", "depth"):
         assert torch.equal(getattr(kept, name), getattr(in_place, name))
+    assert (in_place.final_transmittance == -7.0).all() and (in_place.last_index == -7).all()
+    assert torch.allclose(kept.final_transmittance, 1.0 - kept.alpha, atol=1e-6) and (kept.last_index >= 0).any()

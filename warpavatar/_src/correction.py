@@ -77,7 +77,7 @@ def match_frame_code(frame_poses: torch.Tensor, pose: torch.Tensor, codes: torch
     check_tensor("codes", codes, (count, None), dtype_kind="float32", device=device)
     if count == 0:
         raise ValueError("frame_poses holds no pose")
-    differences = torch.zeros(count, device=device)  # the kernel keeps each frame's maximum
+    differences = torch.empty(count, device=device)  # each frame's largest entry difference
     code = torch.empty(codes.shape[1], device=device)
     with torch_stream_scope(device):
         kernels.match_frame_code(to_warp(frame_poses.reshape(count, -1)), to_warp(pose.reshape(-1)), to_warp(codes),
@@ -88,7 +88,7 @@ def match_frame_code(frame_poses: torch.Tensor, pose: torch.Tensor, codes: torch
 def frame_bias(bone_transforms: torch.Tensor, parent_index: torch.Tensor, encoder_weight: torch.Tensor,
                encoder_bias: torch.Tensor, code: torch.Tensor | None, weight: torch.Tensor, bias: torch.Tensor, *,
                low: torch.Tensor, high: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """The pose correction's first-layer bias of a frame [H] in three kernels, without a host read: the values of
+    """The pose correction's first-layer bias of a frame [H] in two kernels, without a host read: the values of
     ``clamp(bias + weight @ cat([encoder_bias + encoder_weight @ f, code]), low, high)`` with ``f`` the pose
     feature of :func:`warpavatar.extensions.pose_correction.relative_rotations_6d` (float32 sums in another
     order than torch's: float32 rounding apart). No gradients.
@@ -114,12 +114,11 @@ def frame_bias(bone_transforms: torch.Tensor, parent_index: torch.Tensor, encode
         check_tensor(name, tensor, (None,), dtype_kind="float32", device=device)
     if torch.is_grad_enabled() and any(t.requires_grad for t in (encoder_weight, weight, bias, bone_transforms)):
         raise ValueError("frame_bias has no gradients (playback only): call it under torch.no_grad()")
-    scratch = torch.empty(weight.shape[1] + 6 * parent_index.shape[0], device=device)
-    feature, rotations = scratch[: weight.shape[1]], scratch[weight.shape[1]:]
+    feature = torch.empty(weight.shape[1], device=device)
     out = torch.empty(bias.shape[0], device=device, dtype=dtype)
     with torch_stream_scope(device):
         kernels.frame_bias(to_warp(bone_transforms, dtype=wp.mat44), to_warp(parent_index),
                            to_warp(encoder_weight), to_warp(encoder_bias), None if code is None else to_warp(code),
                            to_warp(weight), to_warp(bias), to_warp(low), to_warp(high), to_warp(feature),
-                           to_warp(out), to_warp(rotations))
+                           to_warp(out))
     return out

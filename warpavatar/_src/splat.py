@@ -241,7 +241,8 @@ def allocate_pass_buffers(gaussian_count: int, width: int, height: int, device: 
 
 def run_pass(means, quats, scales, opacities, coefficients, background, K, world_to_camera, *, width: int,
              height: int, sh_degree: int, capacity: int | None, speculative: bool,
-             buffers: PassBuffers, compact_ids: bool = True) -> tuple[PassBuffers, int | None]:
+             buffers: PassBuffers, compact_ids: bool = True,
+             pixel_state: bool = True) -> tuple[PassBuffers, int | None]:
     """Queue one forward pass into ``buffers`` (see the module doc for the three modes).
 
     Args:
@@ -252,6 +253,8 @@ def run_pass(means, quats, scales, opacities, coefficients, background, K, world
             ``sorted_ids`` [capacity] to be filled in place (a captured pass keeps them).
         compact_ids: False when no backward will read the pass (no gradient asked for): the sorted ids then
             stay in the sort's buffer (8 bytes a pair, released with the pass) instead of a 4-byte copy.
+        pixel_state: False when no backward will run: ``final_transmittance`` and ``last_index`` are then not
+            written (their buffers hold garbage).
 
     Returns:
         ``(buffers, pair_count)``: the buffers with ``status`` and ``sorted_ids`` set, and the pair count where
@@ -298,7 +301,7 @@ def run_pass(means, quats, scales, opacities, coefficients, background, K, world
                               out.tile_ranges, width=width, height=height, ids_out=ids_out, compact=compact_ids)
             splat_kernels.launch_composite_forward(
                 warp_descriptor(out.tile_ranges), warp_descriptor(sorted_ids), w_xy_opacity, w_conics,
-                w_color_depth, w_background, width=width, height=height, **w_pixels)
+                w_color_depth, w_background, width=width, height=height, pixel_state=pixel_state, **w_pixels)
             return sorted_ids
 
         count = None
@@ -348,7 +351,8 @@ class _RasterizeGaussians(torch.autograd.Function):
         if passed is None:
             passed, count = run_pass(*inputs, **sizes, capacity=capacity, speculative=speculative,
                                      buffers=allocate_pass_buffers(gaussian_count, width, height, device),
-                                     compact_ids=any(ctx.needs_input_grad[:5]))
+                                     compact_ids=any(ctx.needs_input_grad[:5]),
+                                     pixel_state=any(ctx.needs_input_grad[:6]))
         if intersection_capacity is None:
             _remember_pairs(speculation_key, count)
             if speculative and count <= capacity:
