@@ -507,3 +507,22 @@ def test_vector_adam_keeps_each_vector_s_direction():
     torch.testing.assert_close(step, -0.02 * gradient / gradient.square().mean(-1, keepdim=True).sqrt())
     with pytest.raises(ValueError, match="lr must be > 0"):
         VectorAdam([vectors], lr=0.0)
+
+
+def test_fit_benchmark_reports_the_held_out_folders_after_test_time_refinement(tmp_path, capsys):
+    tool = load_tool("fit_benchmark")
+    out = tmp_path / "fit"
+    assert tool.main([str(data.demo_subject_path()), "-o", str(out), "--preset", "quick", "--device", "cpu",
+                      "--iterations", "20", "--max-train-frames", "3", "--image-scale", "0.25",
+                      "--field-warmup-steps", "5", "--gaussian-only-steps", "5", "--eval-refine-poses", "2"]) == 0
+    rows = json.loads((out / "benchmark.json").read_text())["rows"]
+    assert [row["folder"] for row in rows] == ["train", "novel_view/cam_090", "novel_pose/dance_cam000"]
+    assert rows[0]["refined_psnr_masked"] == "-"  # the fit's own frames are not refined again
+    for row in rows[1:]:
+        assert math.isfinite(row["refined_psnr_masked"]) and math.isfinite(row["refined_ssim_masked"])
+        assert row["refined_psnr_masked"] != row["psnr_masked"]  # the poses moved
+    assert all(line.count("|") == 12 for line in capsys.readouterr().out.splitlines() if line.startswith("|"))
+    with pytest.raises(SystemExit) as stop:
+        tool.main([str(data.demo_subject_path()), "-o", str(out), "--eval-refine-poses", "-1"])
+    assert stop.value.code == 2
+    assert "--eval-refine-poses must be >= 0, got -1" in capsys.readouterr().err
