@@ -17,12 +17,12 @@ the offending file and says what is wrong with it.
 
 from warpavatar.data.checks import RIGID_TOLERANCE, VideoFolderError
 from warpavatar.data.importers import import_instantavatar
-from warpavatar.data.reader import LazyVideoFolders, demo_subject_path, load_subject, load_video_folder
+from warpavatar.data.reader import LazyVideoFolders, demo_subject_path, load_subject, load_video_folder, read_poses
 from warpavatar.data.types import (ESTIMATED_POSES, POSE_SOURCES, SKELETON_FORMAT, Camera, Skeleton, Subject,
                                    VideoFolder)
 from warpavatar.data.writer import staged_folder, write_poses, write_video_folder
 
 __all__ = ["SKELETON_FORMAT", "ESTIMATED_POSES", "POSE_SOURCES", "RIGID_TOLERANCE", "VideoFolderError", "Skeleton",
            "Camera", "VideoFolder", "Subject",
-           "LazyVideoFolders", "load_video_folder", "load_subject", "write_video_folder", "write_poses", "staged_folder",
-           "import_instantavatar", "demo_subject_path"]
+           "LazyVideoFolders", "load_video_folder", "load_subject", "write_video_folder", "write_poses", "read_poses",
+           "staged_folder", "import_instantavatar", "demo_subject_path"]

@@ -21,7 +21,7 @@ from warpavatar.data.checks import (VideoFolderError, check_intrinsics, check_ri
 from warpavatar.data.types import DEFAULT_FPS, POSE_SOURCES, Camera, Skeleton, Subject, VideoFolder
 
 __all__ = ["FRAME_EXTENSIONS", "load_video_folder", "load_subject", "LazyVideoFolders", "demo_subject_path",
-           "read_skeleton", "read_image"]
+           "read_poses", "read_skeleton", "read_image"]
 
 FRAME_EXTENSIONS = (".png", ".jpg", ".jpeg")
 """File extensions of frame and mask images."""
@@ -120,6 +120,18 @@ def _read_poses(path: Path, joint_count: int) -> tuple[np.ndarray, np.ndarray, n
             raise VideoFolderError(path, "'joint_positions' holds non-finite values (nan or inf)")
         joint_positions = joint_positions.astype(np.float32)
     return bone_transforms.astype(np.float32), frame_ids.astype(np.int32), joint_positions
+
+
+def read_poses(path: str | os.PathLike, *, joint_count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Read and validate a ``poses.npz`` (docs/FORMAT.md) of a skeleton with ``joint_count`` joints.
+
+    Returns:
+        ``(bone_transforms [T,J,4,4] float32, frame_ids [T] int32, joint_positions [T,J,3] float32 or None)``.
+
+    Raises:
+        VideoFolderError: the file is missing or does not hold valid poses (the message names it).
+    """
+    return _read_poses(Path(path), joint_count)
 
 
 def _camera_from_json(entry: Mapping, width: int, height: int, fallback: Mapping, path: Path, what: str) -> Camera:
