@@ -236,6 +236,31 @@ def test_pose_noise_tool_is_exact_in_size_reproducible_and_shared_by_views(tmp_p
     assert not (tmp_path / "bad").exists()
 
 
+@pytest.mark.parametrize("confine", ["image-plane", "depth"])
+def test_perturbation_confined_to_the_image_plane_or_to_depth(tmp_path, confine):
+    tool, errors = _perturb_tool(), load_tool("pose_error")
+    source = data.demo_subject_path() / "train"
+    tool.perturb_folder(source, tmp_path / "noisy", rotation_deg=5.0, translation=0.03, seed=3, confine=confine)
+    clean, noisy = data.load_video_folder(source), data.load_video_folder(tmp_path / "noisy")
+    assert json.loads((tmp_path / "noisy" / "meta.json").read_text())["perturbation"]["confine"] == confine
+    cameras = clean.cameras
+    measured = errors.pose_errors(clean.bone_transforms, noisy.bone_transforms, clean.skeleton.heads,
+                                  np.asarray(clean.skeleton.parents), np.stack([np.asarray(c.K) for c in cameras]),
+                                  np.stack([np.asarray(c.world_to_camera) for c in cameras]))
+    assert np.allclose(measured["rotation_deg"], 5.0, atol=0.02)  # every joint turned by the full angle
+    root = int(np.flatnonzero(np.asarray(clean.skeleton.parents) < 0)[0])
+    if confine == "image-plane":  # nothing moves along the camera axis, everything across it
+        assert measured["along_axis"].max() < 1e-5 and measured["across"].mean() > 0.02
+        assert np.allclose(measured["across"][:, root], 0.03, atol=1e-5)
+    else:  # the root moves along the axis only; the limbs swing towards or away from the camera
+        assert np.allclose(measured["along_axis"][:, root], 0.03, atol=1e-5)
+        assert measured["across"][:, root].max() < 1e-5
+        assert measured["along_axis"].mean() > measured["across"].mean()
+    with pytest.raises(ValueError, match="does not combine with --smooth-frames"):
+        tool.perturb_folder(source, tmp_path / "smooth", rotation_deg=5.0, translation=0.03, smooth_frames=4.0,
+                            confine=confine)
+
+
 # --- options, meta.json ----------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("values, match", [
