@@ -22,19 +22,14 @@ def demo():
     return data.load_video_folder(data.demo_subject_path() / "train", max_frames=6)
 
 
-def _cameras(video):
-    return (np.stack([np.asarray(c.K) for c in video.cameras]),
-            np.stack([np.asarray(c.world_to_camera) for c in video.cameras]))
-
-
 def test_a_rigid_shift_is_split_along_and_across_the_camera_axis(tool, demo):
     exact = np.asarray(demo.bone_transforms, dtype=np.float64)
     shift = np.array([0.03, -0.01, 0.02])
     moved = exact.copy()
     moved[..., :3, 3] += shift  # every pivot moves by the same vector; no rotation changes
-    intrinsics, world_to_camera = _cameras(demo)
-    errors = tool.pose_errors(exact, moved, demo.skeleton.heads, np.asarray(demo.skeleton.parents), intrinsics,
-                              world_to_camera)
+    errors = tool.pose_errors(exact, moved, demo.skeleton.heads, demo.skeleton.parents, demo.cameras)
+    intrinsics = np.stack([np.asarray(camera.K) for camera in demo.cameras])
+    world_to_camera = np.stack([np.asarray(camera.world_to_camera) for camera in demo.cameras])
     axes = world_to_camera[:, 2, :3]  # each frame's optical axis in the world
     along = np.abs(axes @ shift)
     assert np.allclose(errors["pivots"], np.linalg.norm(shift), atol=1e-6)
@@ -61,7 +56,7 @@ def test_a_turned_joint_shows_its_angle_and_moves_its_children_only(tool, demo):
     heads = torch.as_tensor(demo.skeleton.heads, dtype=torch.float64)
     turned = corrected_transforms(exact, heads, ancestor_jumps(parents.tolist()), rotation,
                                   torch.zeros(exact.shape[0], 3, dtype=torch.float64))
-    errors = tool.pose_errors(exact.numpy(), turned.numpy(), demo.skeleton.heads, parents, *_cameras(demo))
+    errors = tool.pose_errors(exact.numpy(), turned.numpy(), demo.skeleton.heads, parents, demo.cameras)
     assert np.allclose(errors["rotation_deg"][:, joint], 7.0, atol=1e-3)
     others = np.delete(errors["rotation_deg"], joint, axis=1)
     assert others.max() < 1e-2  # the children follow: their rotations relative to their parents are unchanged

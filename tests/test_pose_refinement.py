@@ -243,10 +243,8 @@ def test_perturbation_confined_to_the_image_plane_or_to_depth(tmp_path, confine)
     tool.perturb_folder(source, tmp_path / "noisy", rotation_deg=5.0, translation=0.03, seed=3, confine=confine)
     clean, noisy = data.load_video_folder(source), data.load_video_folder(tmp_path / "noisy")
     assert json.loads((tmp_path / "noisy" / "meta.json").read_text())["perturbation"]["confine"] == confine
-    cameras = clean.cameras
     measured = errors.pose_errors(clean.bone_transforms, noisy.bone_transforms, clean.skeleton.heads,
-                                  np.asarray(clean.skeleton.parents), np.stack([np.asarray(c.K) for c in cameras]),
-                                  np.stack([np.asarray(c.world_to_camera) for c in cameras]))
+                                  clean.skeleton.parents, clean.cameras)
     assert np.allclose(measured["rotation_deg"], 5.0, atol=0.02)  # every joint turned by the full angle
     root = int(np.flatnonzero(np.asarray(clean.skeleton.parents) < 0)[0])
     if confine == "image-plane":  # nothing moves along the camera axis, everything across it

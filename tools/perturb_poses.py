@@ -196,8 +196,6 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.rotation_deg < 0 or args.translation_m < 0 or args.smooth_frames < 0:
         parser.error("--rotation-deg, --translation-m and --smooth-frames must be non-negative")
-    if args.confine != "none" and args.smooth_frames > 0:
-        parser.error("--confine does not combine with --smooth-frames (its sense of turn is drawn per frame)")
     options = dict(rotation_deg=args.rotation_deg, translation=args.translation_m, smooth_frames=args.smooth_frames,
                    seed=args.seed, overwrite=args.overwrite, confine=args.confine)
     try:

@@ -57,13 +57,13 @@ def _relative_rotations(bone_transforms: np.ndarray, parents: np.ndarray) -> np.
 
 
 def pose_errors(exact: np.ndarray, estimate: np.ndarray, heads: np.ndarray, parents: np.ndarray,
-                intrinsics: np.ndarray, world_to_camera: np.ndarray) -> dict[str, np.ndarray]:
+                cameras) -> dict[str, np.ndarray]:
     """Per frame and joint errors of ``estimate`` against ``exact`` (both [T,J,4,4] rest-to-posed transforms of
     the same frames).
 
     Args:
         heads: [J,3] rest pivots [world units]; parents: [J] parent index (-1 for roots).
-        intrinsics: [T,3,3] and world_to_camera: [T,4,4], the OpenCV camera of each frame.
+        cameras: the T frames' :class:`~warpavatar.data.Camera` (OpenCV convention).
 
     Returns:
         ``pivots``, ``along_axis``, ``across``, ``pixels`` and ``rotation_deg``, each [T,J], and ``bias`` [J].
@@ -71,6 +71,9 @@ def pose_errors(exact: np.ndarray, estimate: np.ndarray, heads: np.ndarray, pare
     exact = np.asarray(exact, dtype=np.float64)
     estimate = np.asarray(estimate, dtype=np.float64)
     heads = np.asarray(heads, dtype=np.float64)
+    parents = np.asarray(parents)
+    intrinsics = np.stack([np.asarray(camera.K, dtype=np.float64) for camera in cameras])
+    world_to_camera = np.stack([np.asarray(camera.world_to_camera, dtype=np.float64) for camera in cameras])
 
     def pivots(transforms):
         return np.einsum("tjab,jb->tja", transforms[..., :3, :3], heads) + transforms[..., :3, 3]
@@ -102,10 +105,8 @@ def _report(video, path: Path, per_joint: int) -> list[str]:
     if not shared:
         raise VideoFolderError(path, f"shares no frame id with {video.root}")
     mine, theirs = (np.asarray(index) for index in zip(*shared))
-    cameras = [video.cameras[t] for t in theirs]
     errors = pose_errors(np.asarray(video.bone_transforms)[theirs], transforms[mine], video.skeleton.heads,
-                         np.asarray(video.skeleton.parents), np.stack([np.asarray(c.K) for c in cameras]),
-                         np.stack([np.asarray(c.world_to_camera) for c in cameras]))
+                         video.skeleton.parents, [video.cameras[t] for t in theirs])
     lines = [f"| {path} | {len(shared)} | {1000 * errors['pivots'].mean():.1f} | "
              f"{1000 * errors['along_axis'].mean():.1f} | {1000 * errors['across'].mean():.1f} | "
              f"{errors['pixels'].mean():.2f} | {1000 * errors['bias'].mean():.1f} | "

@@ -81,7 +81,16 @@ def _find_video_file(root: Path) -> Path | None:
     return candidates[0] if candidates else None
 
 
-def _read_poses(path: Path, joint_count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+def read_poses(path: str | os.PathLike, *, joint_count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Read and validate a ``poses.npz`` (docs/FORMAT.md) of a skeleton with ``joint_count`` joints.
+
+    Returns:
+        ``(bone_transforms [T,J,4,4] float32, frame_ids [T] int32, joint_positions [T,J,3] float32 or None)``.
+
+    Raises:
+        VideoFolderError: the file is missing or does not hold valid poses (the message names it).
+    """
+    path = Path(path)
     arrays = read_npz(path)
     for key in ("bone_transforms", "frame_ids"):
         if key not in arrays:
@@ -120,18 +129,6 @@ def _read_poses(path: Path, joint_count: int) -> tuple[np.ndarray, np.ndarray, n
             raise VideoFolderError(path, "'joint_positions' holds non-finite values (nan or inf)")
         joint_positions = joint_positions.astype(np.float32)
     return bone_transforms.astype(np.float32), frame_ids.astype(np.int32), joint_positions
-
-
-def read_poses(path: str | os.PathLike, *, joint_count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Read and validate a ``poses.npz`` (docs/FORMAT.md) of a skeleton with ``joint_count`` joints.
-
-    Returns:
-        ``(bone_transforms [T,J,4,4] float32, frame_ids [T] int32, joint_positions [T,J,3] float32 or None)``.
-
-    Raises:
-        VideoFolderError: the file is missing or does not hold valid poses (the message names it).
-    """
-    return _read_poses(Path(path), joint_count)
 
 
 def _camera_from_json(entry: Mapping, width: int, height: int, fallback: Mapping, path: Path, what: str) -> Camera:
@@ -398,7 +395,7 @@ def load_video_folder(path: str | os.PathLike, *, max_frames: int | None = None,
     _check_is_video_folder(root)
     skeleton = read_skeleton(root / "skeleton.json")
     poses_path = root / "poses.npz"
-    bone_transforms, frame_ids, joint_positions = _read_poses(poses_path, skeleton.joint_count)
+    bone_transforms, frame_ids, joint_positions = read_poses(poses_path, joint_count=skeleton.joint_count)
     cameras = _read_cameras(root / "cameras.json", len(frame_ids))
     meta, background, fps = _read_meta(root / "meta.json")
 
