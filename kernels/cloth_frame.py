@@ -29,7 +29,7 @@ import warp as wp
 from warpavatar.kernels.cloth import length_spring_offset
 from warpavatar.kernels.collision import capsule_push
 
-__all__ = ["record_cloth_substep"]
+__all__ = ["record_cloth_substep", "record_strain_limit"]
 
 
 @wp.kernel(enable_backward=False)
@@ -95,6 +95,74 @@ def cloth_substep(
     pushed = position_next + push
     v_out[i] = velocity_next + (pushed - position_next) / h
     x_out[i] = pushed
+
+
+STRAIN_RAMP = wp.constant(0.01)
+"""An edge counts fully in a node's mean of strain corrections once it is this fraction past its limit."""
+
+
+@wp.kernel(enable_backward=False)
+def limit_strain(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    row_start: wp.array(dtype=wp.int32),
+    neighbour: wp.array(dtype=wp.int32),
+    limit_length: wp.array(dtype=wp.float32),
+    attached_slot: wp.array(dtype=wp.int32),
+    h: float,
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+):
+    # one Jacobi pass of strain limiting for node i (see record_strain_limit)
+    i = wp.tid()
+    position = x[i]
+    if attached_slot[i] >= 0:
+        x_out[i] = position
+        v_out[i] = v[i]
+        return
+    move = wp.vec3(0.0)
+    violated = float(0.0)
+    for e in range(row_start[i], row_start[i + 1]):
+        limit = limit_length[e]
+        if limit > 0.0:
+            j = neighbour[e]
+            delta = x[j] - position
+            length = wp.length(delta)
+            if length > limit:
+                share = float(0.5)
+                if attached_slot[j] >= 0:
+                    share = 1.0
+                move = move + (share * (length - limit) / length) * delta
+                violated = violated + wp.min(1.0, (length - limit) / (STRAIN_RAMP * limit))
+    move = move / wp.max(violated, 1.0)
+    x_out[i] = position + move
+    v_out[i] = v[i] + move / h
+
+
+def record_strain_limit(x: wp.array, v: wp.array, row_start: wp.array, neighbour: wp.array, limit_length: wp.array,
+                        attached_slot: wp.array, h: float, x_out: wp.array, v_out: wp.array) -> wp.Launch | None:
+    """Record one Jacobi pass of strain limiting (Provot 1995) without running it; None when there are no nodes.
+
+    Every free node ``i`` moves by the sum, over its edges ``e = (i, j)`` longer than their limit ``l_e``
+    (``limit_length [E]``, 0: no limit, e.g. a bend edge), of ``s (|d| - l_e) d / |d|`` with ``d = x_j - x_i``
+    and ``s`` 1/2 (both ends move) or 1 (``j`` attached), over ``max(1, n)``: ``n`` counts those edges, each
+    by ``min(1, (|d| - l_e) / (STRAIN_RAMP l_e))`` (a mean over the violated edges that does not jump when an
+    edge crosses its limit); its velocity changes by the move over ``h`` [s].
+    Attached nodes stay. Arrays as in :func:`record_cloth_substep`; ``x_out, v_out`` distinct from ``x, v``.
+    """
+    node_count = x.shape[0]
+    for array in (v, attached_slot, x_out, v_out):
+        if array.shape[0] != node_count:
+            raise ValueError(f"per-node arrays must have {node_count} rows, got {array.shape[0]}")
+    if row_start.shape[0] != node_count + 1:
+        raise ValueError(f"row_start must have {node_count + 1} rows, got {row_start.shape[0]}")
+    if limit_length.shape[0] != neighbour.shape[0]:
+        raise ValueError(f"limit_length must have {neighbour.shape[0]} rows, got {limit_length.shape[0]}")
+    if node_count == 0:
+        return None
+    return wp.launch(limit_strain, dim=node_count,
+                     inputs=[x, v, row_start, neighbour, limit_length, attached_slot, float(h)],
+                     outputs=[x_out, v_out], device=x.device, record_cmd=True)
 
 
 def _check(x, v, frame_start, row_start, neighbour, stiffness, rest_length, edge_damping, drag, mass,

@@ -81,6 +81,86 @@ def test_pinned_chain_reaches_its_analytic_sag(device):
     assert (state.positions[:, :2].abs() < 1e-5).all()
 
 
+def soft_chain(device, **options):
+    """A chain of 8 nodes 0.1 apart pinned at its top, its springs at 2 % of their stiffness bound."""
+    count = 8
+    rest = torch.stack([torch.zeros(count), torch.zeros(count), -0.1 * torch.arange(count).float()], 1).to(device)
+    pairs = torch.stack([torch.arange(count - 1), torch.arange(1, count)], 1)
+    model = ClothModel(rest, ClothGraph(pairs, pairs[:0]), torch.tensor([0]), node_mass=0.01, **options).to(device)
+    with_fraction(model.stiffness_logit, 0.02)
+    with_fraction(model.drag_logit, 0.2)
+    with_fraction(model.damping_logit, 0.5)
+    return model, rest
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_strain_limiting_keeps_a_soft_chain_near_its_length(device, fused):
+    ratios = {}
+    for limit in (0.0, 1.05):
+        model, rest = soft_chain(device, strain_limit=limit, strain_iterations=8)
+        state = model.rest_state(rest)
+        with torch.no_grad():
+            for _ in range(60):  # 2 s hanging, no extra drag
+                state = model.step(state, rest[:1], 1 / 30, fused=fused)
+        lengths = (state.positions[1:] - state.positions[:-1]).norm(dim=1)
+        ratios[limit] = float(lengths.max() / 0.1)
+        assert torch.isfinite(state.positions).all()
+        assert (state.positions[:, :2].abs() < 1e-4).all()  # still straight down from its pin
+    assert ratios[0.0] > 1.3  # the soft springs alone stretch the top edge by more than 30 %
+    assert ratios[1.05] < 1.05 + 0.01  # limited: within the limit, up to what 8 Jacobi passes leave
+
+
+def test_strain_limiting_leaves_a_cloth_within_its_limit_alone(device):
+    model, rest = soft_chain(device, strain_limit=1.5)
+    reference, _ = soft_chain(device)
+    state = model.rest_state(rest)
+    with torch.no_grad():
+        limited = model.step(state, rest[:1], 1 / 30, fused=False)
+        free = reference.step(state, rest[:1], 1 / 30, fused=False)
+    assert torch.equal(limited.positions, free.positions) and torch.equal(limited.velocities, free.velocities)
+
+
+def test_strain_limited_rollout_gradients_match_finite_differences(monkeypatch):
+    # the op-by-op step in float64 with the ops' torch references, through the strain limit's passes
+    monkeypatch.setattr(ops, "spring_step", reference_springs.spring_step)
+    monkeypatch.setattr(ops, "cloth_edge_terms", reference_cloth.cloth_edge_terms)
+    model, rest = soft_chain("cpu", strain_limit=1.05, strain_iterations=3)
+    model = model.double()
+    generator = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        model.rest_length_logit.copy_(0.3 * torch.randn(model.rest_length_logit.shape, generator=generator))
+    x0 = (rest.double() + 0.01 * torch.randn(rest.shape, generator=generator, dtype=torch.float64))
+    x0[1:, 2] -= 0.01 * torch.arange(1, rest.shape[0], dtype=torch.float64) ** 2  # stretched past the limit
+    weights = torch.randn(rest.shape, generator=generator, dtype=torch.float64)
+
+    def loss(x0):
+        state = ClothState(x0, torch.zeros_like(x0))
+        for _ in range(3):
+            state = model.step(state, x0[:1], 1 / 60, fused=False)
+        return (weights * state.positions).sum()
+
+    leaf = x0.clone().requires_grad_()
+    analytic = torch.autograd.grad(loss(leaf), [leaf, model.rest_length_logit])
+    epsilon = 1e-6
+    with torch.no_grad():
+        for value, grad in zip((x0, model.rest_length_logit), analytic):
+            for element in range(value.numel()):
+                original = value.view(-1)[element].item()
+                value.view(-1)[element] = original + epsilon
+                plus = loss(x0).item()
+                value.view(-1)[element] = original - epsilon
+                minus = loss(x0).item()
+                value.view(-1)[element] = original
+                numeric = (plus - minus) / (2 * epsilon)
+                assert abs(grad.view(-1)[element].item() - numeric) <= 1e-5 * (1 + abs(numeric)), (element, numeric)
+    assert analytic[1].abs().max() > 1e-2  # the rest lengths matter only through the limit here (soft springs)
+    # the passes acted: without them the rollout differs
+    with torch.no_grad():
+        limited = loss(x0).item()
+        model.strain_iterations = 0
+        assert abs(loss(x0).item() - limited) > 1e-3
+
+
 def test_energy_decays_with_damping(device):
     rest = sheet(6, 6, 0.04, horizontal=True, device=device)
     energies = {}
@@ -388,5 +468,9 @@ def test_bad_options():
         ClothModel(rest, graph, torch.tensor([0]), node_mass=0.0)
     with pytest.raises(ValueError, match=r"rest_positions must have shape \[M, 3\]"):
         ClothModel(rest[:, :2], graph, torch.tensor([0]))
+    with pytest.raises(ValueError, match=r"strain_limit must be 0 \(off\) or > 1"):
+        ClothModel(rest, graph, torch.tensor([0]), strain_limit=0.9)
+    with pytest.raises(ValueError, match="strain_iterations must be an integer >= 1"):
+        ClothModel(rest, graph, torch.tensor([0]), strain_limit=1.1, strain_iterations=0)
     with pytest.raises(ValueError, match="bend_per_node must be >= 0"):
         cloth_graph(rest, bend_per_node=-1)

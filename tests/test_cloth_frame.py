@@ -26,7 +26,7 @@ POSITION_TOLERANCE = 5e-6
 VELOCITY_TOLERANCE = 1e-3
 
 
-def random_cloth(device, *, seed, node_count=120, attached_count=12, capsule_count=6):
+def random_cloth(device, *, seed, node_count=120, attached_count=12, capsule_count=6, **model_options):
     """A cloth on a random point cloud with random parameters, random starting velocities, and capsules that
     move during the frame (a few hold nodes at the start)."""
     generator = torch.Generator().manual_seed(seed)
@@ -34,7 +34,7 @@ def random_cloth(device, *, seed, node_count=120, attached_count=12, capsule_cou
     graph = cloth_graph(rest.to(device), neighbours=6, bend_per_node=4)  # on the device: no CPU compiler needed on a GPU machine
     attached = torch.randperm(node_count, generator=generator)[:attached_count]
     mass = 0.005 + 0.01 * torch.rand(node_count, generator=generator)
-    model = ClothModel(rest.to(device), graph, attached.to(device), node_mass=mass.to(device))
+    model = ClothModel(rest.to(device), graph, attached.to(device), node_mass=mass.to(device), **model_options)
     with torch.no_grad():
         for parameter in model.parameters():
             parameter.copy_(torch.randn(parameter.shape, generator=generator))
@@ -87,6 +87,18 @@ def test_fused_frame_matches_op_by_op(device, seed):
         free = model.step(state, targets[0], FRAME, fused=True, extra_drag=extra_drag,
                           external_acceleration=acceleration)
     assert (free.positions - fused[0].positions).abs().max() > 1e-3
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fused_strain_limited_frame_matches_op_by_op(device, seed):
+    model, state, targets, before, after = random_cloth(device, seed=seed, strain_limit=1.02, strain_iterations=3)
+    with torch.no_grad():
+        reference = roll(model, state, targets, before, after, fused=False)
+        fused = roll(model, state, targets, before, after, fused=True)
+        model.strain_iterations = 0  # the same cloth without the limit: the passes changed something
+        unlimited = roll(model, state, targets, before, after, fused=False)
+    assert_close(fused, reference)
+    assert (unlimited[-1].positions - reference[-1].positions).abs().max() > 1e-3
 
 
 def test_fused_frame_edge_cases(device):

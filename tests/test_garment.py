@@ -1,5 +1,6 @@
 """The garment extension: detection, the simulated part, fitting through the simulation, files and consumers."""
 
+import copy
 import dataclasses
 import json
 import math
@@ -406,6 +407,28 @@ def test_consumers_run_the_simulation(forced, video):
     finally:
         avatar.add_part(part)
     assert (skinned - garment_means[4]).norm(dim=1).max() > 1e-3
+
+
+def test_the_oracle_tool_fits_an_instants_nodes_to_its_images(forced, video, tmp_path, capsys):
+    trainer, _, _ = forced
+    tool = load_tool("garment_oracle")
+    subject = SimpleNamespace(train=video, novel_view={"again": video})  # a second view: the same camera again
+    frame = int(video.frame_ids[0])
+    rows = tool.oracle_rows(copy.deepcopy(trainer.avatar), subject, [frame], steps=20, band=(0.3, 0.9))
+    assert [row["mode"] for row in rows] == ["rollout", "training view", "every view"]
+    rollout, single, every = rows
+    assert rollout["moved"] == 0.0 and single["moved"] > 0.0 and every["moved"] > 0.0
+    assert set(rollout["psnr"]) == {"train", "again"} and rollout["psnr"]["train"] == rollout["psnr"]["again"]
+    assert single["psnr"]["train"] > rollout["psnr"]["train"]  # the nodes were fitted to that image
+    with pytest.raises(ValueError, match="not one of the fit's training frames"):
+        tool.oracle_rows(copy.deepcopy(trainer.avatar), subject, [10_000], steps=1)
+    bare = copy.deepcopy(trainer.avatar)
+    del bare.parts["garment"]
+    with pytest.raises(ValueError, match="no simulated garment"):
+        tool.oracle_rows(bare, subject, [frame], steps=1)
+    assert tool.main([str(tmp_path / "none.pt"), str(tmp_path / "nowhere"), "--frames", "0"]) == 2
+    error = capsys.readouterr().err.strip()
+    assert "nowhere" in error and "\n" not in error
 
 
 def test_bad_garment_options_are_one_line_errors(capsys, tmp_path):

@@ -50,7 +50,7 @@ def _rings(flare: float, device) -> torch.Tensor:
     return torch.cat(points).to(device)
 
 
-def _part(device, *, rest_bound=0.2, flare=0.0) -> GarmentPart:
+def _part(device, *, rest_bound=0.2, flare=0.0, strain_limit=0.0) -> GarmentPart:
     """A tiny garment: a tube (or a cone) hung by its top ring from a one-joint body with a thin capsule inside."""
     nodes = _rings(flare, device)
     capsules = Capsules(torch.tensor([[0.0, 0.0, 0.05]], device=device),
@@ -58,7 +58,7 @@ def _part(device, *, rest_bound=0.2, flare=0.0) -> GarmentPart:
     return GarmentPart(torch.arange(0, device=device), nodes, torch.ones(nodes.shape[0], 1, device=device),
                        torch.arange(RING, device=device), joint=0, capsules=capsules,
                        capsule_ids=torch.tensor([0], device=device), voxel_size=0.05, max_substep=1.0 / 120.0,
-                       settle_frames=60, rest_bound=rest_bound,
+                       settle_frames=60, rest_bound=rest_bound, strain_limit=strain_limit,
                        graph=cloth_graph(nodes, neighbours=6, bend_per_node=4))
 
 
@@ -282,6 +282,24 @@ def test_the_rest_shape_round_trips_through_the_part_file(device):
     assert legacy.cloth.rest_offset_logit is None and torch.equal(legacy.cloth.rest_positions(), legacy.nodes)
 
 
+def test_the_strain_limit_round_trips_and_holds_the_swaying_cloth(device):
+    bones = _sway(12, device, amplitude=0.2)
+    stretch = {}
+    for limit in (0.0, 1.05):
+        part = _part(device, strain_limit=limit)
+        loaded = GarmentPart.from_file_state(part.state_for_file(), device=device)
+        assert loaded.hyper["strain_limit"] == limit and loaded.cloth.strain_iterations == (8 if limit else 0)
+        positions = loaded.rollout(bones, [SECONDS] * 12)[0]
+        assert torch.equal(positions, part.rollout(bones, [SECONDS] * 12)[0])
+        pairs = part.cloth.pairs[: part.cloth.stretch_count]
+        lengths = (positions[:, pairs[:, 0]] - positions[:, pairs[:, 1]]).norm(dim=-1)
+        stretch[limit] = float((lengths / part.cloth.rest_lengths().detach()[: part.cloth.stretch_count]).max())
+    assert stretch[0.0] > 2.0 and stretch[1.05] < 1.25, stretch  # (8 Jacobi passes a substep: near the limit)
+    old = _part(device).state_for_file()  # a file written before strain limiting: none
+    old["hyper"].pop("strain_limit")
+    assert GarmentPart.from_file_state(old, device=device).cloth.strain_iterations == 0
+
+
 def test_bad_rest_shape_options_are_one_line_errors(capsys, tmp_path):
     from warpavatar import data
     from warpavatar.cli import fit as fit_cli
@@ -290,7 +308,9 @@ def test_bad_rest_shape_options_are_one_line_errors(capsys, tmp_path):
     for flags, message in ((["--garment-rest-bound", "-0.1"], "--garment-rest-bound must be a number >= 0"),
                            (["--lr-garment-rest", "0"], "--lr-garment-rest must be > 0"),
                            (["--lambda-garment-rest-smooth", "-2"], "--lambda-garment-rest-smooth"),
-                           (["--lambda-garment-rest-collapse", "-1"], "--lambda-garment-rest-collapse")):
+                           (["--lambda-garment-rest-collapse", "-1"], "--lambda-garment-rest-collapse"),
+                           (["--garment-strain-limit", "1"], "--garment-strain-limit must be 0 (off) or > 1"),
+                           (["--garment-strain-limit", "-2"], "--garment-strain-limit must be 0 (off) or > 1")):
         status = fit_cli.main([demo, "-o", str(tmp_path / "out"), "--preset", "quick", "--iterations", "2",
                                "--no-progress", "--overwrite", "--garment", "auto", *flags])
         error = capsys.readouterr().err.strip()

@@ -16,7 +16,7 @@ import warp as wp
 
 from warpavatar._src.cuda_graph import capture_or_fall_back
 from warpavatar._src.warp_utils import check_tensor, to_warp, torch_stream_scope
-from warpavatar.kernels.cloth_frame import record_cloth_substep
+from warpavatar.kernels.cloth_frame import record_cloth_substep, record_strain_limit
 
 __all__ = ["ClothFrame", "csr_rows"]
 
@@ -38,12 +38,15 @@ class ClothFrame:
             N s / world unit].
         drag, mass: float32 ``[M]`` [N s / world unit, kg]; constant_force: float32 ``[M, 3]`` [N].
         attached: ids of the attached nodes, integer ``[A]`` (distinct).
+        limit_length: float32 ``[E]`` the longest each directed edge may get after a substep [world units] (0:
+            no limit), or None: no strain limiting.
+        strain_iterations: Jacobi passes of strain limiting per substep (with ``limit_length``).
     """
 
     @torch.inference_mode(False)  # (buffers filled in place later, whatever the caller's mode then)
     def __init__(self, edges: torch.Tensor, row_start: torch.Tensor, stiffness: torch.Tensor, rest_length: torch.Tensor,
                  edge_damping: torch.Tensor, drag: torch.Tensor, mass: torch.Tensor, constant_force: torch.Tensor,
-                 attached: torch.Tensor):
+                 attached: torch.Tensor, *, limit_length: torch.Tensor | None = None, strain_iterations: int = 0):
         node_count = mass.shape[0]
         device = mass.device
         self.node_count = node_count
@@ -62,8 +65,11 @@ class ClothFrame:
             "constant_force": constant_force.detach().float().contiguous(),
             "attached_slot": slot,
         }
-        for name in ("neighbour", "stiffness", "rest_length", "edge_damping"):  # (no edge: one never read)
-            if edges.shape[0] == 0:
+        self.strain_iterations = int(strain_iterations) if limit_length is not None else 0
+        if self.strain_iterations:
+            self._tensors["limit_length"] = limit_length.detach().float().contiguous()
+        for name in ("neighbour", "stiffness", "rest_length", "edge_damping", "limit_length"):  # (no edge: one never read)
+            if edges.shape[0] == 0 and name in self._tensors:
                 self._tensors[name] = self._tensors[name].new_zeros(1)
         self._arrays = {name: to_warp(tensor, wp.vec3 if tensor.dim() == 2 else None)
                         for name, tensor in self._tensors.items()}
@@ -99,15 +105,24 @@ class ClothFrame:
         force = arrays["constant_force"] if self._force is None else to_warp(self._force, wp.vec3)
         self._launches = []
         state = start
+        launches = 0  # (each launch writes the scratch state the one before did not)
+        h = frame_interval / substeps
         for substep in range(1, substeps + 1):
-            out = vectors(self._scratch[substep % 2])
+            launches += 1
+            out = vectors(self._scratch[launches % 2])
             self._launches.append(record_cloth_substep(
                 *state, start[0], arrays["row_start"], arrays["neighbour"], arrays["stiffness"],
                 arrays["rest_length"], arrays["edge_damping"], arrays["drag"], arrays["mass"], force,
                 arrays["attached_slot"], to_warp(self._targets, wp.vec3), frame_interval, tuple(capsules[:3]),
-                tuple(capsules[3:]), substep, substeps, frame_interval / substeps, *out))
+                tuple(capsules[3:]), substep, substeps, h, *out))
             state = out
-        self._final = self._scratch[substeps % 2]
+            for _ in range(self.strain_iterations):
+                launches += 1
+                out = vectors(self._scratch[launches % 2])
+                self._launches.append(record_strain_limit(*state, arrays["row_start"], arrays["neighbour"],
+                                                          arrays["limit_length"], arrays["attached_slot"], h, *out))
+                state = out
+        self._final = self._scratch[launches % 2]
         self._launch_key = key
 
     def run(self, positions: torch.Tensor, velocities: torch.Tensor, attachment_targets: torch.Tensor,

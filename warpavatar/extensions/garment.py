@@ -100,6 +100,8 @@ class GarmentPart(AvatarPart):
         settle_frames: at most this many frames of settling before a sequence or a lone pose.
         rest_bound: how far the learned rest shape may move a free node from ``nodes`` [world units]; 0: the
             rest shape stays ``nodes`` (see :class:`~warpavatar.sim.ClothModel`).
+        strain_limit: the longest a stretch edge may get, as a multiple of its rest length (strain limiting
+            after every substep, see :class:`~warpavatar.sim.ClothModel`); 0: none.
 
     The rest shape (``cloth.rest_positions()``) is what posing starts from: a pose's skinned cloth, the settled
     start of every rollout, and the frame states of the training rollout, cached as displacements from the
@@ -114,7 +116,7 @@ class GarmentPart(AvatarPart):
                  attached: torch.Tensor, *, joint: int, capsules: Capsules, capsule_ids: torch.Tensor,
                  voxel_size: float, max_substep: float = 1.0 / 240.0, up=(0.0, 0.0, 1.0),
                  joint_count: int | None = None, graph: ClothGraph | None = None, settle_frames: int = 300,
-                 rest_bound: float = 0.0):
+                 rest_bound: float = 0.0, strain_limit: float = 0.0):
         super().__init__()
         nodes = nodes.detach().float().contiguous()
         device = nodes.device
@@ -125,7 +127,8 @@ class GarmentPart(AvatarPart):
         joint_count = int(node_weights.shape[1] if joint_count is None else joint_count)
         self.hyper = dict(joint=int(joint), joint_count=joint_count, voxel_size=float(voxel_size),
                           max_substep=float(max_substep), up=tuple(float(u) for u in up),
-                          settle_frames=int(settle_frames), rest_bound=float(rest_bound))
+                          settle_frames=int(settle_frames), rest_bound=float(rest_bound),
+                          strain_limit=float(strain_limit))
         self.register_buffer("gaussian_ids", torch.as_tensor(gaussian_ids, device=device).long().clone())
         self.register_buffer("nodes", nodes.clone())
         self.register_buffer("node_weights", node_weights.detach().float().to(device).clone())
@@ -137,7 +140,8 @@ class GarmentPart(AvatarPart):
         self.register_buffer("capsule_ids", torch.as_tensor(capsule_ids, device=device).long().clone())
         self.register_buffer("anchor", torch.zeros(0, dtype=torch.int64, device=device))
         self.cloth = ClothModel(nodes, graph, torch.as_tensor(attached, device=device).long(), max_substep=max_substep,
-                                up=self.hyper["up"], rest_offset_bound=self.hyper["rest_bound"])
+                                up=self.hyper["up"], rest_offset_bound=self.hyper["rest_bound"],
+                                strain_limit=self.hyper["strain_limit"])
         # the table of the training rollout: poses [T,J,4,4], node positions [T,M,3], node rotations [T,M,4]
         self.register_buffer("frame_poses", torch.zeros(0, 1, 4, 4, device=device))
         self.register_buffer("frame_positions", torch.zeros(0, nodes.shape[0], 3, device=device))
@@ -365,7 +369,7 @@ class GarmentPart(AvatarPart):
                    capsule_ids=weights["capsule_ids"], voxel_size=hyper["voxel_size"],
                    max_substep=hyper["max_substep"], up=hyper["up"], joint_count=hyper["joint_count"],
                    graph=ClothGraph(weights["stretch"], weights["bend"]), settle_frames=hyper["settle_frames"],
-                   rest_bound=hyper.get("rest_bound", 0.0))
+                   rest_bound=hyper.get("rest_bound", 0.0), strain_limit=hyper.get("strain_limit", 0.0))
         for name in ("anchor", "frame_poses", "frame_positions", "frame_quats"):
             setattr(part, name, weights[name])
         if "frame_states" in weights:
@@ -527,6 +531,10 @@ class GarmentOptions:
                                         "(the cached states the windows start from)")
     garment_substep: float = option(1.0 / 240.0, "longest simulation substep [s]; the cloth's stiffness bound "
                                     "scales with its inverse square")
+    garment_strain_limit: float = option(0.0, "strain limiting: after every substep, stretch edges longer than this "
+                                         "multiple of their rest length are pulled back to it (Jacobi passes; "
+                                         "cloth barely stretches, springs of an explicit step do); 0: off, else "
+                                         "> 1 (e.g. 1.1)")
     lr_garment: float = option(0.02, "Adam learning rate of the cloth's parameters (logits of rest lengths, "
                                "stiffness, damping, drag, mass scale)")
     garment_rest_bound: float = option(0.3, "how far the cloth's learned rest shape may move a free node from where "
@@ -600,6 +608,8 @@ class GarmentExtension(Extension):
                 raise ValueError(f"--{name.replace('_', '-')} must be in (0, 1), got {getattr(options, name)}")
         if options.garment_frame_states not in ("on", "off"):
             raise ValueError(f"--garment-frame-states must be 'on' or 'off', got {options.garment_frame_states!r}")
+        if not (options.garment_strain_limit == 0.0 or 1.0 < options.garment_strain_limit < math.inf):
+            raise ValueError(f"--garment-strain-limit must be 0 (off) or > 1, got {options.garment_strain_limit}")
         if not 0.0 <= options.garment_residual < 1.0:
             raise ValueError(f"--garment-residual must be in [0, 1), got {options.garment_residual}")
         for name in ("garment_voxel", "garment_substep", "lr_garment", "lr_garment_rest", "lr_garment_states"):
@@ -760,7 +770,8 @@ class GarmentExtension(Extension):
         part = GarmentPart(ids, nodes, node_weights, attached, joint=joint, capsules=capsules,
                            capsule_ids=capsule_ids, voxel_size=voxel, max_substep=options.garment_substep,
                            up=tuple(float(u) for u in skeleton.up), joint_count=len(skeleton.names),
-                           rest_bound=options.garment_rest_bound * float(sides.max()))
+                           rest_bound=options.garment_rest_bound * float(sides.max()),
+                           strain_limit=options.garment_strain_limit)
         part.bind(means)
         self._use(part)
         return part

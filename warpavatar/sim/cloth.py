@@ -53,6 +53,16 @@ chain of ``N`` nodes of mass ``m`` stretches by at least about ``N^2 g n^s h^2 m
 springs carry ``N^2 m g / 2`` of weight between them): stiff cloth needs a small ``max_substep`` (1/240 s suits
 soft, stretchy garments; 1/1000 s and below stiffer ones).
 
+Strain limiting (``strain_limit > 1``). Real cloth barely stretches, which an explicit step cannot model with
+springs alone: the stiffness bound above lets a hanging skirt stretch by tens of per cent under its own weight.
+After every substep (after the collision push) ``strain_iterations`` Jacobi passes of Provot's strain limiting
+(1995, "Deformation constraints in a mass-spring model to describe rigid cloth behavior") pull every stretch edge
+longer than ``strain_limit`` times its rest length back towards it: each free node moves by the mean, over its
+violated stretch edges, of its share of the excess (half, or all of it when the other end is attached), and its
+velocity by that move over ``h`` (an edge counts in the mean from 0 at its limit to fully at 1 % past it, so
+the move does not jump when an edge crosses its limit). Moves only shorten edges, so the step stays stable; a cloth whose edges are
+all within the limit is not touched.
+
 Attachment and collision. Attached nodes move on the straight line from where they are to their new
 targets over the frame's substeps, with that line's velocity. After every substep the free nodes are pushed
 out of the body's capsules (:func:`warpavatar.ops.push_out_of_capsules`) and their velocity is corrected by
@@ -76,6 +86,7 @@ import torch
 
 from warpavatar import ops
 from warpavatar._src.cloth_frame import ClothFrame, csr_rows
+from warpavatar.kernels.cloth_frame import STRAIN_RAMP
 
 __all__ = ["ClothGraph", "cloth_graph", "ClothState", "Capsules", "ClothModel"]
 
@@ -198,6 +209,9 @@ class ClothModel(torch.nn.Module):
         rest_offset_bound: how far the learnable rest shape may move a free node from ``rest_positions``
             [world units], ``>= 0``; 0 (default): the rest shape is fixed and the model has no
             ``rest_offset_logit`` parameter (see the module docstring).
+        strain_limit: the longest a stretch edge may get after a substep, as a multiple of its rest length
+            (``> 1``); 0 (default): no strain limiting (see the module docstring).
+        strain_iterations: Jacobi passes of strain limiting per substep (``>= 1`` with a ``strain_limit``).
 
     Raises:
         ValueError: bad shapes, attached ids outside ``[0, M)`` or repeated, a non-positive mass, options out
@@ -221,8 +235,16 @@ class ClothModel(torch.nn.Module):
         damping: float = 0.1,
         drag: float = 0.02,
         rest_offset_bound: float = 0.0,
+        strain_limit: float = 0.0,
+        strain_iterations: int = 8,
     ):
         super().__init__()
+        if not (strain_limit == 0.0 or strain_limit > 1.0):
+            raise ValueError(f"strain_limit must be 0 (off) or > 1, got {strain_limit}")
+        if strain_limit and not (isinstance(strain_iterations, int) and strain_iterations >= 1):
+            raise ValueError(f"strain_iterations must be an integer >= 1, got {strain_iterations}")
+        self.strain_limit = float(strain_limit)
+        self.strain_iterations = int(strain_iterations) if strain_limit else 0
         if not rest_offset_bound >= 0.0:
             raise ValueError(f"rest_offset_bound must be >= 0, got {rest_offset_bound}")
         if not max_substep > 0.0:
@@ -441,6 +463,7 @@ class ClothModel(torch.nn.Module):
         constant_force = self._constant_force(mass, external_acceleration)
         start = x.index_select(0, self.attached)
         attached_velocity = (attachment_targets - start) / float(frame_interval)
+        limits = self.strain_limits() if self.strain_iterations else None
         for substep in range(1, substeps + 1):
             fraction = substep / substeps
             rest_offset, damping_force = ops.cloth_edge_terms(x, v, self.edges, rest_length, edge_damping)
@@ -456,6 +479,8 @@ class ClothModel(torch.nn.Module):
                 pushed = pushed.index_copy(0, self.attached, target)
                 v = v + (pushed - x) / h
                 x = pushed
+            if self.strain_iterations:
+                x, v = self._limit_strain(x, v, limits, h)
         return ClothState(x, v)
 
     frame_cuda_graph = False
@@ -475,6 +500,31 @@ class ClothModel(torch.nn.Module):
         tensors = [state.positions, state.velocities, attachment_targets, external_acceleration,
                    *(_capsule_tensors(capsules) or ()), *(_capsule_tensors(previous_capsules) or ())]
         return any(t is not None and t.requires_grad for t in [*tensors, *self._parameters.values()])
+
+    def strain_limits(self) -> torch.Tensor:
+        """The longest every directed edge may get after a substep [world units], ``[E]``: ``strain_limit`` times
+        the rest length of stretch edges, 0 (no limit) for bend edges and without strain limiting."""
+        limit = self.rest_lengths() * self.strain_limit
+        limit = limit.masked_fill(torch.arange(limit.shape[0], device=limit.device) >= self.stretch_count, 0.0)
+        return limit.index_select(0, self.pair_of_edge)
+
+    def _limit_strain(self, x: torch.Tensor, v: torch.Tensor, limit: torch.Tensor, h: float):
+        """``strain_iterations`` Jacobi passes of strain limiting (the module docstring), op by op."""
+        receiver, sender = self.edges[:, 0].long(), self.edges[:, 1].long()
+        free = torch.ones(x.shape[0], device=x.device, dtype=x.dtype).index_fill(0, self.attached, 0.0)
+        share = torch.where(free.index_select(0, sender) > 0, 0.5, 1.0).to(x.dtype)
+        for _ in range(self.strain_iterations):
+            delta = x.index_select(0, sender) - x.index_select(0, receiver)
+            length = delta.norm(dim=1)
+            excess = torch.where((limit > 0) & (length > limit), length - limit, 0.0)
+            scale = share * excess / length.clamp_min(1e-12)
+            move = torch.zeros_like(x).index_add(0, receiver, scale[:, None] * delta)
+            weight = torch.minimum(excess / (STRAIN_RAMP * limit).clamp_min(1e-12), torch.ones_like(excess))
+            count = torch.zeros_like(free).index_add(0, receiver, weight)
+            move = move * (free / count.clamp_min(1.0))[:, None]
+            x = x + move
+            v = v + move / h
+        return x, v
 
     def _coefficients(self, extra_drag: float):
         """Node masses ``[M]``; per directed edge stiffness, rest length and damping ``[E]``; node drag ``[M]``."""
@@ -505,7 +555,9 @@ class ClothModel(torch.nn.Module):
                 mass, stiffness, rest_length, edge_damping, drag = self._coefficients(extra_drag)
                 frame = self._frames[extra_drag] = ClothFrame(
                     self.edges, self.edge_row_start, stiffness, rest_length, edge_damping, drag, mass,
-                    self._constant_force(mass, None), self.attached)
+                    self._constant_force(mass, None), self.attached,
+                    limit_length=self.strain_limits() if self.strain_iterations else None,
+                    strain_iterations=self.strain_iterations)
         return frame
 
     def _fused_frame(self, state, attachment_targets, frame_interval, substeps, capsules, previous_capsules,

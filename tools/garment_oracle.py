@@ -1,0 +1,175 @@
+"""Is a simulated garment's error its geometry? Fit one instant's cloth nodes to the images and see what follows.
+
+    python tools/garment_oracle.py AVATAR SUBJECT --frames 20 55 80 [--steps 150] [--scale 1.0]
+        [--height-band 0.28 0.76] [--device cpu] [--json PATH]
+
+``AVATAR`` is a fit's ``avatar.pt`` (or its folder) with a garment (``--garment auto`` found one); ``SUBJECT`` the
+subject folder it was fitted on (``train/`` and ``novel_view/*`` of the same instants). For every training frame
+id given, the garment's node positions at that instant (everything else of the avatar frozen: its Gaussians,
+their colours and their offsets on the nodes) are
+
+* ``rollout``: as the avatar draws them (the training rollout of the simulation);
+* ``training view``: fitted to the training image of that instant alone (Adam on the positions, L1 over the
+  image, ``--steps`` steps from the rollout) -- what one camera can tell;
+* ``every view``: fitted to the training image and every novel view of that instant, in turn, for the same number
+  of steps each -- an **oracle**: it reads the held-out images, so its numbers are not an evaluation, only a
+  bound on what the avatar's appearance allows once the cloth is where the images say.
+
+Each row gives the masked PSNR (dB) of the training view and of every novel view of the instant, whole mask and
+the slab between ``--height-band`` heights (as ``tools/error_breakdown.py --height-band``). If the oracle rows are
+high in every view while the training-view rows lift only the training view, the texture is good enough and the
+cloth's 3D shape per instant is what is missing, which the one camera does not determine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from error_breakdown import height_band_mask  # noqa: E402
+
+from warpavatar import data  # noqa: E402
+from warpavatar.evaluate import write_json_atomic  # noqa: E402
+from warpavatar.model import Avatar  # noqa: E402
+
+__all__ = ["oracle_rows"]
+
+MODES = ("rollout", "training view", "every view")
+
+
+def _views_of(subject: data.Subject, frame_id: int) -> list[tuple[str, data.VideoFolder, int]]:
+    """(name, folder, index) of the training view and of every novel view that holds ``frame_id``."""
+    views = []
+    for name, video in [("train", subject.train), *subject.novel_view.items()]:
+        ids = [int(i) for i in video.frame_ids]
+        if frame_id in ids:
+            views.append((name, video, ids.index(frame_id)))
+    return views
+
+
+def _psnrs(image: torch.Tensor, video: data.VideoFolder, index: int, band: tuple[float, float]) -> tuple[float, float]:
+    """Masked PSNR of the whole mask and of the height band (dB)."""
+    prediction = image.detach().clamp(0, 1).cpu().numpy().astype(np.float64)
+    truth = video.images[index].astype(np.float64) / 255.0
+    mask = video.masks[index].astype(np.float64) / 255.0
+    root = video.bone_transforms[index][0].astype(np.float64) @ np.append(video.skeleton.heads[0], 1.0)
+    inside = height_band_mask(video.cameras[index], root[:3], video.skeleton.up, low=band[0], high=band[1])
+    error = ((prediction - truth) ** 2).sum(-1) * mask
+    values = []
+    for region in (np.ones_like(inside), inside):
+        mse = error[region].sum() / max(mask[region].sum() * 3.0, 1.0)
+        values.append(-10.0 * math.log10(max(mse, 1e-12)))
+    return values[0], values[1]
+
+
+def oracle_rows(avatar: Avatar, subject: data.Subject, frame_ids: list[int], *, steps: int = 150,
+                band: tuple[float, float] = (0.28, 0.76), learning_rate: float = 0.05) -> list[dict]:
+    """The rows of the module docstring: one per (frame id, mode), with ``psnr`` and ``band`` dicts by view.
+
+    Args:
+        avatar: a fitted avatar with a ``garment`` part.
+        subject: its subject (the training folder and the novel views of the same instants).
+        frame_ids: training frame ids to look at.
+        steps: Adam steps of each fit (per view for ``every view``).
+        band: low and high heights of the slab [world units along the skeleton's up axis].
+        learning_rate: Adam's step, as a fraction of the node spacing.
+
+    Raises:
+        ValueError: the avatar has no garment, or a frame id is not among the training frames.
+    """
+    garment = avatar.part("garment")
+    if garment is None or garment.node_count == 0:
+        raise ValueError("the avatar has no simulated garment (fit with --garment auto on a subject that has one)")
+    device = avatar.gaussians.means.device
+    background = torch.as_tensor(subject.train.background, dtype=torch.float32, device=device)
+    grid = avatar.field.grid_weights().detach()
+    train_ids = [int(i) for i in subject.train.frame_ids]
+    fitted_poses = garment.frame_poses.reshape(garment.frame_poses.shape[0], -1)
+    for parameter in avatar.parameters():
+        parameter.requires_grad_(False)
+
+    def render(video, index, positions):
+        bones = torch.as_tensor(video.bone_transforms[index], dtype=torch.float32, device=device)
+        return avatar.render(video.cameras[index], bones, background=background, grid=grid,
+                             inputs={garment.name: positions})[0]
+
+    rows = []
+    for frame_id in frame_ids:
+        pose = None
+        if frame_id in train_ids:  # the fit's training rollout holds the instant whose pose this is
+            pose = torch.as_tensor(subject.train.bone_transforms[train_ids.index(frame_id)], dtype=torch.float32,
+                                   device=device).reshape(1, -1)
+        if pose is None or not fitted_poses.shape[0] or \
+                float((fitted_poses - pose).abs().max(dim=1).values.min()) > 1e-5:
+            raise ValueError(f"frame id {frame_id} is not one of the fit's training frames in {subject.train.root}")
+        views = _views_of(subject, frame_id)
+        start = garment.frame_positions[int((fitted_poses - pose).abs().max(dim=1).values.argmin())].detach().clone()
+        for mode in MODES:
+            positions = start.clone().requires_grad_(mode != "rollout")
+            if mode != "rollout":
+                fitted = views[:1] if mode == "training view" else views
+                targets = [(video, index, torch.as_tensor(video.images[index], device=device).float() / 255.0)
+                           for _, video, index in fitted]
+                optimizer = torch.optim.Adam([positions], lr=learning_rate * garment.hyper["voxel_size"])
+                for _ in range(steps):
+                    for video, index, truth in targets:
+                        loss = (render(video, index, positions) - truth).abs().mean()
+                        optimizer.zero_grad()
+                        loss.backward()
+                        optimizer.step()
+            row = {"frame": frame_id, "mode": mode, "psnr": {}, "band": {}}
+            with torch.no_grad():
+                for name, video, index in views:
+                    row["psnr"][name], row["band"][name] = _psnrs(render(video, index, positions.detach()), video,
+                                                                  index, band)
+            row["moved"] = float((positions.detach() - start).norm(dim=1).mean() / garment.hyper["voxel_size"])
+            rows.append(row)
+    return rows
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("avatar", help="a fit's avatar.pt, or its folder")
+    parser.add_argument("subject", help="the subject folder (train/ and novel_view/*)")
+    parser.add_argument("--frames", type=int, nargs="+", required=True, help="training frame ids to look at")
+    parser.add_argument("--steps", type=int, default=150, help="Adam steps of each fit (per view for 'every view')")
+    parser.add_argument("--scale", type=float, default=1.0, help="image scale of the folders (the fit's "
+                        "--image-scale)")
+    parser.add_argument("--height-band", type=float, nargs=2, default=(0.28, 0.76), metavar=("LOW", "HIGH"),
+                        help="the slab's heights [world units along the skeleton's up axis]")
+    parser.add_argument("--device", default="cpu", help="torch device")
+    parser.add_argument("--json", default=None, help="also write the rows to this JSON file")
+    args = parser.parse_args(argv)
+    if args.steps < 1:
+        parser.error(f"--steps must be >= 1, got {args.steps}")
+    if not args.height_band[0] < args.height_band[1]:
+        parser.error("--height-band LOW HIGH needs LOW < HIGH")
+    path = Path(args.avatar)
+    path = path / "avatar.pt" if path.is_dir() else path
+    try:
+        subject = data.load_subject(args.subject, scale=args.scale)
+        avatar = Avatar.load(path, device=args.device)
+        rows = oracle_rows(avatar, subject, args.frames, steps=args.steps, band=tuple(args.height_band))
+    except (data.VideoFolderError, ValueError, FileNotFoundError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    names = list(rows[0]["psnr"])
+    print("| frame | nodes | " + " | ".join(f"{name} mask / slab" for name in names) + " | moved (node spacings) |")
+    print("|---" * (len(names) + 3) + "|")
+    for row in rows:
+        cells = [f"{row['psnr'][n]:.2f} / {row['band'][n]:.2f}" if n in row["psnr"] else "-" for n in names]
+        print(f"| {row['frame']} | {row['mode']} | " + " | ".join(cells) + f" | {row['moved']:.2f} |")
+    if args.json:
+        write_json_atomic(args.json, rows)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
