@@ -18,8 +18,9 @@ spring step, the attachment, the capsules' interpolation, the push out of them, 
   first and last ones (:func:`~warpavatar.kernels.collision.capsule_push`, the sum of every capsule's push
   from the same position) and its velocity corrected by the move over ``h``.
 
-A frame is ``substeps`` launches; a single launch looping over the substeps would need every node's previous
-substep, i.e. a grid-wide synchronization between substeps, which a Warp kernel does not have. Float32.
+A frame is one launch per substep (plus one per Jacobi pass of strain limiting after each, with
+:func:`record_strain_limit`); a single launch looping over the substeps would need every node's previous substep,
+i.e. a grid-wide synchronization between substeps, which a Warp kernel does not have. Float32.
 """
 
 from __future__ import annotations

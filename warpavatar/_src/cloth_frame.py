@@ -68,7 +68,8 @@ class ClothFrame:
         self.strain_iterations = int(strain_iterations) if limit_length is not None else 0
         if self.strain_iterations:
             self._tensors["limit_length"] = limit_length.detach().float().contiguous()
-        for name in ("neighbour", "stiffness", "rest_length", "edge_damping", "limit_length"):  # (no edge: one never read)
+        # (no edge: one value, never read)
+        for name in ("neighbour", "stiffness", "rest_length", "edge_damping", "limit_length"):
             if edges.shape[0] == 0 and name in self._tensors:
                 self._tensors[name] = self._tensors[name].new_zeros(1)
         self._arrays = {name: to_warp(tensor, wp.vec3 if tensor.dim() == 2 else None)

@@ -60,8 +60,9 @@ After every substep (after the collision push) ``strain_iterations`` Jacobi pass
 longer than ``strain_limit`` times its rest length back towards it: each free node moves by the mean, over its
 violated stretch edges, of its share of the excess (half, or all of it when the other end is attached), and its
 velocity by that move over ``h`` (an edge counts in the mean from 0 at its limit to fully at 1 % past it, so
-the move does not jump when an edge crosses its limit). Moves only shorten edges, so the step stays stable; a cloth whose edges are
-all within the limit is not touched.
+the move does not jump when an edge crosses its limit). A pass moves a node only toward neighbours it is too far
+from, by at most its share of the excess, so it brings no instability of its own; a cloth whose edges are all
+within the limit is not touched.
 
 Attachment and collision. Attached nodes move on the straight line from where they are to their new
 targets over the frame's substeps, with that line's velocity. After every substep the free nodes are pushed
