@@ -122,7 +122,7 @@ def limit_strain(
         v_out[i] = v[i]
         return
     move = wp.vec3(0.0)
-    violated = float(0.0)
+    counted = float(0.0)  # the violated edges, each weighted by how far past its limit (up to 1)
     for e in range(row_start[i], row_start[i + 1]):
         limit = limit_length[e]
         if limit > 0.0:
@@ -134,8 +134,8 @@ def limit_strain(
                 if attached_slot[j] >= 0:
                     share = 1.0
                 move = move + (share * (length - limit) / length) * delta
-                violated = violated + wp.min(1.0, (length - limit) / (STRAIN_RAMP * limit))
-    move = move / wp.max(violated, 1.0)
+                counted = counted + wp.min(1.0, (length - limit) / (STRAIN_RAMP * limit))
+    move = move / wp.max(counted, 1.0)
     x_out[i] = position + move
     v_out[i] = v[i] + move / h
 
@@ -152,13 +152,7 @@ def record_strain_limit(x: wp.array, v: wp.array, row_start: wp.array, neighbour
     Attached nodes stay. Arrays as in :func:`record_cloth_substep`; ``x_out, v_out`` distinct from ``x, v``.
     """
     node_count = x.shape[0]
-    for array in (v, attached_slot, x_out, v_out):
-        if array.shape[0] != node_count:
-            raise ValueError(f"per-node arrays must have {node_count} rows, got {array.shape[0]}")
-    if row_start.shape[0] != node_count + 1:
-        raise ValueError(f"row_start must have {node_count + 1} rows, got {row_start.shape[0]}")
-    if limit_length.shape[0] != neighbour.shape[0]:
-        raise ValueError(f"limit_length must have {neighbour.shape[0]} rows, got {limit_length.shape[0]}")
+    _check_graph(node_count, (v, attached_slot, x_out, v_out), row_start, neighbour, (limit_length,))
     if node_count == 0:
         return None
     return wp.launch(limit_strain, dim=node_count,
@@ -166,18 +160,23 @@ def record_strain_limit(x: wp.array, v: wp.array, row_start: wp.array, neighbour
                      outputs=[x_out, v_out], device=x.device, record_cmd=True)
 
 
-def _check(x, v, frame_start, row_start, neighbour, stiffness, rest_length, edge_damping, drag, mass,
-           constant_force, attached_slot, capsules_before, capsules_after, x_out, v_out) -> None:
-    # (attachment_targets is indexed through attached_slot: its rows are the caller's business)
-    node_count = x.shape[0]
-    for array in (v, frame_start, drag, mass, constant_force, attached_slot, x_out, v_out):
+def _check_graph(node_count: int, per_node, row_start, neighbour, per_edge) -> None:
+    """Rows of the per-node arrays, of the CSR offsets and of the per-edge arrays."""
+    for array in per_node:
         if array.shape[0] != node_count:
             raise ValueError(f"per-node arrays must have {node_count} rows, got {array.shape[0]}")
     if row_start.shape[0] != node_count + 1:
         raise ValueError(f"row_start must have {node_count + 1} rows, got {row_start.shape[0]}")
-    for array in (stiffness, rest_length, edge_damping):
+    for array in per_edge:
         if array.shape[0] != neighbour.shape[0]:
             raise ValueError(f"per-edge arrays must have {neighbour.shape[0]} rows, got {array.shape[0]}")
+
+
+def _check(x, v, frame_start, row_start, neighbour, stiffness, rest_length, edge_damping, drag, mass,
+           constant_force, attached_slot, capsules_before, capsules_after, x_out, v_out) -> None:
+    # (attachment_targets is indexed through attached_slot: its rows are the caller's business)
+    _check_graph(x.shape[0], (v, frame_start, drag, mass, constant_force, attached_slot, x_out, v_out), row_start,
+                 neighbour, (stiffness, rest_length, edge_damping))
     capsule_count = capsules_after[0].shape[0]
     for array in (*capsules_before, *capsules_after):
         if array.shape[0] != capsule_count:

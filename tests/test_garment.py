@@ -414,7 +414,10 @@ def test_the_oracle_tool_fits_an_instants_nodes_to_its_images(forced, video, tmp
     tool = load_tool("garment_oracle")
     subject = SimpleNamespace(train=video, novel_view={"again": video})  # a second view: the same camera again
     frame = int(video.frame_ids[0])
-    rows = tool.oracle_rows(copy.deepcopy(trainer.avatar), subject, [frame], steps=20, band=(0.3, 0.9))
+    avatar = copy.deepcopy(trainer.avatar)
+    asked = [parameter.requires_grad for parameter in avatar.parameters()]
+    rows = tool.oracle_rows(avatar, subject, [frame], steps=20, band=(0.3, 0.9))
+    assert [parameter.requires_grad for parameter in avatar.parameters()] == asked  # the avatar is left as it was
     assert [row["mode"] for row in rows] == ["rollout", "training view", "every view"]
     rollout, single, every = rows
     assert rollout["moved"] == 0.0 and single["moved"] > 0.0 and every["moved"] > 0.0

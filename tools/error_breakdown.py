@@ -35,10 +35,11 @@ import torch
 
 from warpavatar import data
 
-__all__ = ["breakdown", "height_band_mask", "reference_image", "band_needed"]
+__all__ = ["breakdown", "height_band_mask", "masked_psnr", "reference_image", "band_needed"]
 
 
-def _masked_psnr(prediction: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
+def masked_psnr(prediction: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
+    """PSNR [dB] of ``prediction`` against ``truth`` ([H,W,3] in 0..1) over the pixels weighted by ``mask`` [H,W]."""
     mse = float((((prediction - truth) ** 2) * mask[..., None]).sum() / max(1.0, mask.sum() * 3))
     return -10.0 * np.log10(max(mse, 1e-12))
 
@@ -121,10 +122,10 @@ def breakdown(avatar, video, *, stride: int = 1, band: tuple[float, float] | Non
         gain = (prediction * truth * weight).sum((0, 1)) / np.maximum((prediction**2 * weight).sum((0, 1)), 1e-12)
         corrected = np.clip(prediction * gain, 0.0, 1.0)
         inner = cv2.erode((mask > 0.5).astype(np.uint8), kernel).astype(np.float64)
-        rows["masked"].append(_masked_psnr(prediction, truth, mask))
-        rows["gain"].append(_masked_psnr(corrected, truth, mask))
-        rows["inner"].append(_masked_psnr(prediction, truth, inner))
-        rows["gain+inner"].append(_masked_psnr(corrected, truth, inner))
+        rows["masked"].append(masked_psnr(prediction, truth, mask))
+        rows["gain"].append(masked_psnr(corrected, truth, mask))
+        rows["inner"].append(masked_psnr(prediction, truth, inner))
+        rows["gain+inner"].append(masked_psnr(corrected, truth, inner))
         if band is not None:
             root = video.bone_transforms[t][0].astype(np.float64) @ np.append(video.skeleton.heads[0], 1.0)
             inside = height_band_mask(video.cameras[t], root[:3], video.skeleton.up, low=band[0], high=band[1])

@@ -24,7 +24,6 @@ cloth's 3D shape per instant is what is missing, which the one camera does not d
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 
@@ -32,7 +31,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from error_breakdown import height_band_mask  # noqa: E402
+from error_breakdown import height_band_mask, masked_psnr  # noqa: E402
 
 from warpavatar import data  # noqa: E402
 from warpavatar.evaluate import write_json_atomic  # noqa: E402
@@ -60,12 +59,7 @@ def _psnrs(image: torch.Tensor, video: data.VideoFolder, index: int, band: tuple
     mask = video.masks[index].astype(np.float64) / 255.0
     root = video.bone_transforms[index][0].astype(np.float64) @ np.append(video.skeleton.heads[0], 1.0)
     inside = height_band_mask(video.cameras[index], root[:3], video.skeleton.up, low=band[0], high=band[1])
-    error = ((prediction - truth) ** 2).sum(-1) * mask
-    values = []
-    for region in (np.ones_like(inside), inside):
-        mse = error[region].sum() / max(mask[region].sum() * 3.0, 1.0)
-        values.append(-10.0 * math.log10(max(mse, 1e-12)))
-    return values[0], values[1]
+    return masked_psnr(prediction, truth, mask), masked_psnr(prediction, truth, mask * inside)
 
 
 def oracle_rows(avatar: Avatar, subject: data.Subject, frame_ids: list[int], *, steps: int = 150,
@@ -89,48 +83,60 @@ def oracle_rows(avatar: Avatar, subject: data.Subject, frame_ids: list[int], *, 
     device = avatar.gaussians.means.device
     background = torch.as_tensor(subject.train.background, dtype=torch.float32, device=device)
     grid = avatar.field.grid_weights().detach()
-    train_ids = [int(i) for i in subject.train.frame_ids]
     fitted_poses = garment.frame_poses.reshape(garment.frame_poses.shape[0], -1)
-    for parameter in avatar.parameters():
-        parameter.requires_grad_(False)
+    spacing = garment.hyper["voxel_size"]
 
     def render(video, index, positions):
         bones = torch.as_tensor(video.bone_transforms[index], dtype=torch.float32, device=device)
         return avatar.render(video.cameras[index], bones, background=background, grid=grid,
                              inputs={garment.name: positions})[0]
 
+    def fitted(start, views):
+        positions = start.clone().requires_grad_()
+        targets = [(video, index, torch.as_tensor(video.images[index], device=device).float() / 255.0)
+                   for _, video, index in views]
+        optimizer = torch.optim.Adam([positions], lr=learning_rate * spacing)
+        for _ in range(steps):
+            for video, index, truth in targets:
+                loss = (render(video, index, positions) - truth).abs().mean()
+                optimizer.zero_grad()
+                loss.backward()
+                optimizer.step()
+        return positions.detach()
+
+    asked = {parameter: parameter.requires_grad for parameter in avatar.parameters()}
+    for parameter in asked:  # (only the node positions are fitted; the flags are put back at the end)
+        parameter.requires_grad_(False)
     rows = []
-    for frame_id in frame_ids:
-        pose = None
-        if frame_id in train_ids:  # the fit's training rollout holds the instant whose pose this is
-            pose = torch.as_tensor(subject.train.bone_transforms[train_ids.index(frame_id)], dtype=torch.float32,
-                                   device=device).reshape(1, -1)
-        if pose is None or not fitted_poses.shape[0] or \
-                float((fitted_poses - pose).abs().max(dim=1).values.min()) > 1e-5:
-            raise ValueError(f"frame id {frame_id} is not one of the fit's training frames in {subject.train.root}")
-        views = _views_of(subject, frame_id)
-        start = garment.frame_positions[int((fitted_poses - pose).abs().max(dim=1).values.argmin())].detach().clone()
-        for mode in MODES:
-            positions = start.clone().requires_grad_(mode != "rollout")
-            if mode != "rollout":
-                fitted = views[:1] if mode == "training view" else views
-                targets = [(video, index, torch.as_tensor(video.images[index], device=device).float() / 255.0)
-                           for _, video, index in fitted]
-                optimizer = torch.optim.Adam([positions], lr=learning_rate * garment.hyper["voxel_size"])
-                for _ in range(steps):
-                    for video, index, truth in targets:
-                        loss = (render(video, index, positions) - truth).abs().mean()
-                        optimizer.zero_grad()
-                        loss.backward()
-                        optimizer.step()
-            row = {"frame": frame_id, "mode": mode, "psnr": {}, "band": {}}
-            with torch.no_grad():
-                for name, video, index in views:
-                    row["psnr"][name], row["band"][name] = _psnrs(render(video, index, positions.detach()), video,
-                                                                  index, band)
-            row["moved"] = float((positions.detach() - start).norm(dim=1).mean() / garment.hyper["voxel_size"])
-            rows.append(row)
+    try:
+        for frame_id in frame_ids:
+            start = garment.frame_positions[_training_instant(subject, fitted_poses, frame_id)].detach()
+            views = _views_of(subject, frame_id)
+            for mode, positions in (("rollout", start), ("training view", fitted(start, views[:1])),
+                                    ("every view", fitted(start, views))):
+                row = {"frame": frame_id, "mode": mode, "psnr": {}, "band": {},
+                       "moved": float((positions - start).norm(dim=1).mean() / spacing)}
+                with torch.no_grad():
+                    for name, video, index in views:
+                        row["psnr"][name], row["band"][name] = _psnrs(render(video, index, positions), video, index,
+                                                                      band)
+                rows.append(row)
+    finally:
+        for parameter, flag in asked.items():
+            parameter.requires_grad_(flag)
     return rows
+
+
+def _training_instant(subject: data.Subject, fitted_poses: torch.Tensor, frame_id: int) -> int:
+    """The row of the garment's training rollout (poses ``fitted_poses`` [T, J*16]) at training frame ``frame_id``."""
+    ids = [int(i) for i in subject.train.frame_ids]
+    if frame_id in ids and fitted_poses.shape[0]:
+        pose = torch.as_tensor(subject.train.bone_transforms[ids.index(frame_id)], dtype=torch.float32,
+                               device=fitted_poses.device).reshape(1, -1)
+        distance = (fitted_poses - pose).abs().max(dim=1).values
+        if float(distance.min()) <= 1e-5:
+            return int(distance.argmin())
+    raise ValueError(f"frame id {frame_id} is not one of the fit's training frames in {subject.train.root}")
 
 
 def main(argv=None) -> int:
