@@ -54,3 +54,38 @@ def test_a_camera_carried_into_the_monocular_world_sees_the_same_pixels():
     carried = tool.camera_into_monocular_world(world_to_camera, scale, rotation, translation)
     assert np.allclose(carried[:3, :3] @ carried[:3, :3].T, np.eye(3), atol=1e-12)  # still rigid
     assert np.allclose(project(mono_points, carried), project(calibrated_points, world_to_camera), atol=1e-9)
+
+
+def test_the_subjects_withhold_the_same_instants_and_the_oracle_keeps_the_calibrated_poses(tmp_path):
+    """Both subjects of the protocol from one calibrated subject (the bundled demo, standing in for both the
+    monocular and the calibrated preparation): the same instants withheld, novel views only at training instants;
+    the oracle keeps the calibrated poses and cameras, and a monocular world that is the calibrated one aligns
+    with scale 1 and leaves every camera where it was."""
+    from warpavatar import data
+
+    tool = _tool()
+    demo = data.load_subject(data.demo_subject_path(), scale=0.25)
+    ids = demo.train.frame_ids.tolist()
+    oracle_info = tool.build_oracle_subject(demo, tmp_path / "oracle", train_camera="front", holdout_every=5)
+    aligned = tool.build_evaluation_subject(demo.train, demo, tmp_path / "subject", train_camera="front",
+                                            holdout_every=5)
+    assert aligned["scale"] == pytest.approx(1.0, abs=1e-6) and aligned["alignment_rms"] < 1e-5
+    held = [i for i in ids if i % 5 == 2]
+    assert oracle_info["held_out_frames"] == aligned["held_out_frames"] == len(held) > 0
+    for folder in ("oracle", "subject"):
+        subject = data.load_subject(tmp_path / folder)
+        assert subject.train.frame_ids.tolist() == [i for i in ids if i % 5 != 2]
+        heldout = subject.novel_view["front_heldout"]
+        assert heldout.frame_ids.tolist() == held
+        view = subject.novel_view["cam_090"]
+        source = demo.novel_view["cam_090"]
+        kept = [row for row, i in enumerate(source.frame_ids.tolist()) if i in set(subject.train.frame_ids.tolist())]
+        assert view.frame_ids.tolist() == source.frame_ids[kept].tolist() and 0 < len(kept) < source.frame_count
+        for camera, original in zip(view.cameras, [source.cameras[row] for row in kept]):
+            assert np.allclose(camera.world_to_camera, original.world_to_camera, atol=1e-4)
+        train_rows = [ids.index(i) for i in view.frame_ids.tolist()]
+        # the oracle's poses are the calibrated subject's own; the monocular subject's come from its training
+        # folder (here the same skeleton, so the same poses)
+        expected = source.bone_transforms[kept] if folder == "oracle" else demo.train.bone_transforms[train_rows]
+        assert np.allclose(view.bone_transforms, expected, atol=1e-6)
+        assert np.allclose(heldout.images, demo.train.images[[ids.index(i) for i in held]], atol=1 / 255)

@@ -20,6 +20,13 @@ DEMO holds ``videos/*.mp4`` (synchronized) and ``calibration/`` (one ``.toml`` o
    poses).
 4. The subject is fitted with pose refinement off and on, and each fit is evaluated on every held-out folder
    (masked PSNR/SSIM; with ``--eval-refine-steps N`` also after N steps of test-time pose refinement).
+5. With ``--oracle``, a bound on what better poses could buy: the same camera's same instants fitted in the
+   calibrated world with the calibrated skeleton (triangulated from every camera, so its depth is seen;
+   ``OUT/oracle``, refinement off), evaluated on the same held-out instants and views in that world. Refinement
+   from one camera cannot be expected to beat it on the other views: it is what poses that every camera agrees
+   on give, not what the training camera's images can tell.
+
+``--subject-scale`` writes both subjects' frames at that fraction of the prepared size (for transfer or speed).
 
 Writes ``OUT/protocol_<modes>.json`` and prints a markdown table.
 """
@@ -83,6 +90,49 @@ def _subset(video, rows):
                    joint_positions=None if video.joint_positions is None else video.joint_positions[rows])
 
 
+def _held_out_rows(frame_ids, holdout_every: int) -> tuple[list[int], list[int]]:
+    """Rows of the withheld instants (``id % n == n // 2``) and of the kept ones."""
+    ids = np.asarray(frame_ids).tolist()
+    held = [row for row, frame in enumerate(ids) if holdout_every > 1 and frame % holdout_every == holdout_every // 2]
+    return held, sorted(set(range(len(ids))) - set(held))
+
+
+def _protocol_folders(train, novel_views, *, train_camera: str, holdout_every: int, carry=None) -> tuple[dict, int]:
+    """The folders of a protocol subject by relative path: ``train`` without its withheld instants, those instants
+    as ``novel_view/<train camera>_heldout``, and each novel view at the training instants it has (passed through
+    ``carry`` when given); and the number of withheld frames."""
+    held, kept = _held_out_rows(train.frame_ids, holdout_every)
+    folders = {"train": _subset(train, kept)}
+    if held:
+        folders[f"novel_view/{train_camera}_heldout"] = _subset(train, held)
+    training_ids = set(train.frame_ids[kept].tolist())
+    for name, view in novel_views.items():
+        rows = [row for row, frame in enumerate(view.frame_ids.tolist()) if frame in training_ids]
+        if rows:
+            view = _subset(view, rows)
+            folders[f"novel_view/{name}"] = view if carry is None else carry(view)
+    return folders, len(held)
+
+
+def build_oracle_subject(calibrated, output: Path, *, train_camera: str, holdout_every: int,
+                         overwrite: bool = False) -> dict:
+    """Write the oracle of the protocol (module docstring, step 5) to ``output``: the calibrated subject's training
+    camera without its withheld instants (``train/``), those instants (``novel_view/<train camera>_heldout``) and
+    the other cameras at training instants, all with the calibrated skeleton's poses and cameras.
+
+    Returns:
+        The folder names and the number of withheld frames.
+    """
+    from warpavatar import data
+
+    folders, held = _protocol_folders(calibrated.train, calibrated.novel_view, train_camera=train_camera,
+                                      holdout_every=holdout_every)
+    with data.staged_folder(output, overwrite=overwrite) as staging:
+        for relative, video in folders.items():
+            data.write_video_folder(video, staging / relative)
+    return {"folders": sorted(folders), "held_out_frames": held}
+
+
 def build_evaluation_subject(mono_train, calibrated, output: Path, *, train_camera: str, holdout_every: int,
                              overwrite: bool = False) -> dict:
     """Write the evaluation subject of the protocol (module docstring, step 3) to ``output``.
@@ -112,31 +162,50 @@ def build_evaluation_subject(mono_train, calibrated, output: Path, *, train_came
     residual = (scale * source @ rotation.T + translation) - target
     alignment_rms = float(np.sqrt((residual ** 2).sum(-1).mean()))
 
-    held = [row for row, frame in enumerate(mono_train.frame_ids.tolist())
-            if holdout_every > 1 and frame % holdout_every == holdout_every // 2]
-    kept = sorted(set(range(mono_train.frame_count)) - set(held))
-    folders = {"train": _subset(mono_train, kept)}
-    if held:
-        folders[f"novel_view/{train_camera}_heldout"] = _subset(mono_train, held)
-    training_ids = set(mono_train.frame_ids[kept].tolist())
-    for name, view in calibrated.novel_view.items():
-        rows = [row for row, frame in enumerate(view.frame_ids.tolist()) if frame in training_ids]
-        if not rows:
-            continue
-        view = _subset(view, rows)
+    def into_monocular_world(view):  # calibrated cameras carried over, the monocular poses of those instants
         cameras = [replace(camera, world_to_camera=camera_into_monocular_world(
             np.asarray(camera.world_to_camera, dtype=np.float64), scale, rotation, translation).astype(np.float32))
             for camera in view.cameras]
         poses = mono_train.bone_transforms[[mono_rows[f] for f in view.frame_ids.tolist()]]
-        folders[f"novel_view/{name}"] = replace(view, cameras=cameras, skeleton=mono_train.skeleton,
-                                                bone_transforms=poses, joint_positions=None,
-                                                meta={**view.meta, "poses": mono_train.meta.get("poses"),
-                                                      "aligned_from_calibration": True})
+        return replace(view, cameras=cameras, skeleton=mono_train.skeleton, bone_transforms=poses,
+                       joint_positions=None, meta={**view.meta, "aligned_from_calibration": True,
+                                                   "poses": "estimated" if mono_train.poses_estimated else "exact"})
+
+    folders, held = _protocol_folders(mono_train, calibrated.novel_view, train_camera=train_camera,
+                                      holdout_every=holdout_every, carry=into_monocular_world)
     with data.staged_folder(output, overwrite=overwrite) as staging:
         for relative, video in folders.items():
             data.write_video_folder(video, staging / relative)
     return {"scale": scale, "rotation": rotation.tolist(), "translation": translation.tolist(),
-            "alignment_rms": alignment_rms, "folders": sorted(folders), "held_out_frames": len(held)}
+            "alignment_rms": alignment_rms, "folders": sorted(folders), "held_out_frames": held}
+
+
+def _prepared(args) -> tuple[Path, Path] | None:
+    """The monocular and calibrated subjects prepared from the demo's videos (``warpavatar-prepare``, once);
+    None when the demo lacks the training camera's video or a calibration."""
+    from warpavatar.prepare.calibration import match_cameras, read_calibration
+    from warpavatar.prepare.cli import prepare_subject
+
+    videos = sorted((args.demo / "videos").glob("*.mp4"))
+    calibrations = sorted(p for p in (args.demo / "calibration").glob("*") if p.is_file())
+    train_video = next((v for v in videos if v.stem == args.train_camera), None)
+    if train_video is None or not calibrations:
+        return None
+    calibration = calibrations[0]
+
+    licence = args.demo / "LICENSE.txt"
+    licence = licence if licence.exists() else None
+    focal = args.focal_px
+    if focal is None:
+        focal = float(match_cameras([train_video.stem], read_calibration(calibration))[0].K[0, 0])
+    mono_folder, multi_folder = args.output / "mono", args.output / "calibrated"
+    if not mono_folder.exists():
+        prepare_subject([train_video], mono_folder, focal_px=focal, license_file=licence)
+    if not multi_folder.exists():
+        others = [v for v in videos if v != train_video]
+        prepare_subject([train_video, *others], multi_folder, calibration=calibration,
+                        novel_view_stride=args.holdout_every, license_file=licence)
+    return mono_folder, multi_folder
 
 
 def main(argv=None) -> int:
@@ -146,7 +215,8 @@ def main(argv=None) -> int:
     from warpavatar.fit.arguments import add_config_arguments, config_from_arguments
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("demo", type=Path, help="folder with videos/*.mp4 and calibration/ (a .toml or .qca.txt)")
+    parser.add_argument("demo", type=Path, help="folder with videos/*.mp4 and calibration/ (a .toml or .qca.txt); "
+                        "read only while OUT lacks the subjects made from it")
     parser.add_argument("-o", "--output", type=Path, required=True, help="working folder (prepared subjects, fits)")
     parser.add_argument("--train-camera", default="cam01", help="the video fitted (default: cam01)")
     parser.add_argument("--focal-px", type=float, default=None,
@@ -160,73 +230,72 @@ def main(argv=None) -> int:
                         help="image scale of the evaluation (default: 1, the prepared frames' size)")
     parser.add_argument("--refine-modes", default="off,on",
                         help="the --refine-poses values to fit and compare, comma-separated (default: off,on)")
+    parser.add_argument("--oracle", action="store_true",
+                        help="also fit the oracle: the training camera with the calibrated poses (step 5)")
+    parser.add_argument("--subject-scale", type=float, default=1.0,
+                        help="size of the written subjects' frames, a fraction of the prepared ones' (default: 1)")
     parser.add_argument("--preset", default="default", help="fit preset (default: default)")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="torch device")
     add_config_arguments(parser)
     args = parser.parse_args(argv)
     if args.holdout_every < 2:
         parser.error("--holdout-every must be at least 2")
+    if not 0 < args.subject_scale <= 1:
+        parser.error("--subject-scale must lie in (0, 1]")
     from warpavatar.evaluate import evaluate_avatar, write_json_atomic
     from warpavatar.fit import Trainer
-    from warpavatar.prepare.calibration import match_cameras, read_calibration
-    from warpavatar.prepare.cli import prepare_subject
 
-    videos = sorted((args.demo / "videos").glob("*.mp4"))
-    calibrations = sorted(p for p in (args.demo / "calibration").iterdir() if p.is_file())
-    train_video = next((v for v in videos if v.stem == args.train_camera), None)
-    if train_video is None or not calibrations:
-        print(f"error: {args.demo}: needs videos/{args.train_camera}.mp4 and a calibration file", file=sys.stderr)
-        return 2
-    licence = args.demo / "LICENSE.txt"
-    licence = licence if licence.exists() else None
-    focal = args.focal_px
-    if focal is None:
-        camera = match_cameras([train_video.stem], read_calibration(calibrations[0]))[0]
-        focal = float(camera.K[0, 0])
-    mono_folder, multi_folder = args.output / "mono", args.output / "calibrated"
-    if not mono_folder.exists():
-        prepare_subject([train_video], mono_folder, focal_px=focal, license_file=licence)
-    if not multi_folder.exists():
-        others = [v for v in videos if v != train_video]
-        prepare_subject([train_video, *others], multi_folder, calibration=calibrations[0],
-                        novel_view_stride=args.holdout_every, license_file=licence)
-    subject_folder = args.output / "subject"
+    subject_folder, oracle_folder = args.output / "subject", args.output / "oracle"
+    recipe = {"holdout_every": args.holdout_every, "subject_scale": args.subject_scale}
     made = subject_folder / "alignment.json"
     alignment = json.loads(made.read_text()) if made.exists() else None
-    if alignment is None or alignment.get("holdout_every") != args.holdout_every:  # (re)make the subject
-        alignment = build_evaluation_subject(data.load_video_folder(mono_folder / "train"),
-                                             data.load_subject(multi_folder), subject_folder,
-                                             train_camera=args.train_camera, holdout_every=args.holdout_every,
-                                             overwrite=True)
-        alignment["holdout_every"] = args.holdout_every
-        write_json_atomic(made, alignment)
+    remake = alignment is None or any(alignment.get(key) != value for key, value in recipe.items())
+    if remake or (args.oracle and not oracle_folder.exists()):
+        prepared = _prepared(args)
+        if prepared is None:
+            print(f"error: {args.demo}: needs videos/{args.train_camera}.mp4 and a calibration file", file=sys.stderr)
+            return 2
+        mono_folder, multi_folder = prepared
+        calibrated = data.load_subject(multi_folder, scale=args.subject_scale)
+        if remake:
+            alignment = build_evaluation_subject(
+                data.load_video_folder(mono_folder / "train", scale=args.subject_scale), calibrated,
+                subject_folder, train_camera=args.train_camera, holdout_every=args.holdout_every, overwrite=True)
+            write_json_atomic(made, {**alignment, **recipe})
+        if args.oracle:
+            build_oracle_subject(calibrated, oracle_folder, train_camera=args.train_camera,
+                                 holdout_every=args.holdout_every, overwrite=True)
     print(f"alignment: scale {alignment['scale']:.4f}, joints {alignment['alignment_rms'] * 1000:.0f} mm rms apart")
+    print("| refine poses | folder | masked PSNR | masked SSIM | after test-time refinement | frames | fit min |")
+    print("|---|---|---|---|---|---|---|", flush=True)
     rows = []
     modes = [mode.strip() for mode in args.refine_modes.split(",") if mode.strip()]
-    for mode in modes:
-        args.refine_poses = mode
+    runs = [(mode, subject_folder, mode) for mode in modes]  # (name, subject, --refine-poses)
+    if args.oracle:
+        runs.append(("oracle", oracle_folder, "off"))
+    for name, folder, refine in runs:
+        args.refine_poses = refine
         config = config_from_arguments(args, args.preset)
-        subject = data.load_subject(subject_folder, scale=config.image_scale)
+        subject = data.load_subject(folder, scale=config.image_scale)
         start = time.time()
-        trainer = Trainer(subject.train, config, args.output / f"fit_{mode}", device=args.device)
+        trainer = Trainer(subject.train, config, args.output / f"fit_{name}", device=args.device)
         trainer.fit(progress=False)
         minutes = (time.time() - start) / 60
         full = (subject if config.image_scale == args.eval_scale
-                else data.load_subject(subject_folder, scale=args.eval_scale))
-        for name, folder in full.novel_view.items():
-            result = evaluate_avatar(trainer.avatar, folder, progress=False, refine_steps=args.eval_refine_steps)
+                else data.load_subject(folder, scale=args.eval_scale))
+        for view, video in full.novel_view.items():
+            result = evaluate_avatar(trainer.avatar, video, progress=False, refine_steps=args.eval_refine_steps)
             refined = result.get("refined") or {}
-            rows.append({"refine_poses": mode, "folder": name, "psnr_masked": result["psnr_masked"],
+            rows.append({"refine_poses": name, "folder": view, "psnr_masked": result["psnr_masked"],
                          "ssim_masked": result["ssim_masked"], "psnr_masked_test_refined": refined.get("psnr_masked"),
                          "frames": result["frame_count"], "fit_min": minutes})
-    write_json_atomic(args.output / f"protocol_{'_'.join(modes)}.json", {"alignment": alignment, "rows": rows,
-                                                       "preset": args.preset, "device": args.device})
-    print("| refine poses | folder | masked PSNR | masked SSIM | after test-time refinement | frames | fit min |")
-    print("|---|---|---|---|---|---|---|")
-    for row in rows:
-        refined = row["psnr_masked_test_refined"]
-        print(f"| {row['refine_poses']} | {row['folder']} | {row['psnr_masked']:.2f} | {row['ssim_masked']:.3f} | "
-              f"{'' if refined is None else f'{refined:.2f}'} | {row['frames']} | {row['fit_min']:.1f} |")
+            refined = rows[-1]["psnr_masked_test_refined"]
+            print(f"| {name} | {view} | {result['psnr_masked']:.2f} | {result['ssim_masked']:.3f} | "
+                  f"{'' if refined is None else f'{refined:.2f}'} | {result['frame_count']} | {minutes:.1f} |",
+                  flush=True)
+    names = "_".join(name for name, _, _ in runs)
+    write_json_atomic(args.output / f"protocol_{names}.json", {"alignment": alignment, "rows": rows,
+                                                               "preset": args.preset, "device": args.device})
     return 0
 
 
