@@ -532,6 +532,50 @@ def test_vector_adam_keeps_each_vector_s_direction():
         VectorAdam([vectors], lr=0.0)
 
 
+def test_vector_adam_takes_a_learning_rate_tensor_and_an_older_state():
+    """A learning rate held in a tensor and changed in place between steps (what a captured step reads) moves the
+    parameters as the same rates given as numbers; a state saved with its step count as a number (older
+    checkpoints) goes on exactly where the tensor count would."""
+    from warpavatar.extensions.pose_refinement import VectorAdam
+
+    generator = torch.Generator().manual_seed(5)
+    start = torch.randn(12, 3, generator=generator, dtype=torch.float64)
+    gradients = [torch.randn(12, 3, generator=generator, dtype=torch.float64) for _ in range(6)]
+    rates = [0.05 * 0.7 ** k for k in range(6)]
+
+    def run(optimizer_of, parameter, begin=0):
+        optimizer = optimizer_of(parameter)
+        for k in range(begin, 6):
+            group = optimizer.param_groups[0]
+            if isinstance(group["lr"], torch.Tensor):
+                group["lr"].fill_(rates[k])
+            else:
+                group["lr"] = rates[k]
+            parameter.grad = gradients[k].clone()
+            optimizer.step()
+        return optimizer
+
+    numbers = start.clone().requires_grad_()
+    run(lambda q: VectorAdam([q], lr=rates[0]), numbers)
+    tensors = start.clone().requires_grad_()
+    run(lambda q: VectorAdam([q], lr=torch.tensor(rates[0], dtype=torch.float64)), tensors)
+    torch.testing.assert_close(tensors, numbers, rtol=1e-13, atol=1e-13)
+
+    halfway = start.clone().requires_grad_()
+    partial = VectorAdam([halfway], lr=rates[0])
+    for k in range(3):  # three steps, saved, loaded into a new optimizer, three more
+        partial.param_groups[0]["lr"] = rates[k]
+        halfway.grad = gradients[k].clone()
+        partial.step()
+    state = partial.state_dict()
+    state["state"][0]["step"] = 3  # as an older version saved it
+    again = VectorAdam([halfway], lr=rates[0])
+    again.load_state_dict(state)
+    run(lambda q: again, halfway, begin=3)
+    torch.testing.assert_close(halfway, numbers, rtol=1e-13, atol=1e-13)
+    assert isinstance(again.state[halfway]["step"], torch.Tensor) and float(again.state[halfway]["step"]) == 6
+
+
 def test_fit_benchmark_reports_the_held_out_folders_after_test_time_refinement(tmp_path, capsys):
     tool = load_tool("fit_benchmark")
     out = tmp_path / "fit"

@@ -57,6 +57,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from warpavatar._src.cuda_graph import adam_options
 from warpavatar.data import write_poses
 from warpavatar.extensions.base import Extension, LossTerm, option
 from warpavatar.geometry import match_pose
@@ -85,16 +86,22 @@ class VectorAdam(torch.optim.Optimizer):
     direction: an unconstrained component moves in proportion to its share of the gradient. The step length per
     vector stays about the learning rate, as with Adam.
 
+    Its step reads nothing from the host beyond the betas and eps: the step count is a tensor on the parameters'
+    device and the learning rate may be one (changed in place), so a training step that runs it can be captured
+    as a CUDA graph and replayed.
+
     Args:
         params: parameters (or groups) whose last dimension holds the vectors.
-        lr: learning rate (the step length of a vector whose gradient is steady, in its units).
+        lr: learning rate (the step length of a vector whose gradient is steady, in its units): a number or a
+            0-dim tensor.
         betas: decay rates of the first and second moments.
         eps: added to the square root of the second moment.
     """
 
-    def __init__(self, params, lr: float = 1e-3, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
-        if not lr > 0:
-            raise ValueError(f"lr must be > 0, got {lr}")
+    def __init__(self, params, lr: float | torch.Tensor = 1e-3, betas: tuple[float, float] = (0.9, 0.999),
+                 eps: float = 1e-8):
+        if not float(lr) > 0:
+            raise ValueError(f"lr must be > 0, got {float(lr)}")
         super().__init__(params, dict(lr=lr, betas=betas, eps=eps))
 
     @torch.no_grad()
@@ -107,16 +114,19 @@ class VectorAdam(torch.optim.Optimizer):
                 gradient = parameter.grad
                 state = self.state[parameter]
                 if not state:
-                    state["step"] = 0
+                    state["step"] = torch.zeros((), dtype=torch.float64, device=parameter.device)
                     state["exp_avg"] = torch.zeros_like(parameter)
                     state["exp_avg_sq"] = torch.zeros_like(parameter[..., :1])
-                state["step"] += 1
+                elif not isinstance(state["step"], torch.Tensor) or state["step"].device != parameter.device:
+                    # a count saved by an older version (a number), or a state loaded onto another device
+                    state["step"] = torch.as_tensor(state["step"], dtype=torch.float64).to(parameter.device)
+                count = state["step"].add_(1.0)
                 state["exp_avg"].mul_(beta1).add_(gradient, alpha=1.0 - beta1)
                 state["exp_avg_sq"].mul_(beta2).add_(gradient.square().mean(-1, keepdim=True), alpha=1.0 - beta2)
-                corrected_first = 1.0 - beta1 ** state["step"]
-                corrected_second = 1.0 - beta2 ** state["step"]
+                corrected_first = 1.0 - torch.pow(beta1, count)
+                corrected_second = 1.0 - torch.pow(beta2, count)
                 scale = (state["exp_avg_sq"] / corrected_second).sqrt().add_(group["eps"])
-                parameter.addcdiv_(state["exp_avg"], scale, value=-group["lr"] / corrected_first)
+                parameter.sub_(state["exp_avg"] / scale * (group["lr"] / corrected_first))
         return None
 
 
@@ -163,6 +173,12 @@ class PoseRefinement(AvatarPart):
         """The refined pose [J,4,4] of training frame ``index`` ([K,J,4,4] for a slice), differentiable."""
         return corrected_transforms(self.frame_poses[index], self.heads, self._jumps, self.rotation[index],
                                     self.translation[index])
+
+    def refined_at(self, frames: torch.Tensor) -> torch.Tensor:
+        """The refined poses [K,J,4,4] of training frames ``frames`` (a [K] int64 tensor on the part's device, read
+        by gathers, not by the host: a captured step may index with it), differentiable."""
+        return corrected_transforms(self.frame_poses.index_select(0, frames), self.heads, self._jumps,
+                                    self.rotation.index_select(0, frames), self.translation.index_select(0, frames))
 
     @torch.no_grad()
     def refined_poses(self) -> torch.Tensor:
@@ -296,6 +312,7 @@ class PoseRefinementExtension(Extension):
     options_type = PoseRefinementOptions
     presets = {"quick": {"refine_poses_from": 400}}
     part: PoseRefinement | None = None
+    refined: torch.Tensor | None = None  # while refining: every training frame's refined pose [T,J,4,4] this step
 
     @classmethod
     def check(cls, options, config) -> None:
@@ -324,9 +341,14 @@ class PoseRefinementExtension(Extension):
             self.target_pivots = posed_pivots(part.refined(slice(None)), part.heads) / fit.extent
             self.view_axes = torch.stack([camera.world_to_camera[2, :3] for camera in fit.frames.cameras]).float()
         self.base_lr = (self.options.lr_pose_rotation, self.options.lr_pose_translation * fit.extent)
-        optimizer = VectorAdam if self.options.pose_moments == "vector" else torch.optim.Adam
-        self.optimizer = optimizer([{"params": [part.rotation], "lr": self.base_lr[0]},
-                                    {"params": [part.translation], "lr": self.base_lr[1]}])
+        # learning rates as device tensors, changed in place every step: a captured step reads them
+        groups = [{"params": [part.rotation], "lr": torch.tensor(self.base_lr[0], device=fit.device)},
+                  {"params": [part.translation], "lr": torch.tensor(self.base_lr[1], device=fit.device)}]
+        if self.options.pose_moments == "vector":
+            self.optimizer = VectorAdam(groups)
+        else:  # (torch's multi-tensor loop takes no tensor learning rate unless capturable, i.e. on CUDA)
+            self.optimizer = torch.optim.Adam(groups, **(adam_options(fit.device) if fit.device.type == "cuda"
+                                                         else {"foreach": False}))
 
     def _prior_target(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The corrections [T,J,3], [T,3] that bring the training frames to the given motion smoothed in time (every
@@ -349,7 +371,14 @@ class PoseRefinementExtension(Extension):
         return self.part is not None and self.options.refine_poses_from <= step.step <= self._last_step()
 
     def step_capturable(self, step) -> bool:
-        return self.part is None  # refining: the step trains the pose of its frame, a host index
+        # the frame comes from step.frame, the learning rates are tensors changed in place; plain Adam's steps
+        # (--pose-moments component) stay eager: one capture in five of them was invalidated on the H100
+        return self.part is None or self.options.pose_moments == "vector"
+
+    def graph_key(self, step) -> tuple:
+        if self.part is None:
+            return ()
+        return (self._training(step), tuple(group["lr"].data_ptr() for group in self.optimizer.param_groups))
 
     def begin_step(self, step) -> None:
         if self.part is None:
@@ -360,18 +389,24 @@ class PoseRefinementExtension(Extension):
             span = max(1, self._last_step() - self.options.refine_poses_from)
             decay = self.options.lr_pose_final ** (min(step.step - self.options.refine_poses_from, span) / span)
             for group, base in zip(self.optimizer.param_groups, self.base_lr):
-                group["lr"] = base * decay
+                if isinstance(group["lr"], torch.Tensor) and group["lr"].device == self.fit.device:
+                    group["lr"].fill_(base * decay)
+                else:  # a number again (a loaded optimizer state)
+                    group["lr"] = torch.tensor(base * decay, device=self.fit.device)
 
-    def frame_input(self, step) -> torch.Tensor | int | None:
-        """The step frame's refined pose [J,4,4] while refining, else its index. While refining, every training
-        frame's refined pose is computed (one batched pass down the skeleton) for the smoothness prior."""
+    def step_input(self, step) -> torch.Tensor | None:
+        """The step frame's refined pose [J,4,4] (``step.frame``, on the device). While refining, every training
+        frame's refined pose is computed (one batched pass down the skeleton) for the smoothness prior, and the
+        frame's is taken from them with gradients."""
         self.refined = None
         if self.part is None:
             return None
+        frame = step.frame.reshape(1)
         if not self._training(step):
-            return step.index
+            with torch.no_grad():
+                return self.part.refined_at(frame)[0]
         self.refined = self.part.refined(slice(None))  # [T,J,4,4]
-        return self.refined[step.index]
+        return self.refined.index_select(0, frame)[0]
 
     def losses(self, step) -> dict[str, LossTerm]:
         """The priors, each averaged over every training frame: the corrections' mean squared difference from the
