@@ -165,6 +165,38 @@ def test_the_part_refines_training_instants_and_leaves_other_poses(tmp_path):
     assert np.allclose(saved["bone_transforms"], part.refined_poses().numpy(), atol=1e-6)
 
 
+def test_refined_poses_of_slightly_skewed_given_poses_are_written_rigid(tmp_path):
+    """Given poses a little off rigid (a refined pose refined again: |R^T R - I| about 1e-3) drift further through
+    the corrections; the written poses.npz is rigid again (the reader accepts it), with every pivot where the
+    refined pose put it."""
+    from warpavatar.data.reader import read_poses
+    from warpavatar.model.kinematics import posed_pivots, rigid_poses
+
+    generator = torch.Generator().manual_seed(8)
+    heads, parents = _skeleton(generator, dtype=torch.float32)
+    poses = torch.stack([_random_pose(heads.double(), parents, generator).float() for _ in range(5)])
+    skew = 1e-3 * torch.randn(5, len(PARENTS), 3, 3, generator=generator)
+    poses[..., :3, :3] += skew + skew.transpose(-1, -2)
+    part = PoseRefinement(poses, heads, parents, torch.arange(5))
+    with torch.no_grad():
+        part.rotation.normal_(0.0, 0.2, generator=generator)
+    refined = part.refined_poses()
+    gram = refined[..., :3, :3].transpose(-1, -2) @ refined[..., :3, :3]
+    skewed = float((gram - torch.eye(3)).abs().max())
+    assert skewed > 2e-3  # what the reader would refuse
+    part.write_poses(tmp_path / "poses.npz")
+    written, ids, pivots = read_poses(tmp_path / "poses.npz", joint_count=len(PARENTS))
+    assert ids.tolist() == list(range(5))
+    written = torch.as_tensor(written)
+    assert np.allclose(pivots, posed_pivots(refined, heads).numpy(), atol=1e-5)
+    assert torch.allclose(posed_pivots(written, heads), posed_pivots(refined, heads), atol=1e-5)
+    gram = written[..., :3, :3].transpose(-1, -2) @ written[..., :3, :3]
+    assert float((gram - torch.eye(3)).abs().max()) < 1e-5
+    # the nearest rotations: R = Q (I + S) with |S| about half of |R^T R - I|
+    assert float((written[..., :3, :3] - refined[..., :3, :3]).abs().max()) <= 2.0 * skewed
+    assert torch.equal(rigid_poses(written, heads)[..., 3, :], written[..., 3, :])
+
+
 def test_corrected_transforms_move_every_root_of_a_forest():
     generator = torch.Generator().manual_seed(4)
     parents = torch.tensor([-1, 0, 1, -1, 3, 3])

@@ -61,7 +61,8 @@ from warpavatar._src.cuda_graph import adam_options
 from warpavatar.data import write_poses
 from warpavatar.extensions.base import Extension, LossTerm, option
 from warpavatar.geometry import match_pose
-from warpavatar.model.kinematics import ancestor_jumps, corrected_transforms, posed_pivots, smoothing_corrections
+from warpavatar.model.kinematics import (ancestor_jumps, corrected_transforms, posed_pivots, rigid_poses,
+                                         smoothing_corrections)
 from warpavatar.model.parts import AvatarPart
 
 __all__ = ["PoseRefinement", "PoseRefinementOptions", "PoseRefinementExtension", "VectorAdam",
@@ -214,7 +215,7 @@ class PoseRefinement(AvatarPart):
     def write_poses(self, path: str | Path) -> None:
         """The refined training poses as a poses.npz of docs/FORMAT.md (bone_transforms, frame_ids,
         joint_positions: the posed pivots)."""
-        poses = self.refined_poses().cpu()
+        poses = rigid_poses(self.refined_poses().cpu(), self.heads.cpu())
         write_poses(path, poses.numpy(), self.frame_ids.cpu().numpy(),
                     joint_positions=posed_pivots(poses, self.heads.cpu()).numpy())
 

@@ -9,7 +9,7 @@ import torch
 from warpavatar.geometry import quat_from_matrix
 
 __all__ = ["axis_angle_to_matrix", "axis_angle_from_matrix", "skeleton_levels", "ancestor_jumps", "posed_pivots",
-           "corrected_transforms", "local_rotations", "smoothing_corrections"]
+           "rigid_poses", "corrected_transforms", "local_rotations", "smoothing_corrections"]
 
 
 def axis_angle_to_matrix(vectors: torch.Tensor) -> torch.Tensor:
@@ -84,6 +84,23 @@ def posed_pivots(bone_transforms: torch.Tensor, heads: torch.Tensor) -> torch.Te
     """The joints' pivots [...,J,3] in a pose: the rest pivots ``heads`` [J,3] moved by ``bone_transforms``
     [...,J,4,4] (the ``joint_positions`` of a poses.npz)."""
     return (bone_transforms[..., :3, :3] @ heads[:, :, None])[..., 0] + bone_transforms[..., :3, 3]
+
+
+def rigid_poses(bone_transforms: torch.Tensor, heads: torch.Tensor) -> torch.Tensor:
+    """Poses [...,J,4,4] made exactly rigid: each rotation part replaced by its nearest rotation (the orthogonal
+    factor of its polar decomposition, in float64), each translation chosen so that the joint's pivot stays where
+    it was. Products of float32 transforms down a skeleton drift from rigid (about 1e-3 in ``|R^T R - I|`` after
+    a refined pose is refined again), which poses.npz readers refuse; not differentiable, for exports."""
+    matrices = bone_transforms.detach().double()
+    left, _, right = torch.linalg.svd(matrices[..., :3, :3])
+    sign = torch.sign(torch.linalg.det(left @ right))
+    left = torch.cat([left[..., :2], left[..., 2:] * sign[..., None, None]], dim=-1)  # a rotation, no reflection
+    rotations = left @ right
+    pivots = posed_pivots(matrices, heads.double())
+    out = matrices.clone()
+    out[..., :3, :3] = rotations
+    out[..., :3, 3] = pivots - (rotations @ heads.double()[:, :, None])[..., 0]
+    return out.to(bone_transforms.dtype)
 
 
 def corrected_transforms(bone_transforms: torch.Tensor, heads: torch.Tensor, jumps: list[torch.Tensor],
