@@ -377,9 +377,9 @@ class PoseRefinementExtension(Extension):
         return self.part is None or self.options.pose_moments == "vector"
 
     def graph_key(self, step) -> tuple:
-        if self.part is None:
-            return ()
-        return (self._training(step), tuple(group["lr"].data_ptr() for group in self.optimizer.param_groups))
+        if not self._training(step):  # (the optimizer's state may still hold numbers from an older checkpoint)
+            return (False,)
+        return (True, tuple(group["lr"].data_ptr() for group in self.optimizer.param_groups))
 
     def begin_step(self, step) -> None:
         if self.part is None:
