@@ -175,12 +175,6 @@ class PoseRefinement(AvatarPart):
         return corrected_transforms(self.frame_poses[index], self.heads, self._jumps, self.rotation[index],
                                     self.translation[index])
 
-    def refined_at(self, frames: torch.Tensor) -> torch.Tensor:
-        """The refined poses [K,J,4,4] of training frames ``frames`` (a [K] int64 tensor on the part's device, read
-        by gathers, not by the host: a captured step may index with it), differentiable."""
-        return corrected_transforms(self.frame_poses.index_select(0, frames), self.heads, self._jumps,
-                                    self.rotation.index_select(0, frames), self.translation.index_select(0, frames))
-
     @torch.no_grad()
     def refined_poses(self) -> torch.Tensor:
         """Every training frame's refined pose [T,J,4,4], computed once per change of the corrections."""
@@ -377,8 +371,10 @@ class PoseRefinementExtension(Extension):
         return self.part is None or self.options.pose_moments == "vector"
 
     def graph_key(self, step) -> tuple:
-        if not self._training(step):  # (the optimizer's state may still hold numbers from an older checkpoint)
-            return (False,)
+        if self.part is None:
+            return ()
+        if not self._training(step):  # the poses are fixed: a step reads their table (made here, off the capture)
+            return (False, self.part.refined_poses().data_ptr())
         return (True, tuple(group["lr"].data_ptr() for group in self.optimizer.param_groups))
 
     def begin_step(self, step) -> None:
@@ -396,16 +392,16 @@ class PoseRefinementExtension(Extension):
                     group["lr"] = torch.tensor(base * decay, device=self.fit.device)
 
     def step_input(self, step) -> torch.Tensor | None:
-        """The step frame's refined pose [J,4,4] (``step.frame``, on the device). While refining, every training
-        frame's refined pose is computed (one batched pass down the skeleton) for the smoothness prior, and the
-        frame's is taken from them with gradients."""
+        """The step frame's refined pose [J,4,4], gathered at ``step.frame`` (on the device, so a replayed step
+        reads its own frame). While refining, every training frame's refined pose is computed (one batched pass
+        down the skeleton) for the priors, and the frame's is taken from them with gradients; once the poses are
+        fixed, from their table (:meth:`PoseRefinement.refined_poses`, computed once)."""
         self.refined = None
         if self.part is None:
             return None
         frame = step.frame.reshape(1)
         if not self._training(step):
-            with torch.no_grad():
-                return self.part.refined_at(frame)[0]
+            return self.part.refined_poses().index_select(0, frame)[0]
         self.refined = self.part.refined(slice(None))  # [T,J,4,4]
         return self.refined.index_select(0, frame)[0]
 
