@@ -14,6 +14,7 @@ Families:
     shading: view-dependent colour from spherical harmonics in each Gaussian's canonical frame.
     cloth_frame: a whole cloth substep fused in one kernel (rollouts without gradients).
     correction: a pose correction's outputs applied to canonical Gaussians in one pass (playback).
+    poses: every frame's refined poses down the skeleton, and the priors of the refined motion (pose refinement).
 
 :mod:`~warpavatar.kernels.quaternion` holds the quaternion ``@wp.func`` helpers the families share.
 """

@@ -12,8 +12,8 @@ from scipy.spatial.transform import Rotation
 
 from warpavatar import data
 from warpavatar.extensions.pose_refinement import PoseRefinement
-from warpavatar.model.kinematics import (ancestor_jumps, axis_angle_to_matrix, corrected_transforms, rigid_poses,
-                                         skeleton_levels)
+from warpavatar.geometry import skeleton_levels
+from warpavatar.model.kinematics import ancestor_jumps, axis_angle_to_matrix, corrected_transforms, rigid_poses
 from warpavatar.fit import Trainer, preset
 from warpavatar.model import Avatar
 

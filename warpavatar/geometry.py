@@ -1,5 +1,5 @@
 """Maths every layer of warpavatar shares, written once: quaternions, spherical harmonics, cameras, pose
-matching, positional encodings and the MLP builder.
+matching, skeleton order, positional encodings and the MLP builder.
 
 Quaternions are (w, x, y, z) (``docs/conventions.md``). The quaternion functions take torch tensors or numpy
 arrays and answer in kind (numpy arrays go through torch in their own dtype, so both give the same numbers).
@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 __all__ = ["SH_C0", "quat_multiply", "quat_conjugate", "quat_rotate", "quat_to_matrix", "quat_from_matrix",
-           "quat_from_vector", "sh_basis", "camera_centre", "match_pose", "fourier_features", "Linear", "linear_rows", "mlp"]
+           "quat_from_vector", "sh_basis", "camera_centre", "match_pose", "skeleton_levels", "fourier_features", "Linear", "linear_rows", "mlp"]
 
 SH_C0 = 0.28209479177387814
 """Degree-0 real spherical-harmonics constant: colour = SH_C0 * dc + 0.5."""
@@ -159,6 +159,27 @@ def match_pose(frame_poses: torch.Tensor, bone_transforms: torch.Tensor, *, tole
 
 
 # ------------------------------------------------------------------------------------------------ networks
+def skeleton_levels(parents) -> list[list[int]]:
+    """The joints by depth below their root: roots first, every joint after its parent.
+
+    Raises:
+        ValueError: parents that do not form a forest.
+    """
+    parents = [int(p) for p in parents]
+    depth = [-1] * len(parents)
+    for start in range(len(parents)):
+        chain, joint = [], start
+        while joint >= 0 and depth[joint] < 0:
+            if joint in chain:
+                raise ValueError("the skeleton's parents form a cycle")
+            chain.append(joint)
+            joint = parents[joint]
+        base = -1 if joint < 0 else depth[joint]
+        for offset, member in enumerate(reversed(chain)):
+            depth[member] = base + 1 + offset
+    return [[j for j in range(len(parents)) if depth[j] == d] for d in range(max(depth) + 1)]
+
+
 def fourier_features(values: torch.Tensor, frequencies: int) -> torch.Tensor:
     """NeRF positional encoding [..., C * (1 + 2 * frequencies)] of values [..., C] (about unit range): the
     values, then sin and cos of ``pi 2^k values`` for k = 0 .. frequencies - 1."""

@@ -16,6 +16,7 @@ from warpavatar._src.cloth import cloth_edge_terms
 from warpavatar._src.collision import push_out_of_capsules
 from warpavatar._src.correction import apply_correction, frame_bias, match_frame_code
 from warpavatar._src.knn import knn_graph
+from warpavatar._src.poses import corrected_poses, pose_priors
 from warpavatar._src.shading import view_colors
 from warpavatar._src.skinning import inverse_lbs, lbs, sample_grid
 from warpavatar._src.splat import rasterize_gaussians, rasterizer_replays, rasterizer_status
@@ -38,4 +39,6 @@ __all__ = [
     "apply_correction",
     "match_frame_code",
     "frame_bias",
+    "corrected_poses",
+    "pose_priors",
 ]

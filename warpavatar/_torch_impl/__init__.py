@@ -7,6 +7,7 @@ from warpavatar._torch_impl.cloth import cloth_edge_terms
 from warpavatar._torch_impl.collision import push_out_of_capsules
 from warpavatar._torch_impl.correction import apply_correction, frame_bias, match_frame_code
 from warpavatar._torch_impl.knn import knn_graph
+from warpavatar._torch_impl.poses import corrected_poses, pose_priors
 from warpavatar._torch_impl.shading import view_colors
 from warpavatar._torch_impl.skinning import inverse_lbs, lbs, sample_grid
 from warpavatar._torch_impl.splat import rasterize_gaussians
@@ -15,4 +16,5 @@ from warpavatar._torch_impl.springs import damping_loss, isometry_loss, spring_s
 # the same names as warpavatar.ops (tests/test_splat.py checks that the two lists agree)
 __all__ = ["rasterize_gaussians", "knn_graph", "spring_step", "isometry_loss", "damping_loss", "sample_grid", "lbs",
            "inverse_lbs", "push_out_of_capsules",
-           "cloth_edge_terms", "view_colors", "apply_correction", "match_frame_code", "frame_bias"]
+           "cloth_edge_terms", "view_colors", "apply_correction", "match_frame_code", "frame_bias",
+           "corrected_poses", "pose_priors"]

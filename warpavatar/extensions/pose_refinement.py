@@ -33,9 +33,10 @@ stopped within a few frames) and the noise does not hide it, the narrower window
 frame keeps a narrow one, so exact poses stay nearly as given. With the
 window at 0 the target is the given motion and the corrections start at zero.
 
-The corrected skinning transforms are rebuilt down the skeleton
-(:func:`warpavatar.model.kinematics.corrected_transforms`): a joint keeps its pivot's offset from its parent's,
-expressed in the parent's frame, so the skeleton stays rigid. A pose equal to a training frame's (a novel view
+The corrected skinning transforms are rebuilt down the skeleton (:func:`warpavatar.ops.corrected_poses`): a joint
+keeps its pivot's offset from its parent's, expressed in the parent's frame, so the skeleton stays rigid. Every
+training frame's refined pose and the three priors are computed by Warp kernels each refining step, a few launches
+forward and backward (:func:`warpavatar.ops.pose_priors`; in torch they were some 550 small kernels a step). A pose equal to a training frame's (a novel view
 of a training instant, the training motion replayed or exported) gets that frame's refined pose; any other
 pose is used as given.
 
@@ -57,24 +58,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from warpavatar import ops
 from warpavatar._src.cuda_graph import adam_options
 from warpavatar.data import write_poses
 from warpavatar.extensions.base import Extension, LossTerm, option
 from warpavatar.geometry import match_pose
-from warpavatar.model.kinematics import (ancestor_jumps, corrected_transforms, posed_pivots, rigid_poses,
-                                         smoothing_corrections)
+from warpavatar.model.kinematics import posed_pivots, rigid_poses, smoothing_corrections
 from warpavatar.model.parts import AvatarPart
 
 __all__ = ["PoseRefinement", "PoseRefinementOptions", "PoseRefinementExtension", "VectorAdam",
            "refinement_last_step"]
-
-
-def _acceleration(values: torch.Tensor, gaps: torch.Tensor) -> torch.Tensor:
-    """Second derivatives in time [per video frame squared] of samples ``values`` [T,...] taken ``gaps`` [T-1]
-    video frames apart (unequal spacing allowed), at the T-2 inner samples."""
-    gaps = gaps.reshape(-1, *([1] * (values.dim() - 1)))
-    slopes = (values[1:] - values[:-1]) / gaps
-    return (slopes[1:] - slopes[:-1]) * (2.0 / (gaps[1:] + gaps[:-1]))
 
 
 class VectorAdam(torch.optim.Optimizer):
@@ -157,23 +150,28 @@ class PoseRefinement(AvatarPart):
         self.register_buffer("frame_ids", torch.as_tensor(frame_ids).long().clone())
         self.rotation = torch.nn.Parameter(torch.zeros(frame_count, joint_count, 3, device=self.frame_poses.device))
         self.translation = torch.nn.Parameter(torch.zeros(frame_count, 3, device=self.frame_poses.device))
-        self._jumps = ancestor_jumps(self.parents.tolist(), device=self.frame_poses.device)
+        self._parent_list = tuple(int(p) for p in torch.as_tensor(parents).tolist())  # host data for the kernels
         self._table: tuple[tuple[int, int, torch.device], torch.Tensor] | None = None
 
     @property
     def joint_count(self) -> int:
         return int(self.parents.shape[0])
 
-    def _apply(self, fn, recurse=True):  # keep the ancestor tables on the module's device
+    def _apply(self, fn, recurse=True):  # a move or cast makes the table again
         module = super()._apply(fn, recurse)
-        self._jumps = [fn(jump) for jump in self._jumps]
         self._table = None
         return module
 
     def refined(self, index: int | torch.Tensor | slice) -> torch.Tensor:
-        """The refined pose [J,4,4] of training frame ``index`` ([K,J,4,4] for a slice), differentiable."""
-        return corrected_transforms(self.frame_poses[index], self.heads, self._jumps, self.rotation[index],
-                                    self.translation[index])
+        """The refined pose [J,4,4] of training frame ``index`` ([K,J,4,4] for a slice), differentiable
+        (:func:`warpavatar.ops.corrected_poses`)."""
+        if isinstance(index, int):
+            return self.refined(slice(index, index + 1))[0]
+        if index == slice(None):  # every frame: the parameters themselves (a slice's backward costs two kernels)
+            return ops.corrected_poses(self.frame_poses, self.heads, self._parent_list, self.rotation,
+                                       self.translation)
+        return ops.corrected_poses(self.frame_poses[index], self.heads, self._parent_list, self.rotation[index],
+                                   self.translation[index])
 
     @torch.no_grad()
     def refined_poses(self) -> torch.Tensor:
@@ -413,21 +411,14 @@ class PoseRefinementExtension(Extension):
         if self.refined is None:
             return {}
         part = self.part
-        scale = 1.0 / self.fit.extent
-        prior = ((part.rotation - self.target_rotation).square().sum(-1).mean()
-                 + ((part.translation - self.target_translation) * scale).square().sum(-1).mean())
+        prior, depth, smooth = ops.pose_priors(
+            self.refined, part.heads, part.rotation, part.translation, target_rotation=self.target_rotation,
+            target_translation=self.target_translation, target_pivots=self.target_pivots, view_axes=self.view_axes,
+            gaps=self.gaps, scale=1.0 / self.fit.extent, depth_window=_DEPTH_WINDOW).unbind()
         terms = {"pose_prior": LossTerm(self.options.lambda_pose_prior, prior)}
-        pivots = posed_pivots(self.refined, part.heads) * scale
         if self.options.lambda_pose_depth > 0:  # what each frame's camera cannot see: moves along its axis
-            depth = ((pivots - self.target_pivots) * self.view_axes[:, None, :]).sum(-1)  # [T,J]
-            if depth.shape[0] >= _DEPTH_WINDOW:  # slow drift only: a frame-to-frame correction is free
-                depth = torch.nn.functional.avg_pool1d(depth.T[:, None, :], _DEPTH_WINDOW, stride=1,
-                                                       padding=_DEPTH_WINDOW // 2, count_include_pad=False)[:, 0].T
-            terms["pose_depth"] = LossTerm(self.options.lambda_pose_depth, depth.square().mean())
+            terms["pose_depth"] = LossTerm(self.options.lambda_pose_depth, depth)
         if self.refined.shape[0] >= 3:  # the refined motion's acceleration: noise is not smooth
-            rotations = self.refined[:, :, :3, :3]
-            smooth = (_acceleration(pivots, self.gaps).square().sum(-1).mean()
-                      + _acceleration(rotations, self.gaps).square().sum((-2, -1)).mean())
             terms["pose_smooth"] = LossTerm(self.options.lambda_pose_smooth, smooth)
         return terms
 

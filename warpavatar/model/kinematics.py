@@ -1,4 +1,4 @@
-"""Skeleton kinematics: rotations from and to axis-angle vectors, the skeleton's joints by depth, a pose corrected
+"""Skeleton kinematics: rotations from and to axis-angle vectors, ancestor tables, a pose corrected
 joint by joint (what pose refinement learns and what test-time refinement and the pose-noise tool apply), and the
 corrections that smooth a motion in time (the target pose refinement's prior pulls towards)."""
 
@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import torch
 
-from warpavatar.geometry import quat_from_matrix
+from warpavatar.geometry import quat_from_matrix, skeleton_levels
 
-__all__ = ["axis_angle_to_matrix", "axis_angle_from_matrix", "skeleton_levels", "ancestor_jumps", "posed_pivots",
+__all__ = ["axis_angle_to_matrix", "axis_angle_from_matrix", "ancestor_jumps", "posed_pivots",
            "rigid_poses", "corrected_transforms", "local_rotations", "smoothing_corrections"]
 
 
@@ -38,27 +38,6 @@ def axis_angle_from_matrix(rotations: torch.Tensor) -> torch.Tensor:
     # angle / sin(angle / 2), with its limit 2 / cos(angle / 2) for small angles
     factor = torch.where(small, 2.0 / w, 2.0 * torch.atan2(sine, w) / torch.where(small, 1.0, sine))
     return vector * factor
-
-
-def skeleton_levels(parents) -> list[list[int]]:
-    """The joints by depth below their root: roots first, every joint after its parent.
-
-    Raises:
-        ValueError: parents that do not form a forest.
-    """
-    parents = [int(p) for p in parents]
-    depth = [-1] * len(parents)
-    for start in range(len(parents)):
-        chain, joint = [], start
-        while joint >= 0 and depth[joint] < 0:
-            if joint in chain:
-                raise ValueError("the skeleton's parents form a cycle")
-            chain.append(joint)
-            joint = parents[joint]
-        base = -1 if joint < 0 else depth[joint]
-        for offset, member in enumerate(reversed(chain)):
-            depth[member] = base + 1 + offset
-    return [[j for j in range(len(parents)) if depth[j] == d] for d in range(max(depth) + 1)]
 
 
 def ancestor_jumps(parents, *, device=None) -> list[torch.Tensor]:
