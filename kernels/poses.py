@@ -22,10 +22,12 @@ Priors, over ``T`` frames and ``J`` joints, of the corrected poses ``P`` (pivots
   ``((x_{t+1} - x_t)/g_t - (x_t - x_{t-1})/g_{t-1}) * 2 / (g_{t-1} + g_t)``; zero with fewer than three frames.
 
 Launch plan: ``local_motions`` (a thread per frame and joint, no loop: its backward is Warp's adjoint, launched
-with ``adjoint=True``) writes every ``m``; ``compose_motions`` (a thread per frame, a loop over the joints in an order
-that puts every parent before its children) writes ``M`` and the corrected poses; ``compose_motions_adjoint`` walks
-that order backwards, each joint's adjoint complete before it passes its share to its parent's (a scratch array,
-zero on entry). ``prior_shares`` writes each (frame, joint)'s shares of the three priors (their sums are the
+with ``adjoint=True``) writes every ``m``; ``compose_motions`` (a thread per frame and joint, walking up the joint's
+ancestors: a thread per frame looping over the joints in order waited on 2J dependent loads, 0.44 ms a step on the
+H100) writes ``M`` and the corrected poses. Backward, joint ``k``'s correction enters ``M_j = M_parent(k) m_k
+(M_k^-1 M_j)`` for every ``j`` in its subtree, so ``adj m_k = M_parent(k)^T (sum over the subtree of E_j)
+M_k^-T`` with ``E_j = (adj M_j) M_j^T``: ``motion_adjoint_terms`` writes every ``E`` and
+``compose_motions_adjoint`` sums each subtree's (a thread per frame and joint, no joint waiting for another). ``prior_shares`` writes each (frame, joint)'s shares of the three priors (their sums are the
 priors); ``prior_shares_adjoint`` writes the gradients of the poses and corrections, a thread per (frame, joint)
 owning its outputs (no atomics), recomputing the few neighbouring frames' pivots it needs. Everything is float32.
 Launchers take ``warp.array`` objects and check their sizes; the torch bridge is :mod:`warpavatar._src.poses`.
@@ -92,39 +94,46 @@ def local_motions(poses: wp.array2d(dtype=wp.mat44), heads: wp.array(dtype=wp.ve
 
 
 @wp.kernel(enable_backward=False)
-def compose_motions(poses: wp.array2d(dtype=wp.mat44), order: wp.array(dtype=wp.int32),
-                    parents: wp.array(dtype=wp.int32), motions: wp.array2d(dtype=wp.mat44),
-                    world: wp.array2d(dtype=wp.mat44), corrected: wp.array2d(dtype=wp.mat44)):
-    """``M_j = M_parent m_j`` down the skeleton, and the corrected poses ``M_j B_j``, a thread per frame."""
-    t = wp.tid()
-    for k in range(order.shape[0]):
-        j = order[k]
-        parent = parents[j]
-        motion = motions[t, j]
-        if parent >= 0:
-            motion = world[t, parent] @ motion
-        world[t, j] = motion
-        corrected[t, j] = motion @ poses[t, j]
+def compose_motions(poses: wp.array2d(dtype=wp.mat44), parents: wp.array(dtype=wp.int32),
+                    motions: wp.array2d(dtype=wp.mat44), world: wp.array2d(dtype=wp.mat44),
+                    corrected: wp.array2d(dtype=wp.mat44)):
+    """``M_j``, the product of the corrections from joint ``j``'s root down to it, and the corrected pose
+    ``M_j B_j``: a thread per frame and joint, walking up its ancestors (no joint waits for another)."""
+    t, j = wp.tid()
+    motion = motions[t, j]
+    ancestor = parents[j]
+    while ancestor >= 0:
+        motion = motions[t, ancestor] @ motion
+        ancestor = parents[ancestor]
+    world[t, j] = motion
+    corrected[t, j] = motion @ poses[t, j]
 
 
 @wp.kernel(enable_backward=False)
-def compose_motions_adjoint(poses: wp.array2d(dtype=wp.mat44), order: wp.array(dtype=wp.int32),
-                            parents: wp.array(dtype=wp.int32), motions: wp.array2d(dtype=wp.mat44),
-                            world: wp.array2d(dtype=wp.mat44), adj_corrected: wp.array2d(dtype=wp.mat44),
-                            adj_world: wp.array2d(dtype=wp.mat44), adj_motions: wp.array2d(dtype=wp.mat44)):
-    """Backward of :data:`compose_motions`: children first, each joint's ``M`` adjoint (``adj_world``, zero on
-    entry, completed by its children) gives its own ``m``'s adjoint and adds its share to its parent's."""
-    t = wp.tid()
-    count = order.shape[0]
-    for k in range(count):
-        j = order[count - 1 - k]
-        parent = parents[j]
-        adj = adj_world[t, j] + adj_corrected[t, j] @ wp.transpose(poses[t, j])
-        if parent >= 0:
-            adj_motions[t, j] = wp.transpose(world[t, parent]) @ adj
-            adj_world[t, parent] = adj_world[t, parent] + adj @ wp.transpose(motions[t, j])
-        else:
-            adj_motions[t, j] = adj
+def motion_adjoint_terms(poses: wp.array2d(dtype=wp.mat44), world: wp.array2d(dtype=wp.mat44),
+                         adj_corrected: wp.array2d(dtype=wp.mat44), terms: wp.array2d(dtype=wp.mat44)):
+    """``E_j = (adj P_j) B_j^T M_j^T``: each corrected pose's adjoint carried to the world, for
+    :data:`compose_motions_adjoint`."""
+    t, j = wp.tid()
+    terms[t, j] = adj_corrected[t, j] @ wp.transpose(poses[t, j]) @ wp.transpose(world[t, j])
+
+
+@wp.kernel(enable_backward=False)
+def compose_motions_adjoint(parents: wp.array(dtype=wp.int32), subtree_offsets: wp.array(dtype=wp.int32),
+                            subtree_members: wp.array(dtype=wp.int32), world: wp.array2d(dtype=wp.mat44),
+                            terms: wp.array2d(dtype=wp.mat44), adj_motions: wp.array2d(dtype=wp.mat44)):
+    """Backward of :data:`compose_motions`: joint ``k``'s correction enters ``M_j = M_parent(k) m_k (M_k^-1 M_j)``
+    of every joint ``j`` of its subtree, so its adjoint is ``M_parent(k)^T (sum of E_j over the subtree)
+    M_k^-T`` (:data:`motion_adjoint_terms`), a thread per frame and joint."""
+    t, k = wp.tid()
+    total = wp.mat44()
+    for s in range(subtree_offsets[k], subtree_offsets[k + 1]):
+        total += terms[t, subtree_members[s]]
+    total = total @ wp.transpose(wp.inverse(world[t, k]))
+    parent = parents[k]
+    if parent >= 0:
+        total = wp.transpose(world[t, parent]) @ total
+    adj_motions[t, k] = total
 
 
 # ----------------------------------------------------------------------------------------------------- priors
@@ -293,31 +302,34 @@ def launch_local_motions_adjoint(poses, heads, root, rotation, translation, scra
               adj_outputs=[adj_motions], adjoint=True, device=poses.device)
 
 
-def launch_compose_motions(poses, order, parents, motions, world, corrected) -> None:
+def launch_compose_motions(poses, parents, motions, world, corrected) -> None:
     """Compose the joints' corrections down the skeleton: ``world`` [T,J] (each joint's ``M``) and ``corrected``
-    [T,J] (the corrected poses). ``order`` int32 [J]: every joint after its parent; ``parents`` int32 [J] (-1 for
-    a root)."""
+    [T,J] (the corrected poses). ``parents`` int32 [J]: each joint's parent, -1 for a root (a forest)."""
     frames, joints = poses.shape
-    _check_rows((joints,), order=order, parents=parents)
+    _check_rows((joints,), parents=parents)
     _check_rows((frames, joints), motions=motions, world=world, corrected=corrected)
     if frames * joints == 0:
         return
-    wp.launch(compose_motions, dim=frames, inputs=[poses, order, parents, motions], outputs=[world, corrected],
+    wp.launch(compose_motions, dim=(frames, joints), inputs=[poses, parents, motions], outputs=[world, corrected],
               device=poses.device)
 
 
-def launch_compose_motions_adjoint(poses, order, parents, motions, world, adj_corrected, adj_world,
+def launch_compose_motions_adjoint(poses, parents, subtree_offsets, subtree_members, world, adj_corrected, terms,
                                    adj_motions) -> None:
-    """Backward of :func:`launch_compose_motions`: writes ``adj_motions`` [T,J] from ``adj_corrected`` [T,J];
-    ``adj_world`` [T,J] must be zero on entry (scratch)."""
+    """Backward of :func:`launch_compose_motions`: writes ``adj_motions`` [T,J] from ``adj_corrected`` [T,J] in two
+    launches. ``subtree_offsets`` int32 [J+1] and ``subtree_members`` int32: joint ``k``'s subtree (itself and
+    every descendant) is ``subtree_members[subtree_offsets[k]:subtree_offsets[k+1]]``; ``terms`` [T,J] is scratch."""
     frames, joints = poses.shape
-    _check_rows((joints,), order=order, parents=parents)
-    _check_rows((frames, joints), motions=motions, world=world, adj_corrected=adj_corrected, adj_world=adj_world,
-                adj_motions=adj_motions)
+    _check_rows((joints,), parents=parents)
+    _check_rows((joints + 1,), subtree_offsets=subtree_offsets)
+    _check_rows((frames, joints), world=world, adj_corrected=adj_corrected, terms=terms, adj_motions=adj_motions)
     if frames * joints == 0:
         return
-    wp.launch(compose_motions_adjoint, dim=frames, inputs=[poses, order, parents, motions, world, adj_corrected],
-              outputs=[adj_world, adj_motions], device=poses.device)
+    wp.launch(motion_adjoint_terms, dim=(frames, joints), inputs=[poses, world, adj_corrected], outputs=[terms],
+              device=poses.device)
+    wp.launch(compose_motions_adjoint, dim=(frames, joints),
+              inputs=[parents, subtree_offsets, subtree_members, world, terms], outputs=[adj_motions],
+              device=poses.device)
 
 
 def _check_priors(poses, heads, rotation, translation, target_rotation, target_translation, target_pivots,

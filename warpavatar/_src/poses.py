@@ -21,12 +21,22 @@ __all__ = ["corrected_poses", "pose_priors"]
 
 @functools.lru_cache(maxsize=64)
 def _skeleton_tables(parents: tuple[int, ...], device: torch.device) -> tuple[torch.Tensor, ...]:
-    """(order int32 [J]: every joint after its parent, parents int32 [J], root float32 [J]) on ``device``, made
-    once per skeleton and device (no host work on later calls, so a captured step can replay them)."""
-    order = [joint for level in skeleton_levels(parents) for joint in level]  # raises on a cycle
-    return (torch.tensor(order, dtype=torch.int32, device=device),
-            torch.tensor(parents, dtype=torch.int32, device=device),
-            torch.tensor([float(p < 0) for p in parents], dtype=torch.float32, device=device))
+    """(parents int32 [J], root float32 [J], subtree_offsets int32 [J+1], subtree_members int32: each joint's
+    subtree, itself and its descendants) on ``device``, made once per skeleton and device (no host work on later
+    calls, so a captured step can replay them)."""
+    levels = skeleton_levels(parents)  # raises on a cycle
+    subtrees = [[joint] for joint in range(len(parents))]
+    for level in reversed(levels):  # children before their parents
+        for joint in level:
+            if parents[joint] >= 0:
+                subtrees[parents[joint]] += subtrees[joint]
+    offsets = [0]
+    for subtree in subtrees:
+        offsets.append(offsets[-1] + len(subtree))
+    return (torch.tensor(parents, dtype=torch.int32, device=device),
+            torch.tensor([float(p < 0) for p in parents], dtype=torch.float32, device=device),
+            torch.tensor(offsets, dtype=torch.int32, device=device),
+            torch.tensor([joint for subtree in subtrees for joint in subtree], dtype=torch.int32, device=device))
 
 
 def _parents_tuple(parents: Sequence[int], joints: int) -> tuple[int, ...]:
@@ -42,7 +52,7 @@ def _parents_tuple(parents: Sequence[int], joints: int) -> tuple[int, ...]:
 
 class _CorrectedPoses(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, bone_transforms, heads, rotation, translation, order, parents, root):
+    def forward(ctx, bone_transforms, heads, rotation, translation, parents, root, subtree_offsets, subtree_members):
         frames, joints = bone_transforms.shape[:2]
         motions = torch.empty_like(bone_transforms)
         world = torch.empty_like(bone_transforms)
@@ -53,35 +63,37 @@ class _CorrectedPoses(torch.autograd.Function):
                 kernels.launch_local_motions(poses, to_warp(heads, wp.vec3), to_warp(root),
                                              to_warp(rotation, wp.vec3), to_warp(translation, wp.vec3),
                                              to_warp(motions, wp.mat44))
-                kernels.launch_compose_motions(poses, to_warp(order), to_warp(parents), to_warp(motions, wp.mat44),
+                kernels.launch_compose_motions(poses, to_warp(parents), to_warp(motions, wp.mat44),
                                                to_warp(world, wp.mat44), to_warp(corrected, wp.mat44))
-        ctx.save_for_backward(bone_transforms, heads, rotation, translation, order, parents, root, motions, world)
+        ctx.save_for_backward(bone_transforms, heads, rotation, translation, parents, root, subtree_offsets,
+                              subtree_members, world)
         return corrected
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_corrected):
-        bone_transforms, heads, rotation, translation, order, parents, root, motions, world = ctx.saved_tensors
+        (bone_transforms, heads, rotation, translation, parents, root, subtree_offsets, subtree_members,
+         world) = ctx.saved_tensors
         grad_rotation = torch.zeros_like(rotation)
         grad_translation = torch.zeros_like(translation)
         if bone_transforms.shape[0] * bone_transforms.shape[1]:
             grad_corrected = grad_corrected.to(torch.float32).contiguous()
-            adj_world = torch.zeros_like(world)
-            adj_motions = torch.empty_like(motions)
+            terms = torch.empty_like(world)  # scratch: the composition's backward, then the adjoint's replay
+            adj_motions = torch.empty_like(world)
             with torch_stream_scope(bone_transforms.device):
                 poses = to_warp(bone_transforms, wp.mat44)
-                kernels.launch_compose_motions_adjoint(poses, to_warp(order), to_warp(parents),
-                                                       to_warp(motions, wp.mat44), to_warp(world, wp.mat44),
-                                                       to_warp(grad_corrected, wp.mat44),
-                                                       to_warp(adj_world, wp.mat44), to_warp(adj_motions, wp.mat44))
+                kernels.launch_compose_motions_adjoint(poses, to_warp(parents), to_warp(subtree_offsets),
+                                                       to_warp(subtree_members), to_warp(world, wp.mat44),
+                                                       to_warp(grad_corrected, wp.mat44), to_warp(terms, wp.mat44),
+                                                       to_warp(adj_motions, wp.mat44))
                 kernels.launch_local_motions_adjoint(poses, to_warp(heads, wp.vec3), to_warp(root),
                                                      to_warp(rotation, wp.vec3), to_warp(translation, wp.vec3),
-                                                     to_warp(torch.empty_like(motions), wp.mat44),
+                                                     to_warp(terms, wp.mat44),
                                                      to_warp(adj_motions, wp.mat44), to_warp(grad_rotation, wp.vec3),
                                                      to_warp(grad_translation, wp.vec3))
         needs = ctx.needs_input_grad
         return (None, None, grad_rotation if needs[2] else None, grad_translation if needs[3] else None, None, None,
-                None)
+                None, None)
 
 
 def corrected_poses(bone_transforms: torch.Tensor, heads: torch.Tensor, parents: Sequence[int],
@@ -89,7 +101,7 @@ def corrected_poses(bone_transforms: torch.Tensor, heads: torch.Tensor, parents:
     """Poses with every joint turned by ``exp(rotation[t, j])`` in its own posed frame, after its given rotation
     relative to its parent, and the roots moved by ``translation[t]``; each child keeps its pivot's offset from its
     parent's pivot in the parent's frame, so the skeleton stays rigid (``kernels/poses.py`` gives the formulas).
-    Three launches forward, three backward; no host read after a skeleton's first call.
+    Two launches forward, three backward; no host read after a skeleton's first call.
 
     Args:
         bone_transforms: float32 [T,J,4,4] the given rest-to-posed transforms of T frames.
@@ -113,9 +125,8 @@ def corrected_poses(bone_transforms: torch.Tensor, heads: torch.Tensor, parents:
     check_tensor("translation", translation, (frames, 3), dtype_kind="float32", device=device)
     if bone_transforms.requires_grad or heads.requires_grad:
         raise ValueError("corrected_poses differentiates the corrections only, not bone_transforms or heads")
-    order, parent_index, root = _skeleton_tables(_parents_tuple(parents, joints), device)
     return _CorrectedPoses.apply(bone_transforms.contiguous(), heads.contiguous(), rotation.contiguous(),
-                                 translation.contiguous(), order, parent_index, root)
+                                 translation.contiguous(), *_skeleton_tables(_parents_tuple(parents, joints), device))
 
 
 class _PosePriors(torch.autograd.Function):
