@@ -26,11 +26,13 @@ with ``adjoint=True``) writes every ``m``; ``compose_motions`` (a thread per fra
 ancestors: a thread per frame looping over the joints in order waited on 2J dependent loads, 0.44 ms a step on the
 H100) writes ``M`` and the corrected poses. Backward, joint ``k``'s correction enters ``M_j = M_parent(k) m_k
 (M_k^-1 M_j)`` for every ``j`` in its subtree, so ``adj m_k = M_parent(k)^T (sum over the subtree of E_j)
-M_k^-T`` with ``E_j = (adj M_j) M_j^T``: ``motion_adjoint_terms`` writes every ``E`` and
-``compose_motions_adjoint`` sums each subtree's (a thread per frame and joint, no joint waiting for another). ``prior_shares`` writes each (frame, joint)'s shares of the three priors (their sums are the
-priors); ``prior_shares_adjoint`` writes the gradients of the poses and corrections, a thread per (frame, joint)
-owning its outputs (no atomics), recomputing the few neighbouring frames' pivots it needs. Everything is float32.
-Launchers take ``warp.array`` objects and check their sizes; the torch bridge is :mod:`warpavatar._src.poses`.
+M_k^-T`` with ``E_j = (adj P_j) B_j^T M_j^T`` (``P_j``'s adjoint carried to ``M_j``, then to the world):
+``motion_adjoint_terms`` writes every ``E`` and ``compose_motions_adjoint`` sums each subtree's (a thread per frame
+and joint, no joint waiting for another). ``prior_shares`` writes each (frame, joint)'s shares of the three priors
+(their sums are the priors); ``prior_shares_adjoint`` writes the gradients of the poses and corrections, a thread
+per (frame, joint) owning its outputs (no atomics), recomputing the few neighbouring frames' pivots it needs.
+Everything is float32. Launchers take ``warp.array`` objects and check their sizes; the torch bridge is
+:mod:`warpavatar._src.poses`.
 """
 
 from __future__ import annotations
@@ -184,8 +186,8 @@ def difference_weights(gaps: wp.array(dtype=wp.float32), t: int):
 
 
 @wp.func
-def pivot_acceleration(poses: wp.array2d(dtype=wp.mat44), heads: wp.array(dtype=wp.vec3), gaps: wp.array(dtype=wp.float32),
-                       scale: float, t: int, j: int):
+def pivot_acceleration(poses: wp.array2d(dtype=wp.mat44), heads: wp.array(dtype=wp.vec3),
+                       gaps: wp.array(dtype=wp.float32), scale: float, t: int, j: int):
     w = difference_weights(gaps, t)
     return (w[0] * scaled_pivot(poses, heads, scale, t - 1, j) + w[1] * scaled_pivot(poses, heads, scale, t, j)
             + w[2] * scaled_pivot(poses, heads, scale, t + 1, j))

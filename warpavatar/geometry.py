@@ -14,7 +14,8 @@ import numpy as np
 import torch
 
 __all__ = ["SH_C0", "quat_multiply", "quat_conjugate", "quat_rotate", "quat_to_matrix", "quat_from_matrix",
-           "quat_from_vector", "sh_basis", "camera_centre", "match_pose", "skeleton_levels", "fourier_features", "Linear", "linear_rows", "mlp"]
+           "quat_from_vector", "sh_basis", "camera_centre", "match_pose", "skeleton_levels", "fourier_features",
+           "Linear", "linear_rows", "mlp"]
 
 SH_C0 = 0.28209479177387814
 """Degree-0 real spherical-harmonics constant: colour = SH_C0 * dc + 0.5."""
@@ -158,7 +159,6 @@ def match_pose(frame_poses: torch.Tensor, bone_transforms: torch.Tensor, *, tole
     return best, (closest <= tolerance).to(frame_poses.dtype)
 
 
-# ------------------------------------------------------------------------------------------------ networks
 def skeleton_levels(parents) -> list[list[int]]:
     """The joints by depth below their root: roots first, every joint after its parent.
 
@@ -180,6 +180,7 @@ def skeleton_levels(parents) -> list[list[int]]:
     return [[j for j in range(len(parents)) if depth[j] == d] for d in range(max(depth) + 1)]
 
 
+# ------------------------------------------------------------------------------------------------ networks
 def fourier_features(values: torch.Tensor, frequencies: int) -> torch.Tensor:
     """NeRF positional encoding [..., C * (1 + 2 * frequencies)] of values [..., C] (about unit range): the
     values, then sin and cos of ``pi 2^k values`` for k = 0 .. frequencies - 1."""

@@ -1,5 +1,5 @@
 """Torch bridge of the refined-pose kernels (``kernels/poses.py``): every frame's corrected poses down the skeleton,
-and the priors of the refined motion, each a few launches forward and backward (their torch forms took some 550
+and the priors of the refined motion, each a few launches forward and backward (their torch forms took some 450
 small kernels a step of pose refinement).
 """
 

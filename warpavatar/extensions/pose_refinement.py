@@ -35,10 +35,10 @@ window at 0 the target is the given motion and the corrections start at zero.
 
 The corrected skinning transforms are rebuilt down the skeleton (:func:`warpavatar.ops.corrected_poses`): a joint
 keeps its pivot's offset from its parent's, expressed in the parent's frame, so the skeleton stays rigid. Every
-training frame's refined pose and the three priors are computed by Warp kernels each refining step, a few launches
-forward and backward (:func:`warpavatar.ops.pose_priors`; in torch they were some 550 small kernels a step). A pose equal to a training frame's (a novel view
-of a training instant, the training motion replayed or exported) gets that frame's refined pose; any other
-pose is used as given.
+training frame's refined pose and the three priors are computed by Warp kernels each refining step, three launches
+forward and four backward (:func:`warpavatar.ops.pose_priors`; in torch they were some 450 small kernels a step). A
+pose equal to a training frame's (a novel view of a training instant, the training motion replayed or exported)
+gets that frame's refined pose; any other pose is used as given.
 
 Adam moves each frame's correction by about ten times its learning rate at every visit of that frame, whether
 the image's gradient is signal or noise, so the poses would jitter by a fraction of a pixel until the end and
