@@ -166,6 +166,26 @@ def test_the_part_refines_training_instants_and_leaves_other_poses(tmp_path):
     assert np.allclose(saved["bone_transforms"], part.refined_poses().numpy(), atol=1e-6)
 
 
+def test_the_refined_table_follows_the_corrections_even_where_their_versions_do_not():
+    """The table of refined poses is made again after an in-place change of the corrections, and after
+    ``forget_table`` where the change left no trace in the tensors' versions (what a replayed CUDA graph does; here
+    a write through ``.data``)."""
+    generator = torch.Generator().manual_seed(9)
+    heads, parents = _skeleton(generator, dtype=torch.float32)
+    poses = torch.stack([_random_pose(heads.double(), parents, generator).float() for _ in range(3)])
+    part = PoseRefinement(poses, heads, parents, torch.arange(3))
+    first = part.refined_poses()
+    with torch.no_grad():
+        part.rotation.add_(0.1)  # seen: a new version
+    second = part.refined_poses()
+    assert (second - first).abs().max() > 1e-3
+    part.rotation.data.add_(0.1)  # unseen
+    assert part.refined_poses() is second
+    part.forget_table()
+    assert torch.allclose(part.refined_poses(), part.refined(slice(None)).detach(), atol=1e-6)
+    assert (part.refined_poses() - second).abs().max() > 1e-3
+
+
 def test_refined_poses_of_slightly_skewed_given_poses_are_written_rigid(tmp_path):
     """Given poses a little off rigid (a refined pose refined again: |R^T R - I| about 1e-3) drift further through
     the corrections; the written poses.npz is rigid again (the reader accepts it), with every pivot where the

@@ -35,6 +35,7 @@ from error_breakdown import height_band_mask, masked_psnr  # noqa: E402
 
 from warpavatar import data  # noqa: E402
 from warpavatar.evaluate import write_json_atomic  # noqa: E402
+from warpavatar.geometry import match_pose  # noqa: E402
 from warpavatar.model import Avatar  # noqa: E402
 
 __all__ = ["oracle_rows"]
@@ -83,7 +84,6 @@ def oracle_rows(avatar: Avatar, subject: data.Subject, frame_ids: list[int], *, 
     device = avatar.gaussians.means.device
     background = torch.as_tensor(subject.train.background, dtype=torch.float32, device=device)
     grid = avatar.field.grid_weights().detach()
-    fitted_poses = garment.frame_poses.reshape(garment.frame_poses.shape[0], -1)
     spacing = garment.hyper["voxel_size"]
 
     def render(video, index, positions):
@@ -110,7 +110,7 @@ def oracle_rows(avatar: Avatar, subject: data.Subject, frame_ids: list[int], *, 
     rows = []
     try:
         for frame_id in frame_ids:
-            start = garment.frame_positions[_training_instant(subject, fitted_poses, frame_id)].detach()
+            start = garment.frame_positions[_training_instant(subject, garment.frame_poses, frame_id)].detach()
             views = _views_of(subject, frame_id)
             for mode, positions in (("rollout", start), ("training view", fitted(start, views[:1])),
                                     ("every view", fitted(start, views))):
@@ -128,14 +128,14 @@ def oracle_rows(avatar: Avatar, subject: data.Subject, frame_ids: list[int], *, 
 
 
 def _training_instant(subject: data.Subject, fitted_poses: torch.Tensor, frame_id: int) -> int:
-    """The row of the garment's training rollout (poses ``fitted_poses`` [T, J*16]) at training frame ``frame_id``."""
+    """The row of the garment's training rollout (poses ``fitted_poses`` [T,J,4,4]) at training frame ``frame_id``."""
     ids = [int(i) for i in subject.train.frame_ids]
     if frame_id in ids and fitted_poses.shape[0]:
         pose = torch.as_tensor(subject.train.bone_transforms[ids.index(frame_id)], dtype=torch.float32,
-                               device=fitted_poses.device).reshape(1, -1)
-        distance = (fitted_poses - pose).abs().max(dim=1).values
-        if float(distance.min()) <= 1e-5:
-            return int(distance.argmin())
+                               device=fitted_poses.device)
+        row, matched = match_pose(fitted_poses, pose, tolerance=1e-5)
+        if float(matched):
+            return int(row)
     raise ValueError(f"frame id {frame_id} is not one of the fit's training frames in {subject.train.root}")
 
 

@@ -114,6 +114,15 @@ def _protocol_folders(train, novel_views, *, train_camera: str, holdout_every: i
     return folders, len(held)
 
 
+def _write_subject(folders: dict, output: Path, *, overwrite: bool) -> None:
+    """Write the video folders ``{relative path: VideoFolder}`` under ``output`` (staged, then renamed)."""
+    from warpavatar import data
+
+    with data.staged_folder(output, overwrite=overwrite) as staging:
+        for relative, video in folders.items():
+            data.write_video_folder(video, staging / relative)
+
+
 def build_oracle_subject(calibrated, output: Path, *, train_camera: str, holdout_every: int,
                          overwrite: bool = False) -> dict:
     """Write the oracle of the protocol (module docstring, step 5) to ``output``: the calibrated subject's training
@@ -123,13 +132,9 @@ def build_oracle_subject(calibrated, output: Path, *, train_camera: str, holdout
     Returns:
         The folder names and the number of withheld frames.
     """
-    from warpavatar import data
-
     folders, held = _protocol_folders(calibrated.train, calibrated.novel_view, train_camera=train_camera,
                                       holdout_every=holdout_every)
-    with data.staged_folder(output, overwrite=overwrite) as staging:
-        for relative, video in folders.items():
-            data.write_video_folder(video, staging / relative)
+    _write_subject(folders, output, overwrite=overwrite)
     return {"folders": sorted(folders), "held_out_frames": held}
 
 
@@ -146,8 +151,6 @@ def build_evaluation_subject(mono_train, calibrated, output: Path, *, train_came
         ``{"scale", "rotation", "translation", "alignment_rms": [world units of the calibration]}`` and the
         folder names.
     """
-    from warpavatar import data
-
     cal_train = calibrated.train
     shared = sorted(set(mono_train.frame_ids.tolist()) & set(cal_train.frame_ids.tolist()))
     if len(shared) < 3:
@@ -173,9 +176,7 @@ def build_evaluation_subject(mono_train, calibrated, output: Path, *, train_came
 
     folders, held = _protocol_folders(mono_train, calibrated.novel_view, train_camera=train_camera,
                                       holdout_every=holdout_every, carry=into_monocular_world)
-    with data.staged_folder(output, overwrite=overwrite) as staging:
-        for relative, video in folders.items():
-            data.write_video_folder(video, staging / relative)
+    _write_subject(folders, output, overwrite=overwrite)
     return {"scale": scale, "rotation": rotation.tolist(), "translation": translation.tolist(),
             "alignment_rms": alignment_rms, "folders": sorted(folders), "held_out_frames": held}
 

@@ -159,7 +159,7 @@ class PoseRefinement(AvatarPart):
 
     def _apply(self, fn, recurse=True):  # a move or cast makes the table again
         module = super()._apply(fn, recurse)
-        self._table = None
+        self.forget_table()
         return module
 
     def refined(self, index: int | torch.Tensor | slice) -> torch.Tensor:
@@ -175,11 +175,17 @@ class PoseRefinement(AvatarPart):
 
     @torch.no_grad()
     def refined_poses(self) -> torch.Tensor:
-        """Every training frame's refined pose [T,J,4,4], computed once per change of the corrections."""
+        """Every training frame's refined pose [T,J,4,4], computed once per change of the corrections (an in-place
+        change made on the host; a replayed CUDA graph changes them unseen: :meth:`forget_table`)."""
         key = (self.rotation._version, self.translation._version, self.rotation.device)
         if self._table is None or self._table[0] != key:
             self._table = (key, self.refined(slice(None)))
         return self._table[1]
+
+    def forget_table(self) -> None:
+        """Make :meth:`refined_poses` compute the table again: the corrections may change where their versions do
+        not show it (a step replayed from a CUDA graph)."""
+        self._table = None
 
     def skinning_transforms(self, bones: torch.Tensor, frame) -> torch.Tensor:
         """The skeleton's transforms refined: the frame's explicit input is a training frame's index, or the
@@ -381,6 +387,7 @@ class PoseRefinementExtension(Extension):
         training = self._training(step)
         self.part.requires_grad_(training)
         if training:  # decays exponentially to lr_pose_final by the last step: large moves first, then settle
+            self.part.forget_table()  # this step changes the corrections, replayed or not
             span = max(1, self._last_step() - self.options.refine_poses_from)
             decay = self.options.lr_pose_final ** (min(step.step - self.options.refine_poses_from, span) / span)
             for group, base in zip(self.optimizer.param_groups, self.base_lr):
