@@ -122,6 +122,29 @@ def test_player_grows_a_capacity_that_overflowed(demo_video):
             Player(avatar, demo_video.cameras[0], cuda_graph="on")
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="the status copies to pinned memory need CUDA")
+def test_capacity_poll_reads_the_status_without_waiting_and_at_most_lag_late():
+    from warpavatar.model.capacity import IntersectionCapacity
+
+    # Made before the device is kept busy below: a copy from pageable host memory would wait for it.
+    rows = [[9_500, 0], [15_000, 0], [9_000, 0], [10, 1]]  # [pair count, input flags]
+    status = dict(zip((pairs for pairs, _ in rows), torch.tensor(rows, dtype=torch.int32, device="cuda:0")))
+    capacity = IntersectionCapacity("cuda:0", factor=1.5)
+    capacity.value = 10_000  # (the smallest capacity is 1024)
+    capacity.record(status[9_500])
+    assert capacity.poll(max_lag=3) is None and capacity.value == 10_000  # its copy queued, nothing read yet
+    torch.cuda.synchronize()
+    capacity.record(status[15_000])  # a frame past the capacity
+    torch.cuda._sleep(50_000_000)  # the device busy for a while: the copy queued next stays in flight
+    assert capacity.poll(max_lag=3) is None and capacity.value == 14_250  # 9500 read: near, grown
+    capacity.record(status[9_000])
+    assert capacity.poll(max_lag=3) is None and capacity.value == 14_250  # 15000 in flight: no wait
+    assert capacity.poll(max_lag=3) == 15_000 and capacity.value == 22_500  # the third poll waits: an overflow
+    capacity.record(status[10])  # flagged: non-finite input
+    with pytest.raises(ValueError):
+        capacity.poll(max_lag=1)  # reads at once
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
 def test_player_graph_replays_match_eager_frames(demo_video):
     from warpavatar.model.playback import Player

@@ -5,7 +5,10 @@ reports, on the device, how many (Gaussian, tile) pairs it needed and whether an
 (``info["status"]``). A training step and a playback frame keep that status on the device
 (:meth:`IntersectionCapacity.record`) and read it now and then (:meth:`IntersectionCapacity.check`): one host
 read, which raises on non-finite input and grows the capacity when a frame needed more pairs than it had (that
-frame dropped pairs) or came near it.
+frame dropped pairs) or came near it. Playback reads it after every frame without waiting
+(:meth:`IntersectionCapacity.poll`): a copy of the status travels to pinned host memory behind the frame's work
+and is read once it has arrived, so a frame's pair count is known a frame or two later at no cost to the
+device, and a capacity close to what frames need stays safe.
 """
 
 from __future__ import annotations
@@ -37,8 +40,13 @@ class IntersectionCapacity:
             raise ValueError(f"capacity factor must be >= 1, got {factor}")
         self.factor, self.minimum, self.headroom = float(factor), int(minimum), float(headroom)
         self.value: int | None = None
-        self._peak = torch.zeros(1, dtype=torch.int32, device=device)
-        self._flags = torch.zeros(1, dtype=torch.int32, device=device)
+        # [most pairs any recorded rasterization needed, OR of their input flags]
+        self._status = torch.zeros(2, dtype=torch.int32, device=device)
+        self._peak, self._flags = self._status[:1], self._status[1:]
+        # poll(): the host copy of the status and the event after its copy (None: no copy in flight)
+        self._mirror: torch.Tensor | None = None
+        self._arrival: torch.cuda.Event | None = None
+        self._polls_waiting = 0
 
     def record(self, status: torch.Tensor) -> None:
         """Keep a rasterization's ``info["status"]`` ([pair count, input flags], int32 on the device), in place and
@@ -57,7 +65,45 @@ class IntersectionCapacity:
         Raises:
             ValueError: a recorded rasterization had non-finite inputs.
         """
-        peak = ops.rasterizer_status({"status": torch.cat([self._peak, self._flags])})  # raises on bad inputs
+        peak = ops.rasterizer_status({"status": self._status})  # raises on bad inputs
+        return self._grow(peak)
+
+    def poll(self, *, max_lag: int = 3) -> int | None:
+        """What :meth:`check` does, without waiting for the device while it can: reads the host copy of the
+        recorded status that an earlier poll queued if it has arrived, then queues the next copy behind the work
+        queued so far (on CUDA into pinned host memory; on a CPU the status is read at once).
+
+        Args:
+            max_lag: a copy still in flight at the ``max_lag``-th poll since it was queued is waited for, so what
+                was recorded before a poll is read by the ``max_lag - 1``-th poll after it at the latest (1: read
+                at once, :meth:`check`).
+
+        Returns:
+            As :meth:`check`, for the status the copy read (None too when none arrived).
+
+        Raises:
+            ValueError: a recorded rasterization had non-finite inputs.
+        """
+        if self._status.device.type != "cuda" or max_lag <= 1:
+            return self.check()
+        peak = None
+        if self._arrival is not None:
+            self._polls_waiting += 1
+            if self._polls_waiting >= max_lag - 1 or self._arrival.query():
+                self._arrival.synchronize()  # (a completed event returns at once)
+                peak = ops.rasterizer_status({"status": self._mirror})  # a host tensor: no device read
+                self._arrival = None
+        if self._arrival is None:
+            if self._mirror is None:
+                self._mirror = torch.empty(2, dtype=torch.int32, pin_memory=True)
+            self._mirror.copy_(self._status, non_blocking=True)
+            self._arrival = torch.cuda.Event()
+            self._arrival.record()
+            self._polls_waiting = 0
+        return None if peak is None else self._grow(peak)
+
+    def _grow(self, peak: int) -> int | None:
+        """Grow the capacity for a ``peak`` of pairs; the peak when it passed the capacity, else None."""
         overflow = peak if self.value is not None and peak > self.value else None
         if self.value is None or peak > self.headroom * self.value:
             self.value = max(self.minimum, math.ceil(self.factor * peak))

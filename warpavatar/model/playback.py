@@ -6,9 +6,12 @@ the parts' explicit inputs), which :meth:`Player.render` refills before drawing,
 intersection capacity (:func:`warpavatar.ops.rasterize_gaussians`), so a frame reads nothing from the device
 and, on CUDA, is captured once as a graph (:mod:`warpavatar._src.cuda_graph`) and replayed per frame. The first
 frame is drawn with exact buffers to learn how many (Gaussian, tile) pairs the avatar makes, and the capacity
-is set to ``capacity_factor`` times that; every ``check_every`` frames the player reads the most pairs a frame
-needed so far (one synchronization, :class:`~warpavatar.model.capacity.IntersectionCapacity`)
-and, when a frame needed more than the capacity, grows it, captures again and redraws the frame.
+is set to ``capacity_factor`` times that. After every frame the player reads the most pairs a frame needed
+so far from a copy that travels to the host behind the frames' work
+(:meth:`~warpavatar.model.capacity.IntersectionCapacity.poll`: no wait, unless ``check_every - 1`` frames came
+after it) and, when a frame came near the capacity, grows it and captures again; a frame that needed more than the
+capacity dropped the pairs of its farthest Gaussians, and the frame being drawn when that is read is drawn
+again.
 
 What depends only on the frozen avatar is computed once, before any capture, in buffers a captured frame reads:
 the skinning grid, the activated Gaussians and their skinning weights at the stored centres
@@ -65,8 +68,12 @@ class Player:
         sh_degree: SH degree to render with (default: all the avatar has).
         cuda_graph: ``auto`` (a graph on CUDA), ``on`` (a graph, CUDA required) or ``off`` (eager). Avatars with
             parts that keep state over a sequence (they need the frame's index, a host number) always run eagerly.
-        capacity_factor: intersection capacity as a multiple of the largest pair count seen (>= 1).
-        check_every: read the pair count every this many frames (the only host read of playback).
+        capacity_factor: intersection capacity as a multiple of the largest pair count seen (>= 1). The capacity
+            grows once a frame needs over 90 % of it, which the player reads within ``check_every - 1`` frames,
+            so frames drop pairs only when their count jumps by over a quarter that fast (a cut to a closer view).
+        check_every: a frame's pair count is read, at the latest, once ``check_every - 1`` more frames are drawn
+            (its copy to the host is then waited for; otherwise it is read when it arrives, without a wait). 1
+            reads it right after its frame, waiting for the device every frame.
         matmul_precision: ``tf32`` (the MLPs' float32 GEMMs on TF32 tensor cores, on CUDA) or ``fp32``
             (:mod:`warpavatar._src.precision`); default: the avatar's (``warpavatar-fit --matmul-precision``,
             kept in the avatar file). No effect on a CPU.
@@ -81,7 +88,7 @@ class Player:
     """
 
     def __init__(self, avatar, camera, *, background: torch.Tensor | None = None, sh_degree: int | None = None,
-                 cuda_graph: str = "auto", capacity_factor: float = 2.0, check_every: int = 30,
+                 cuda_graph: str = "auto", capacity_factor: float = 1.25, check_every: int = 3,
                  matmul_precision: str | None = None, mlp_dtype: str | None = None):
         if check_every < 1:
             raise ValueError(f"check_every must be >= 1, got {check_every}")
@@ -110,7 +117,6 @@ class Player:
         self._frame_index: int | None = None
         self._graph = None
         self._graph_outputs = None
-        self._frames_since_check = 0
         self._grid: torch.Tensor | None = None
         self._field_tensors: list[torch.Tensor] = []  # held: their identities are part of the field's key
         self._field_key: tuple = ()
@@ -216,13 +222,10 @@ class Player:
             image, alpha, depth = self._graph_outputs
         else:
             image, alpha, depth = self._draw()
-        self._frames_since_check += 1
-        if self._frames_since_check >= self.check_every:
-            self._frames_since_check = 0
-            before = self.capacity
-            overflow = self._capacity.check()
-            if self.capacity != before:
-                self._graph = self._graph_outputs = None  # its buffers have the old size
-            if overflow is not None:  # a frame since the last check dropped pairs: draw this one again
-                return self.render(bone_transforms, camera=camera, inputs=inputs, frame_index=frame_index)
+        before = self.capacity
+        overflow = self._capacity.poll(max_lag=self.check_every)  # no wait unless check_every frames went unread
+        if self.capacity != before:
+            self._graph = self._graph_outputs = None  # its buffers have the old size
+        if overflow is not None:  # a frame since the last read dropped pairs: draw this one again
+            return self.render(bone_transforms, camera=camera, inputs=inputs, frame_index=frame_index)
         return image, alpha, depth
