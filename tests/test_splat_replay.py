@@ -40,19 +40,23 @@ def _exact(scene, sizes, cotangents, **options):
         splat_bridge._RECENT_PAIRS.update(saved)
 
 
-def _assert_same_as_exact(scene, sizes, cotangents, replayed):
-    """Outputs bit-equal to the exact pass's; gradients within what two exact passes differ by (CUDA's atomic
-    additions sum in another order every pass; on CPU they are equal), or 1e-5 of their largest value."""
-    first = _exact(scene, sizes, cotangents, densify=True)
-    second = _exact(scene, sizes, cotangents, densify=True)
+def _assert_same_as_exact(scene, sizes, cotangents, replayed, *, like_pairs: int = 3):
+    """Outputs bit-equal to the exact pass's; gradients within four times what exact passes differ by among
+    themselves (CUDA's atomic additions sum in another order every pass; on CPU they are equal), or 1e-5 of their
+    largest value. The spread is the largest over ``like_pairs`` pairs of exact passes: a replayed pass differs
+    from an exact one as one exact pass does from another, and one pair's spread alone is sometimes small."""
+    exact = [_exact(scene, sizes, cotangents, densify=True) for _ in range(like_pairs + 1)]
+    first = exact[0]
     for a, b in zip(first[0], replayed[0]):
         assert torch.equal(a, b)
-    pairs = [(name, first[1][name], second[1][name], replayed[1][name]) for name in first[1]]
-    pairs.append(("densify", first[2], second[2], replayed[2]))
-    for name, a, b, c in pairs:
+
+    def gradients(result):
+        return {**result[1], "densify": result[2]}
+
+    for name, a in gradients(first).items():
         scale = a.abs().max()
-        spread = (b - a).abs().max()
-        assert scale > 0 and (c - a).abs().max() <= max(4 * spread, 1e-5 * scale), name
+        spread = max((gradients(other)[name] - a).abs().max() for other in exact[1:])
+        assert scale > 0 and (gradients(replayed)[name] - a).abs().max() <= max(4 * spread, 1e-5 * scale), name
 
 
 def _calls_until_replayed(scene, sizes, cotangents, cache):
