@@ -69,8 +69,9 @@ class Player:
         cuda_graph: ``auto`` (a graph on CUDA), ``on`` (a graph, CUDA required) or ``off`` (eager). Avatars with
             parts that keep state over a sequence (they need the frame's index, a host number) always run eagerly.
         capacity_factor: intersection capacity as a multiple of the largest pair count seen (>= 1). The capacity
-            grows once a frame needs over 90 % of it, which the player reads within ``check_every - 1`` frames,
-            so frames drop pairs only when their count jumps by over a quarter that fast (a cut to a closer view).
+            grows once a frame needs over 90 % of it, which the player reads within ``check_every - 1`` frames;
+            with the default 1.25, frames drop pairs only when their count grows by over a quarter within those
+            frames (a cut to a closer view).
         check_every: a frame's pair count is read, at the latest, once ``check_every - 1`` more frames are drawn
             (its copy to the host is then waited for; otherwise it is read when it arrives, without a wait). 1
             reads it right after its frame, waiting for the device every frame.
