@@ -20,8 +20,7 @@ import numpy as np
 import torch
 import tqdm
 
-from warpavatar import metrics
-from warpavatar.model.kinematics import ancestor_jumps, corrected_transforms
+from warpavatar import metrics, ops
 
 __all__ = ["evaluate_avatar", "evaluate_held_out", "refine_frame_pose", "write_json_atomic"]
 
@@ -43,7 +42,7 @@ def refine_frame_pose(avatar, camera, bone_transforms: torch.Tensor, image: torc
 
     Starts from the pose the avatar uses for the frame (a training instant's refined pose, else the given one)
     and learns a correction of every joint's rotation and of the root's position
-    (:func:`~warpavatar.model.kinematics.corrected_transforms`) by Adam on a fit's image loss
+    (:func:`warpavatar.ops.corrected_poses`, the kernels pose refinement trains with) by Adam on a fit's image loss
     (:func:`~warpavatar.metrics.image_loss_terms`; the weights default to the fit's defaults).
 
     Args:
@@ -60,12 +59,12 @@ def refine_frame_pose(avatar, camera, bone_transforms: torch.Tensor, image: torc
     device = bone_transforms.device
     skeleton = avatar.skeleton
     heads = torch.as_tensor(skeleton.heads, dtype=torch.float32, device=device)
-    jumps = ancestor_jumps(skeleton.parents, device=device)
+    parents = [int(p) for p in skeleton.parents]
     with torch.no_grad():
-        start = avatar.pose_bones(bone_transforms)[: avatar.joint_count].clone()
+        start = avatar.pose_bones(bone_transforms)[None, : avatar.joint_count].contiguous()
         grid = avatar.field.grid_weights() if grid is None else grid
-    rotation = torch.zeros(avatar.joint_count, 3, device=device, requires_grad=True)
-    translation = torch.zeros(3, device=device, requires_grad=True)
+    rotation = torch.zeros(1, avatar.joint_count, 3, device=device, requires_grad=True)
+    translation = torch.zeros(1, 3, device=device, requires_grad=True)
     optimizer = torch.optim.Adam([{"params": [rotation], "lr": lr_rotation},
                                   {"params": [translation], "lr": lr_translation}])
     frozen = [parameter for parameter in avatar.parameters() if parameter.requires_grad]
@@ -74,7 +73,7 @@ def refine_frame_pose(avatar, camera, bone_transforms: torch.Tensor, image: torc
     try:
         with torch.enable_grad():
             for _ in range(steps):
-                pose = corrected_transforms(start, heads, jumps, rotation, translation)
+                pose = ops.corrected_poses(start, heads, parents, rotation, translation)[0]
                 render, alpha, _ = avatar.render(camera, bone_transforms, background=background, grid=grid,
                                                  skeleton_pose=pose)
                 terms = metrics.image_loss_terms(render, image, lambda_ssim=lambda_ssim, alpha=alpha, mask=mask,
@@ -87,7 +86,7 @@ def refine_frame_pose(avatar, camera, bone_transforms: torch.Tensor, image: torc
         for parameter in frozen:
             parameter.requires_grad_(True)
     with torch.no_grad():
-        return corrected_transforms(start, heads, jumps, rotation, translation)
+        return ops.corrected_poses(start, heads, parents, rotation, translation)[0]
 
 
 @torch.no_grad()

@@ -1,6 +1,7 @@
 """Skeleton kinematics: rotations from and to axis-angle vectors, ancestor tables, a pose corrected
-joint by joint (what pose refinement learns and what test-time refinement and the pose-noise tool apply), and the
-corrections that smooth a motion in time (the target pose refinement's prior pulls towards)."""
+joint by joint in torch, any dtype (the pose-noise tool's float64 noise; pose refinement and test-time refinement
+use the float32 kernels of :func:`warpavatar.ops.corrected_poses`, the same maths), and the corrections that smooth
+a motion in time (the target pose refinement's prior pulls towards)."""
 
 from __future__ import annotations
 
