@@ -89,3 +89,23 @@ def test_the_subjects_withhold_the_same_instants_and_the_oracle_keeps_the_calibr
         expected = source.bone_transforms[kept] if folder == "oracle" else demo.train.bone_transforms[train_rows]
         assert np.allclose(view.bone_transforms, expected, atol=1e-6)
         assert np.allclose(heldout.images, demo.train.images[[ids.index(i) for i in held]], atol=1 / 255)
+
+
+def test_the_protocol_fits_the_modes_asked_and_names_the_oracle_fits_apart(tmp_path, capsys):
+    """Subject fits take their mode's name, the oracle's ``off`` fit keeps the name "oracle" (earlier reports use
+    it) and its other modes get their own; bad, repeated or empty mode lists are refused on one line."""
+    tool = _tool()
+    subject, oracle = tmp_path / "subject", tmp_path / "oracle"
+    runs = tool.protocol_runs(" off, on ", "off,on", subject=subject, oracle=oracle)
+    assert runs == [("off", subject, "off"), ("on", subject, "on"), ("oracle", oracle, "off"),
+                    ("oracle_on", oracle, "on")]
+    assert tool.protocol_runs("", "auto", subject=subject, oracle=oracle) == [("oracle_auto", oracle, "auto")]
+    for modes, oracle_modes, message in (("off,maybe", "", "'maybe' is not one of off, on, auto"),
+                                         ("on,on", "", "listed twice"), ("", "", "nothing to fit")):
+        with pytest.raises(ValueError, match=message):
+            tool.protocol_runs(modes, oracle_modes, subject=subject, oracle=oracle)
+    # the command line refuses them before anything is prepared or fitted
+    with pytest.raises(SystemExit) as exit_info:
+        tool.main([str(tmp_path / "demo"), "-o", str(tmp_path / "out"), "--oracle", "--oracle-modes", "of"])
+    assert exit_info.value.code == 2
+    assert "refine mode 'of' is not one of off, on, auto" in capsys.readouterr().err

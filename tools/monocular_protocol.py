@@ -1,7 +1,8 @@
 """Real footage measured honestly: fit one camera of a calibrated multi-view video, evaluate on the others.
 
     python tools/monocular_protocol.py DEMO -o OUT [--train-camera cam01] [--preset default] [--device cuda]
-        [--holdout-every 5] [--eval-refine-steps 0] [--eval-scale 1] [fit flags...]
+        [--holdout-every 5] [--eval-refine-steps 0] [--eval-scale 1] [--refine-modes off,on]
+        [--oracle [--oracle-modes off]] [fit flags...]
 
 DEMO holds ``videos/*.mp4`` (synchronized) and ``calibration/`` (one ``.toml`` or ``.qca.txt``), as
 ``../shared/raw/pose2sim_demo`` does. What is done, and why it does not cheat:
@@ -22,7 +23,7 @@ DEMO holds ``videos/*.mp4`` (synchronized) and ``calibration/`` (one ``.toml`` o
    (masked PSNR/SSIM; with ``--eval-refine-steps N`` also after N steps of test-time pose refinement).
 5. With ``--oracle``, a bound on what better poses could buy: the same camera's same instants fitted in the
    calibrated world with the calibrated skeleton (triangulated from every camera, so its depth is seen;
-   ``OUT/oracle``, refinement off), evaluated on the same held-out instants and views in that world. Refinement
+   ``OUT/oracle``, refinement off unless ``--oracle-modes`` says more), evaluated on the same held-out instants and views in that world. Refinement
    from one camera cannot be expected to beat it on the other views: it is what poses that every camera agrees
    on give, not what the training camera's images can tell.
 
@@ -42,7 +43,33 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["similarity_transform", "camera_into_monocular_world", "build_evaluation_subject"]
+__all__ = ["similarity_transform", "camera_into_monocular_world", "build_evaluation_subject", "protocol_runs"]
+
+
+REFINE_MODES = ("off", "on", "auto")
+
+
+def protocol_runs(subject_modes: str, oracle_modes: str, *, subject: Path, oracle: Path) -> list[tuple]:
+    """The fits of the protocol, in order: ``(name, folder, --refine-poses value)`` for each of the
+    comma-separated ``subject_modes`` (named by the mode) and ``oracle_modes`` (``oracle`` for ``off``, as the
+    protocol has always named its oracle, else ``oracle_<mode>``).
+
+    Raises:
+        ValueError: a mode that ``--refine-poses`` does not take, one given twice, or no fit at all.
+    """
+    runs = []
+    for modes, folder, name_of in ((subject_modes, subject, lambda mode: mode),
+                                   (oracle_modes, oracle, lambda mode: "oracle" if mode == "off" else f"oracle_{mode}")):
+        listed = [mode.strip() for mode in modes.split(",") if mode.strip()]
+        for mode in listed:
+            if mode not in REFINE_MODES:
+                raise ValueError(f"refine mode {mode!r} is not one of {', '.join(REFINE_MODES)}")
+        if len(set(listed)) != len(listed):
+            raise ValueError(f"a refine mode is listed twice in {modes!r}")
+        runs += [(name_of(mode), folder, mode) for mode in listed]
+    if not runs:
+        raise ValueError("nothing to fit: --refine-modes is empty and --oracle is not given")
+    return runs
 
 
 def similarity_transform(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -233,6 +260,9 @@ def main(argv=None) -> int:
                         help="the --refine-poses values to fit and compare, comma-separated (default: off,on)")
     parser.add_argument("--oracle", action="store_true",
                         help="also fit the oracle: the training camera with the calibrated poses (step 5)")
+    parser.add_argument("--oracle-modes", default="off",
+                        help="the --refine-poses values the oracle is fitted with, comma-separated (default: off; "
+                             "'off,on' also bounds what refinement adds to poses every camera agrees on)")
     parser.add_argument("--subject-scale", type=float, default=1.0,
                         help="size of the written subjects' frames, a fraction of the prepared ones' (default: 1)")
     parser.add_argument("--preset", default="default", help="fit preset (default: default)")
@@ -243,6 +273,10 @@ def main(argv=None) -> int:
         parser.error("--holdout-every must be at least 2")
     if not 0 < args.subject_scale <= 1:
         parser.error("--subject-scale must lie in (0, 1]")
+    try:
+        protocol_runs(args.refine_modes, args.oracle_modes if args.oracle else "", subject=Path(), oracle=Path())
+    except ValueError as error:
+        parser.error(str(error))
     from warpavatar.evaluate import evaluate_avatar, write_json_atomic
     from warpavatar.fit import Trainer
 
@@ -270,10 +304,8 @@ def main(argv=None) -> int:
     print("| refine poses | folder | masked PSNR | masked SSIM | after test-time refinement | frames | fit min |")
     print("|---|---|---|---|---|---|---|", flush=True)
     rows = []
-    modes = [mode.strip() for mode in args.refine_modes.split(",") if mode.strip()]
-    runs = [(mode, subject_folder, mode) for mode in modes]  # (name, subject, --refine-poses)
-    if args.oracle:
-        runs.append(("oracle", oracle_folder, "off"))
+    runs = protocol_runs(args.refine_modes, args.oracle_modes if args.oracle else "", subject=subject_folder,
+                         oracle=oracle_folder)
     for name, folder, refine in runs:
         args.refine_poses = refine
         config = config_from_arguments(args, args.preset)
