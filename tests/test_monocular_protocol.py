@@ -109,3 +109,6 @@ def test_the_protocol_fits_the_modes_asked_and_names_the_oracle_fits_apart(tmp_p
         tool.main([str(tmp_path / "demo"), "-o", str(tmp_path / "out"), "--oracle", "--oracle-modes", "of"])
     assert exit_info.value.code == 2
     assert "refine mode 'of' is not one of off, on, auto" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        tool.main([str(tmp_path / "demo"), "-o", str(tmp_path / "out"), "--oracle-modes", "on"])
+    assert exit_info.value.code == 2 and "--oracle-modes needs --oracle" in capsys.readouterr().err

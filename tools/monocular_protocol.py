@@ -23,9 +23,10 @@ DEMO holds ``videos/*.mp4`` (synchronized) and ``calibration/`` (one ``.toml`` o
    (masked PSNR/SSIM; with ``--eval-refine-steps N`` also after N steps of test-time pose refinement).
 5. With ``--oracle``, a bound on what better poses could buy: the same camera's same instants fitted in the
    calibrated world with the calibrated skeleton (triangulated from every camera, so its depth is seen;
-   ``OUT/oracle``, refinement off unless ``--oracle-modes`` says more), evaluated on the same held-out instants and views in that world. Refinement
-   from one camera cannot be expected to beat it on the other views: it is what poses that every camera agrees
-   on give, not what the training camera's images can tell.
+   ``OUT/oracle``, refinement off; ``--oracle-modes off,on`` adds a fit that refines them too), evaluated on the
+   same held-out instants and views in that world. Refinement from one camera cannot be expected to beat it on
+   the other views: it is what poses that every camera agrees on give, not what the training camera's images can
+   tell.
 
 ``--subject-scale`` writes both subjects' frames at that fraction of the prepared size (for transfer or speed).
 
@@ -58,15 +59,16 @@ def protocol_runs(subject_modes: str, oracle_modes: str, *, subject: Path, oracl
         ValueError: a mode that ``--refine-poses`` does not take, one given twice, or no fit at all.
     """
     runs = []
-    for modes, folder, name_of in ((subject_modes, subject, lambda mode: mode),
-                                   (oracle_modes, oracle, lambda mode: "oracle" if mode == "off" else f"oracle_{mode}")):
+    for modes, folder, prefix in ((subject_modes, subject, None), (oracle_modes, oracle, "oracle")):
         listed = [mode.strip() for mode in modes.split(",") if mode.strip()]
         for mode in listed:
             if mode not in REFINE_MODES:
                 raise ValueError(f"refine mode {mode!r} is not one of {', '.join(REFINE_MODES)}")
         if len(set(listed)) != len(listed):
             raise ValueError(f"a refine mode is listed twice in {modes!r}")
-        runs += [(name_of(mode), folder, mode) for mode in listed]
+        for mode in listed:
+            name = mode if prefix is None else prefix if mode == "off" else f"{prefix}_{mode}"
+            runs.append((name, folder, mode))
     if not runs:
         raise ValueError("nothing to fit: --refine-modes is empty and --oracle is not given")
     return runs
@@ -260,9 +262,10 @@ def main(argv=None) -> int:
                         help="the --refine-poses values to fit and compare, comma-separated (default: off,on)")
     parser.add_argument("--oracle", action="store_true",
                         help="also fit the oracle: the training camera with the calibrated poses (step 5)")
-    parser.add_argument("--oracle-modes", default="off",
-                        help="the --refine-poses values the oracle is fitted with, comma-separated (default: off; "
-                             "'off,on' also bounds what refinement adds to poses every camera agrees on)")
+    parser.add_argument("--oracle-modes", default=None,
+                        help="with --oracle: the --refine-poses values the oracle is fitted with, comma-separated "
+                             "(default: off; 'off,on' also measures what refinement adds to poses that every "
+                             "camera agrees on)")
     parser.add_argument("--subject-scale", type=float, default=1.0,
                         help="size of the written subjects' frames, a fraction of the prepared ones' (default: 1)")
     parser.add_argument("--preset", default="default", help="fit preset (default: default)")
@@ -273,8 +276,11 @@ def main(argv=None) -> int:
         parser.error("--holdout-every must be at least 2")
     if not 0 < args.subject_scale <= 1:
         parser.error("--subject-scale must lie in (0, 1]")
+    if args.oracle_modes is not None and not args.oracle:
+        parser.error("--oracle-modes needs --oracle")
+    oracle_modes = (args.oracle_modes or "off") if args.oracle else ""
     try:
-        protocol_runs(args.refine_modes, args.oracle_modes if args.oracle else "", subject=Path(), oracle=Path())
+        protocol_runs(args.refine_modes, oracle_modes, subject=Path(), oracle=Path())
     except ValueError as error:
         parser.error(str(error))
     from warpavatar.evaluate import evaluate_avatar, write_json_atomic
@@ -304,8 +310,7 @@ def main(argv=None) -> int:
     print("| refine poses | folder | masked PSNR | masked SSIM | after test-time refinement | frames | fit min |")
     print("|---|---|---|---|---|---|---|", flush=True)
     rows = []
-    runs = protocol_runs(args.refine_modes, args.oracle_modes if args.oracle else "", subject=subject_folder,
-                         oracle=oracle_folder)
+    runs = protocol_runs(args.refine_modes, oracle_modes, subject=subject_folder, oracle=oracle_folder)
     for name, folder, refine in runs:
         args.refine_poses = refine
         config = config_from_arguments(args, args.preset)
