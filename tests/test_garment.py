@@ -607,3 +607,63 @@ def test_a_region_the_avatar_draws_as_well_as_the_rest_is_no_garment(video, tmp_
     assert extension.part is not None and extension.report["residual_excess"] == pytest.approx(wrong, abs=1e-3)
     with pytest.raises(ValueError, match="garment-residual"):
         _tiny(garment="auto", garment_residual=1.0)
+
+
+def test_the_sweep_tool_rolls_changed_cloth_out_and_puts_the_fitted_one_back(forced, video, tmp_path, capsys):
+    tool = load_tool("garment_sweep")
+    assert tool.parse_variant("damping=0.01, drag=0.2") == {"damping": 0.01, "drag": 0.2}
+    for spec, message in (("damping=1.5", "fraction of its bound"), ("stiffness=-1", "positive"),
+                          ("wind=3", "key among"), ("flare=1.2,flare=1.3", "given twice"), ("mass=heavy", "number")):
+        with pytest.raises(ValueError, match=message):
+            tool.parse_variant(spec)
+    avatar = copy.deepcopy(forced[0].avatar)
+    part = avatar.part("garment")
+    before = {name: tensor.clone() for name, tensor in [*part.cloth.named_parameters(), *part.cloth.named_buffers()]}
+    motion = _motion(video)
+    bones = torch.stack([avatar.pose_bones(b) for b in motion])
+    intervals = frame_intervals(range(motion.shape[0]), 30.0).tolist()
+    fitted, _ = part.rollout(bones, intervals)
+    with tool.changed_cloth(part, {"damping": 0.9, "drag": 0.9, "stiffness": 3.0, "mass": 1.5, "flare": 1.4}):
+        changed, _ = part.rollout(bones, intervals)
+        assert float(torch.sigmoid(part.cloth.drag_logit.detach())) == pytest.approx(0.9, rel=1e-5)
+    assert (changed - fitted).norm(dim=-1).max() > 1e-3  # the changes reach the rollout
+    with tool.changed_cloth(part, {"flare": 1.5}):  # a wider rest shape alone hangs the cloth wider
+        rest = part.cloth.rest_positions().detach()
+        flared, _ = part.rollout(bones, intervals)
+    up = torch.as_tensor(part.hyper["up"], dtype=torch.float32)
+    up = up / up.norm()
+    ring = part.cloth.initial_rest_positions[part.cloth.attached].mean(0)
+
+    def spread(points):  # mean distance of the free nodes from the vertical axis through the ring
+        offset = points - ring
+        free = torch.ones(points.shape[0], dtype=torch.bool)
+        free[part.cloth.attached] = False
+        return (offset - (offset @ up)[:, None] * up).norm(dim=1)[free].mean()
+
+    assert spread(rest) > spread(part.cloth.rest_positions().detach()) * 1.05
+    assert spread(flared[0]) > spread(fitted[0])
+    for name, tensor in [*part.cloth.named_parameters(), *part.cloth.named_buffers()]:
+        assert torch.equal(tensor, before[name]), name  # and are undone after
+    again, _ = part.rollout(bones, intervals)
+    assert torch.equal(again, fitted)
+    with pytest.raises(ValueError, match="outside the cloth's range"), tool.changed_cloth(part, {"mass": 50.0}):
+        pass
+    subject = SimpleNamespace(train=video, novel_view={"again": video})  # a second view: the same camera again
+    rows = tool.sweep_rows(avatar, subject, [{"stiffness": 1.0}, {"flare": 1.5, "drag": 0.5}], stride=2,
+                           band=(0.3, 0.9))
+    assert [row["variant"] for row in rows] == [{}, {"stiffness": 1.0}, {"flare": 1.5, "drag": 0.5}]
+    same, flared = rows[1], rows[2]
+    assert set(rows[0]["iou"]) == {"train", "again"} and rows[0]["iou"]["train"] == rows[0]["iou"]["again"]
+    assert all(0.0 < value <= 1.0 for row in rows for value in row["iou"].values())
+    assert same["psnr"]["train"] == pytest.approx(rows[0]["psnr"]["train"], abs=1e-3)  # an unchanged cloth
+    assert flared["psnr"]["train"] != pytest.approx(rows[0]["psnr"]["train"], abs=1e-3)
+    bare = copy.deepcopy(avatar)
+    del bare.parts["garment"]
+    with pytest.raises(ValueError, match="no simulated garment"):
+        tool.sweep_rows(bare, subject, [])
+    assert tool.main([str(tmp_path / "none.pt"), str(tmp_path / "nowhere")]) == 2
+    error = capsys.readouterr().err.strip()
+    assert "nowhere" in error and "\n" not in error
+    with pytest.raises(SystemExit) as exit_info:
+        tool.main([str(tmp_path / "none.pt"), str(tmp_path / "nowhere"), "--variant", "drag=2"])
+    assert exit_info.value.code == 2 and "fraction of its bound" in capsys.readouterr().err

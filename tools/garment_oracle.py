@@ -38,7 +38,7 @@ from warpavatar.evaluate import write_json_atomic  # noqa: E402
 from warpavatar.geometry import match_pose  # noqa: E402
 from warpavatar.model import Avatar  # noqa: E402
 
-__all__ = ["oracle_rows"]
+__all__ = ["oracle_rows", "garment_tool_parser", "load_garment_tool_inputs"]
 
 MODES = ("rollout", "training view", "every view")
 
@@ -139,29 +139,43 @@ def _training_instant(subject: data.Subject, fitted_poses: torch.Tensor, frame_i
     raise ValueError(f"frame id {frame_id} is not one of the fit's training frames in {subject.train.root}")
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+def garment_tool_parser(description: str) -> argparse.ArgumentParser:
+    """The arguments the garment diagnostics share: AVATAR, SUBJECT, ``--scale``, ``--height-band``, ``--device``
+    and ``--json`` (:func:`load_garment_tool_inputs` reads them)."""
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("avatar", help="a fit's avatar.pt, or its folder")
     parser.add_argument("subject", help="the subject folder (train/ and novel_view/*)")
-    parser.add_argument("--frames", type=int, nargs="+", required=True, help="training frame ids to look at")
-    parser.add_argument("--steps", type=int, default=150, help="Adam steps of each fit (per view for 'every view')")
     parser.add_argument("--scale", type=float, default=1.0, help="image scale of the folders (the fit's "
                         "--image-scale)")
     parser.add_argument("--height-band", type=float, nargs=2, default=(0.28, 0.76), metavar=("LOW", "HIGH"),
                         help="the slab's heights [world units along the skeleton's up axis]")
     parser.add_argument("--device", default="cpu", help="torch device")
     parser.add_argument("--json", default=None, help="also write the rows to this JSON file")
-    args = parser.parse_args(argv)
-    if args.steps < 1:
-        parser.error(f"--steps must be >= 1, got {args.steps}")
+    return parser
+
+
+def load_garment_tool_inputs(parser: argparse.ArgumentParser, args) -> tuple[data.Subject, Avatar]:
+    """The subject and the avatar that :func:`garment_tool_parser`'s arguments name (the band checked first).
+
+    Raises:
+        data.VideoFolderError, ValueError, FileNotFoundError: unreadable inputs (the tools print them on one line).
+    """
     if not args.height_band[0] < args.height_band[1]:
         parser.error("--height-band LOW HIGH needs LOW < HIGH")
     path = Path(args.avatar)
     path = path / "avatar.pt" if path.is_dir() else path
+    return data.load_subject(args.subject, scale=args.scale), Avatar.load(path, device=args.device)
+
+
+def main(argv=None) -> int:
+    parser = garment_tool_parser(__doc__.split("\n\n")[0])
+    parser.add_argument("--frames", type=int, nargs="+", required=True, help="training frame ids to look at")
+    parser.add_argument("--steps", type=int, default=150, help="Adam steps of each fit (per view for 'every view')")
+    args = parser.parse_args(argv)
+    if args.steps < 1:
+        parser.error(f"--steps must be >= 1, got {args.steps}")
     try:
-        subject = data.load_subject(args.subject, scale=args.scale)
-        avatar = Avatar.load(path, device=args.device)
+        subject, avatar = load_garment_tool_inputs(parser, args)
         rows = oracle_rows(avatar, subject, args.frames, steps=args.steps, band=tuple(args.height_band))
     except (data.VideoFolderError, ValueError, FileNotFoundError) as error:
         print(f"error: {error}", file=sys.stderr)
