@@ -646,6 +646,12 @@ def test_the_sweep_tool_rolls_changed_cloth_out_and_puts_the_fitted_one_back(for
         assert torch.equal(tensor, before[name]), name  # and are undone after
     again, _ = part.rollout(bones, intervals)
     assert torch.equal(again, fitted)
+    with tool.changed_cloth(part, {"stiffness": 1e6}):  # raised to the cap, never past it or lowered
+        raised, fitted_fraction = (torch.sigmoid(logit.detach()) for logit in (part.cloth.stiffness_logit,
+                                                                                before["stiffness_logit"]))
+        assert bool((raised <= torch.clamp(fitted_fraction, min=tool.STIFFNESS_CAP) + 1e-6).all())
+        assert bool((raised >= torch.clamp(fitted_fraction, max=tool.STIFFNESS_CAP) - 1e-6).all())
+        assert float(raised.max()) > float(fitted_fraction.max())  # (the fitted springs were below the cap)
     with pytest.raises(ValueError, match="outside the cloth's range"), tool.changed_cloth(part, {"mass": 50.0}):
         pass
     subject = SimpleNamespace(train=video, novel_view={"again": video})  # a second view: the same camera again

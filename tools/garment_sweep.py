@@ -10,7 +10,7 @@ fitted garment; each ``--variant`` changes some of the cloth's learned values fo
 the first training pose, then every frame), everything else of the avatar as fitted (its Gaussians, their
 colours and their places on the nodes). A SPEC is comma-separated ``key=value`` pairs:
 
-* ``stiffness=F``: every spring's stiffness times ``F`` (capped at 0.999 of its stability bound);
+* ``stiffness=F``: every spring's stiffness times ``F`` (raised at most to 0.999 of its stability bound);
 * ``damping=F``, ``drag=F``: the edge damping and the air drag as fractions of their bounds, in (0, 1);
 * ``mass=S``: the cloth's mass scale (the fitted one is reported), within the model's range;
 * ``flare=F``: the rest shape's free nodes pushed away from the vertical axis through the attachment ring, by
@@ -45,6 +45,9 @@ from warpavatar.model.parts import frame_intervals  # noqa: E402
 __all__ = ["parse_variant", "changed_cloth", "fitted_values", "sweep_rows"]
 
 KEYS = ("stiffness", "damping", "drag", "mass", "flare")
+
+STIFFNESS_CAP = 0.999
+"""The largest fraction of its stability bound that ``stiffness=F`` raises a spring to."""
 
 
 def parse_variant(spec: str) -> dict[str, float]:
@@ -90,9 +93,12 @@ def changed_cloth(part, variant: dict[str, float]):
     saved = {name: tensor.detach().clone() for name, tensor in [*cloth.named_parameters(), *cloth.named_buffers()]}
     try:
         with torch.no_grad():
-            if "stiffness" in variant:
-                fraction = torch.sigmoid(cloth.stiffness_logit) * variant["stiffness"]
-                cloth.stiffness_logit.copy_(_logit(fraction.clamp(1e-6, 0.999)))
+            if "stiffness" in variant and variant["stiffness"] != 1.0:
+                fraction = torch.sigmoid(cloth.stiffness_logit)
+                target = (fraction * variant["stiffness"]).clamp(1e-30, STIFFNESS_CAP)
+                # a spring already past the cap (or saturated) keeps its own value where the factor would raise it
+                changed = target < fraction if variant["stiffness"] < 1.0 else target > fraction
+                cloth.stiffness_logit.copy_(torch.where(changed, _logit(target), cloth.stiffness_logit))
             for key, logit in (("damping", cloth.damping_logit), ("drag", cloth.drag_logit)):
                 if key in variant:
                     logit.copy_(_logit(variant[key]))
