@@ -38,7 +38,7 @@ from warpavatar.evaluate import write_json_atomic  # noqa: E402
 from warpavatar.geometry import match_pose  # noqa: E402
 from warpavatar.model import Avatar  # noqa: E402
 
-__all__ = ["oracle_rows", "garment_tool_parser", "load_garment_tool_inputs"]
+__all__ = ["oracle_rows", "slab_of", "garment_tool_parser", "load_garment_tool_inputs"]
 
 MODES = ("rollout", "training view", "every view")
 
@@ -53,14 +53,19 @@ def _views_of(subject: data.Subject, frame_id: int) -> list[tuple[str, data.Vide
     return views
 
 
+def slab_of(video: data.VideoFolder, index: int, band: tuple[float, float]) -> np.ndarray:
+    """The pixels [H,W] (bool) of frame ``index`` between heights ``band`` (``tools/error_breakdown.py
+    --height-band``, measured at the posed root joint's depth)."""
+    root = video.bone_transforms[index][0].astype(np.float64) @ np.append(video.skeleton.heads[0], 1.0)
+    return height_band_mask(video.cameras[index], root[:3], video.skeleton.up, low=band[0], high=band[1])
+
+
 def _psnrs(image: torch.Tensor, video: data.VideoFolder, index: int, band: tuple[float, float]) -> tuple[float, float]:
     """Masked PSNR of the whole mask and of the height band (dB)."""
     prediction = image.detach().clamp(0, 1).cpu().numpy().astype(np.float64)
     truth = video.images[index].astype(np.float64) / 255.0
     mask = video.masks[index].astype(np.float64) / 255.0
-    root = video.bone_transforms[index][0].astype(np.float64) @ np.append(video.skeleton.heads[0], 1.0)
-    inside = height_band_mask(video.cameras[index], root[:3], video.skeleton.up, low=band[0], high=band[1])
-    return masked_psnr(prediction, truth, mask), masked_psnr(prediction, truth, mask * inside)
+    return masked_psnr(prediction, truth, mask), masked_psnr(prediction, truth, mask * slab_of(video, index, band))
 
 
 def oracle_rows(avatar: Avatar, subject: data.Subject, frame_ids: list[int], *, steps: int = 150,

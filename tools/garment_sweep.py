@@ -34,8 +34,8 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from error_breakdown import height_band_mask, masked_psnr  # noqa: E402
-from garment_oracle import garment_tool_parser, load_garment_tool_inputs  # noqa: E402
+from error_breakdown import masked_psnr  # noqa: E402
+from garment_oracle import garment_tool_parser, load_garment_tool_inputs, slab_of  # noqa: E402
 
 from warpavatar import data  # noqa: E402
 from warpavatar.evaluate import write_json_atomic  # noqa: E402
@@ -161,32 +161,36 @@ def sweep_rows(avatar: Avatar, subject, variants: list[dict[str, float]], *, str
                          for pose in train.bone_transforms])
     seconds = frame_intervals(train.frame_ids, train.fps).tolist()
     training_ids = [int(i) for i in train.frame_ids]
-    views = [("train", train), *subject.novel_view.items()]
+    # what every variant is scored against, read once: (camera, pose, training instant, slab, mask, truth) of each
+    # scored frame of each view
+    targets = {}
+    for name, video in [("train", train), *subject.novel_view.items()]:
+        frames = []
+        for index in range(0, len(video.frame_ids), stride):
+            frame_id = int(video.frame_ids[index])
+            if frame_id in training_ids:
+                frames.append((video.cameras[index],
+                               torch.as_tensor(video.bone_transforms[index], dtype=torch.float32, device=device),
+                               training_ids.index(frame_id), slab_of(video, index, band),
+                               video.masks[index].astype(np.float64) / 255.0,
+                               video.images[index].astype(np.float64) / 255.0))
+        if frames:
+            targets[name] = frames
     rows = []
     for variant in [{}, *variants]:
         with changed_cloth(part, variant), torch.no_grad():
             positions, _ = part.rollout(bones, seconds)
             row = {"variant": dict(variant), "iou": {}, "psnr": {}}
-            for name, video in views:
+            for name, frames in targets.items():
                 ious, psnrs = [], []
-                for index in range(0, len(video.frame_ids), stride):
-                    frame_id = int(video.frame_ids[index])
-                    if frame_id not in training_ids:
-                        continue
-                    pose = torch.as_tensor(video.bone_transforms[index], dtype=torch.float32, device=device)
-                    image, alpha, _ = avatar.render(video.cameras[index], pose, background=background, grid=grid,
-                                                    inputs={part.name: positions[training_ids.index(frame_id)]})
-                    root = video.bone_transforms[index][0].astype(np.float64) @ np.append(video.skeleton.heads[0], 1.0)
-                    slab = height_band_mask(video.cameras[index], root[:3], video.skeleton.up, low=band[0],
-                                            high=band[1])
-                    mask = video.masks[index].astype(np.float64) / 255.0
+                for camera, pose, instant, slab, mask, truth in frames:
+                    image, alpha, _ = avatar.render(camera, pose, background=background, grid=grid,
+                                                    inputs={part.name: positions[instant]})
                     drawn, filmed = alpha.cpu().numpy() > 0.5, mask > 0.5
                     union = ((drawn | filmed) & slab).sum()
                     ious.append(float((drawn & filmed & slab).sum() / union) if union else 1.0)
-                    truth = video.images[index].astype(np.float64) / 255.0
                     psnrs.append(masked_psnr(image.clamp(0, 1).cpu().numpy().astype(np.float64), truth, mask * slab))
-                if ious:
-                    row["iou"][name], row["psnr"][name] = float(np.mean(ious)), float(np.mean(psnrs))
+                row["iou"][name], row["psnr"][name] = float(np.mean(ious)), float(np.mean(psnrs))
         rows.append(row)
     return rows
 

@@ -278,15 +278,15 @@ def main(argv=None) -> int:
         parser.error("--subject-scale must lie in (0, 1]")
     if args.oracle_modes is not None and not args.oracle:
         parser.error("--oracle-modes needs --oracle")
-    oracle_modes = (args.oracle_modes or "off") if args.oracle else ""
+    subject_folder, oracle_folder = args.output / "subject", args.output / "oracle"
     try:
-        protocol_runs(args.refine_modes, oracle_modes, subject=Path(), oracle=Path())
+        runs = protocol_runs(args.refine_modes, (args.oracle_modes or "off") if args.oracle else "",
+                             subject=subject_folder, oracle=oracle_folder)
     except ValueError as error:
         parser.error(str(error))
     from warpavatar.evaluate import evaluate_avatar, write_json_atomic
     from warpavatar.fit import Trainer
 
-    subject_folder, oracle_folder = args.output / "subject", args.output / "oracle"
     recipe = {"holdout_every": args.holdout_every, "subject_scale": args.subject_scale}
     made = subject_folder / "alignment.json"
     alignment = json.loads(made.read_text()) if made.exists() else None
@@ -310,7 +310,6 @@ def main(argv=None) -> int:
     print("| refine poses | folder | masked PSNR | masked SSIM | after test-time refinement | frames | fit min |")
     print("|---|---|---|---|---|---|---|", flush=True)
     rows = []
-    runs = protocol_runs(args.refine_modes, oracle_modes, subject=subject_folder, oracle=oracle_folder)
     for name, folder, refine in runs:
         args.refine_poses = refine
         config = config_from_arguments(args, args.preset)
