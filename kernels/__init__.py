@@ -16,5 +16,7 @@ Families:
     correction: a pose correction's outputs applied to canonical Gaussians in one pass (playback).
     poses: every frame's refined poses down the skeleton, and the priors of the refined motion (pose refinement).
 
-:mod:`~warpavatar.kernels.quaternion` holds the quaternion ``@wp.func`` helpers the families share.
+:mod:`~warpavatar.kernels.quaternion` holds the quaternion ``@wp.func`` helpers the families share, and
+:mod:`~warpavatar.kernels.launch` the launch function every launcher calls (``wp.launch`` with the argument
+packing done once per kernel).
 """

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from warpavatar.kernels.launch import launch
 from warpavatar.kernels.springs import edge_is_valid
 
 __all__ = ["SHORT_EDGE", "launch_cloth_edge_terms", "launch_cloth_edge_terms_adjoint"]
@@ -129,7 +130,7 @@ def launch_cloth_edge_terms(
     _check(x, v, edges, rest_length, edge_damping, rest_offset, per_node=(damping_force,))
     if edges.shape[0] == 0:
         return
-    wp.launch(
+    launch(
         cloth_edge_terms,
         dim=edges.shape[0],
         inputs=[x, v, edges, rest_length, edge_damping],
@@ -156,7 +157,7 @@ def launch_cloth_edge_terms_adjoint(
            per_node=(grad_damping_force, grad_x, grad_v))
     if edges.shape[0] == 0:
         return
-    wp.launch(
+    launch(
         cloth_edge_terms_adjoint,
         dim=edges.shape[0],
         inputs=[x, v, edges, rest_length, edge_damping, grad_rest_offset, grad_damping_force],

@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from warpavatar.kernels.launch import launch
+
 __all__ = ["AXIS_EPSILON", "SEGMENT_EPSILON_SQ", "launch_capsule_push_out", "launch_capsule_push_out_adjoint"]
 
 AXIS_EPSILON = wp.constant(1e-9)
@@ -180,7 +182,7 @@ def launch_capsule_push_out(
     _check(x, segment_start, segment_end, radius, x_out)
     if x.shape[0] == 0:
         return
-    wp.launch(
+    launch(
         capsule_push_out,
         dim=x.shape[0],
         inputs=[x, segment_start, segment_end, radius],
@@ -205,7 +207,7 @@ def launch_capsule_push_out_adjoint(
     _check(x, grad_segment_start, grad_segment_end, grad_radius)
     if x.shape[0] == 0:
         return
-    wp.launch(
+    launch(
         capsule_push_out_adjoint,
         dim=x.shape[0],
         inputs=[x, segment_start, segment_end, radius, grad_x_out],

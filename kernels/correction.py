@@ -20,6 +20,7 @@ from typing import Any
 
 import warp as wp
 
+from warpavatar.kernels.launch import launch
 from warpavatar.kernels.quaternion import quat_multiply
 
 __all__ = ["LOG_SCALE_LIMIT", "apply_correction", "match_frame_code", "frame_bias"]
@@ -86,7 +87,7 @@ def apply_correction(outputs: wp.array, means: wp.array, quats: wp.array, scales
                          f"{offset_scale.shape}")
     if count == 0:
         return
-    wp.launch(apply_correction_kernel, dim=count, device=means.device,
+    launch(apply_correction_kernel, dim=count, device=means.device,
               inputs=[outputs, means, quats, scales, offset_scale], outputs=[means_out, quats_out, scales_out])
 
 

@@ -31,6 +31,8 @@ import functools
 import numpy as np
 import warp as wp
 
+from warpavatar.kernels.launch import launch
+
 __all__ = [
     "MAX_K",
     "cell_width_inverse",
@@ -275,7 +277,7 @@ def launch_knn_sample(
             f"partial_distance_sq must have shape {(sample_count, chunk_count * k)}, got {partial_distance_sq.shape}"
         )
     kernel, _ = knn_kernels(k)
-    wp.launch(
+    launch(
         kernel,
         dim=(chunk_count, sample_count),
         inputs=[points, sample_ids, chunk_size],
@@ -345,7 +347,7 @@ def launch_knn_query(
     cell_width = float(np.float32(cell_width))
     cell_width_inv = cell_width_inverse(cell_width)
     _, kernel = knn_kernels(k)
-    wp.launch(
+    launch(
         kernel,
         dim=query_count,
         inputs=[

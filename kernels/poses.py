@@ -39,6 +39,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from warpavatar.kernels.launch import launch
+
 __all__ = ["SMALL_ANGLE_SQ", "launch_local_motions", "launch_local_motions_adjoint", "launch_compose_motions",
            "launch_compose_motions_adjoint", "launch_prior_shares", "launch_prior_shares_adjoint"]
 
@@ -285,7 +287,7 @@ def launch_local_motions(poses, heads, root, rotation, translation, motions) -> 
     _check_rows((frames,), translation=translation)
     if frames * joints == 0:
         return
-    wp.launch(local_motions, dim=(frames, joints), inputs=[poses, heads, root, rotation, translation],
+    launch(local_motions, dim=(frames, joints), inputs=[poses, heads, root, rotation, translation],
               outputs=[motions], device=poses.device)
 
 
@@ -299,7 +301,7 @@ def launch_local_motions_adjoint(poses, heads, root, rotation, translation, scra
     _check_rows((frames,), translation=translation, adj_translation=adj_translation)
     if frames * joints == 0:
         return
-    wp.launch(local_motions, dim=(frames, joints), inputs=[poses, heads, root, rotation, translation],
+    launch(local_motions, dim=(frames, joints), inputs=[poses, heads, root, rotation, translation],
               outputs=[scratch_motions], adj_inputs=[None, None, None, adj_rotation, adj_translation],
               adj_outputs=[adj_motions], adjoint=True, device=poses.device)
 
@@ -312,7 +314,7 @@ def launch_compose_motions(poses, parents, motions, world, corrected) -> None:
     _check_rows((frames, joints), motions=motions, world=world, corrected=corrected)
     if frames * joints == 0:
         return
-    wp.launch(compose_motions, dim=(frames, joints), inputs=[poses, parents, motions], outputs=[world, corrected],
+    launch(compose_motions, dim=(frames, joints), inputs=[poses, parents, motions], outputs=[world, corrected],
               device=poses.device)
 
 
@@ -327,9 +329,9 @@ def launch_compose_motions_adjoint(poses, parents, subtree_offsets, subtree_memb
     _check_rows((frames, joints), world=world, adj_corrected=adj_corrected, terms=terms, adj_motions=adj_motions)
     if frames * joints == 0:
         return
-    wp.launch(motion_adjoint_terms, dim=(frames, joints), inputs=[poses, world, adj_corrected], outputs=[terms],
+    launch(motion_adjoint_terms, dim=(frames, joints), inputs=[poses, world, adj_corrected], outputs=[terms],
               device=poses.device)
-    wp.launch(compose_motions_adjoint, dim=(frames, joints),
+    launch(compose_motions_adjoint, dim=(frames, joints),
               inputs=[parents, subtree_offsets, subtree_members, world, terms], outputs=[adj_motions],
               device=poses.device)
 
@@ -365,7 +367,7 @@ def launch_prior_shares(poses, heads, rotation, translation, target_rotation, ta
     _check_rows((frames, joints), shares=shares)
     if frames * joints == 0:
         return
-    wp.launch(prior_shares, dim=(frames, joints),
+    launch(prior_shares, dim=(frames, joints),
               inputs=[poses, heads, rotation, translation, target_rotation, target_translation, target_pivots,
                       view_axes, gaps, float(scale), int(half)], outputs=[shares], device=poses.device)
 
@@ -382,7 +384,7 @@ def launch_prior_shares_adjoint(poses, heads, rotation, translation, target_rota
     _check_rows((3,), adj_priors=adj_priors)
     if frames * joints == 0:
         return
-    wp.launch(prior_shares_adjoint, dim=(frames, joints),
+    launch(prior_shares_adjoint, dim=(frames, joints),
               inputs=[poses, heads, rotation, translation, target_rotation, target_translation, target_pivots,
                       view_axes, gaps, float(scale), int(half), adj_priors],
               outputs=[adj_poses, adj_rotation, adj_translation], device=poses.device)

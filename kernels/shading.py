@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from warpavatar.kernels.launch import launch
+
 __all__ = ["SH_MAX_DEGREE", "NORM_FLOOR", "vec16", "view_colors_forward", "view_colors_backward"]
 
 SH_MAX_DEGREE = 3
@@ -266,7 +268,7 @@ def view_colors_forward(means: wp.array, quats: wp.array, canonical_quats: wp.ar
     if colors.shape[0] != count:
         raise ValueError(f"colors holds {colors.shape[0]} entries, means holds {count}")
     if count:
-        wp.launch(view_colors_forward_kernel, dim=count,
+        launch(view_colors_forward_kernel, dim=count,
                   inputs=[means, quats, canonical_quats, coefficients, origin, degree], outputs=[colors],
                   device=means.device)
 
@@ -283,6 +285,6 @@ def view_colors_backward(means: wp.array, quats: wp.array, canonical_quats: wp.a
         if array.shape[0] != count:
             raise ValueError(f"{name} holds {array.shape[0]} entries, means holds {count}")
     if count:
-        wp.launch(view_colors_backward_kernel, dim=count,
+        launch(view_colors_backward_kernel, dim=count,
                   inputs=[means, quats, canonical_quats, coefficients, origin, degree, grad_colors],
                   outputs=[grad_means, grad_quats, grad_canonical_quats, grad_coefficients], device=means.device)

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from warpavatar.kernels.launch import launch
 from .quaternion import quat_conjugate, quat_from_rotation_matrix, quat_multiply, quat_to_matrix
 
 __all__ = [
@@ -313,9 +314,9 @@ def sample_grid_forward(
         return
     inputs = [grid, points, box, wp.vec3(*box_low), wp.vec3(*box_high)]
     if layout == "point":
-        wp.launch(sample_grid_forward_point_kernel, dim=point_count, inputs=inputs, outputs=[values])
+        launch(sample_grid_forward_point_kernel, dim=point_count, inputs=inputs, outputs=[values])
     else:
-        wp.launch(
+        launch(
             sample_grid_forward_channel_kernel, dim=(point_count, channel_count), inputs=inputs, outputs=[values]
         )
 
@@ -360,14 +361,14 @@ def sample_grid_backward(
     box_args = [box, wp.vec3(*box_low), wp.vec3(*box_high)]
     scatter_here = grad_grid is not None and layout == "point"
     if grad_grid is not None and layout == "channel":
-        wp.launch(
+        launch(
             sample_grid_backward_grid_channel_kernel,
             dim=(point_count, channel_count),
             inputs=[points, *box_args, grad_values],
             outputs=[grad_grid],
         )
     if scatter_here or grad_points is not None:
-        wp.launch(
+        launch(
             sample_grid_backward_point_kernel,
             dim=point_count,
             inputs=[grid, points, *box_args, grad_values, int(scatter_here), int(grad_points is not None)],
@@ -602,7 +603,7 @@ def lbs_forward(
         raise ValueError(f"quats_out must hold {point_count} quaternions when quats are given")
     if point_count == 0:
         return
-    wp.launch(
+    launch(
         lbs_forward_kernel,
         dim=point_count,
         inputs=[points, weights, bones, quats, int(inverse)],
@@ -650,7 +651,7 @@ def lbs_backward(
         raise ValueError("grad_quats needs quats")
     if point_count == 0 or all(x is None for x in (grad_points, grad_quats, grad_weights, grad_blend)):
         return
-    wp.launch(
+    launch(
         lbs_backward_kernel,
         dim=point_count,
         inputs=[

@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from warpavatar.kernels.launch import launch
 from .quaternion import quat_to_matrix
 
 __all__ = [
@@ -510,7 +511,7 @@ def launch_project(
         return
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
     tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
-    wp.launch(
+    launch(
         project_kernel,
         dim=gaussian_count,
         inputs=[means, quats, scales, opacities, coefficients, intrinsics, world_to_camera, width, height, tiles_x,
@@ -658,7 +659,7 @@ def launch_emit_tile_keys(xy_opacity, conics, radii, depth_order, tile_ends, *, 
         threads_per_gaussian = EMIT_THREADS if device.is_cuda else 1
     if threads_per_gaussian < 1:
         raise ValueError(f"threads_per_gaussian must be >= 1, got {threads_per_gaussian}")
-    wp.launch(
+    launch(
         emit_tile_keys_kernel,
         dim=gaussian_count * threads_per_gaussian,
         inputs=[xy_opacity, conics, radii, depth_order, tile_ends, width, height, tiles_x, tiles_y,
@@ -699,7 +700,7 @@ def launch_tile_ranges(sorted_keys, pair_count: int, tile_ranges) -> None:
         raise ValueError("tile_ranges must be an int32 array of shape [tile_count, 2]")
     if pair_count == 0:
         return
-    wp.launch(tile_ranges_kernel, dim=pair_count, inputs=[sorted_keys, pair_count], outputs=[tile_ranges],
+    launch(tile_ranges_kernel, dim=pair_count, inputs=[sorted_keys, pair_count], outputs=[tile_ranges],
               block_dim=launch_block_dim(_device_of(sorted_keys)))
 
 
@@ -840,7 +841,7 @@ def launch_composite_forward(tile_ranges, sorted_ids, xy_opacity, conics, color_
                         last_index=last_index)
     if width * height == 0:
         return
-    wp.launch(
+    launch(
         composite_forward_kernel,
         dim=(tiles_x * tiles_y, int(PIXELS_PER_TILE)),
         inputs=[tile_ranges, sorted_ids, xy_opacity, conics, color_depth, background, width, height, tiles_x,
@@ -1049,7 +1050,7 @@ def launch_composite_backward(tile_ranges, sorted_ids, xy_opacity, conics, color
         raise ValueError(f"grads has {grads.shape[0]} entries, expected {floats} * gaussian_count")
     if width * height == 0 or xy_opacity.shape[0] == 0:
         return
-    wp.launch(
+    launch(
         composite_backward_kernel,
         dim=(tiles_x * tiles_y, int(PIXELS_PER_TILE)),
         inputs=[tile_ranges, sorted_ids, xy_opacity, conics, color_depth, background, width, height, tiles_x,
@@ -1127,7 +1128,7 @@ def launch_project_backward(
             raise ValueError(f"{name} has {array.shape[0]} entries, expected {gaussian_count}")
     if gaussian_count == 0:
         return
-    wp.launch(
+    launch(
         project_differentiable_kernel,
         dim=gaussian_count,
         inputs=[means, quats, scales, coefficients, intrinsics, world_to_camera, radii, width, height, sh_degree],
@@ -1174,7 +1175,7 @@ def launch_tile_ranges_padded(sorted_keys, key_count: int, tile_ranges) -> None:
         raise ValueError(f"sorted_keys has {sorted_keys.shape[0]} entries, fewer than key_count={key_count}")
     if key_count == 0:
         return
-    wp.launch(tile_ranges_padded_kernel, dim=key_count, inputs=[sorted_keys, key_count], outputs=[tile_ranges],
+    launch(tile_ranges_padded_kernel, dim=key_count, inputs=[sorted_keys, key_count], outputs=[tile_ranges],
               block_dim=launch_block_dim(_device_of(sorted_keys)))
 
 

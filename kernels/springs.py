@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from warpavatar.kernels.launch import launch
+
 __all__ = [
     "EDGES_PER_THREAD",
     "launch_spring_force",
@@ -283,7 +285,7 @@ def launch_spring_force(
     _check_node_arrays(x.shape[0], spring_force_sum)
     if edges.shape[0] == 0 or x.shape[0] == 0:
         return
-    wp.launch(
+    launch(
         spring_force,
         dim=_edge_thread_count(edges.shape[0], edges_per_thread),
         inputs=[x, edges, rest_offset, stiffness, edges_per_thread],
@@ -308,7 +310,7 @@ def launch_spring_integrate(
     _check_node_arrays(node_count, v, damping, mass, force, spring_force_sum, x_next, v_next)
     if node_count == 0:
         return
-    wp.launch(
+    launch(
         spring_integrate,
         dim=node_count,
         inputs=[x, v, damping, mass, force, spring_force_sum, float(dt)],
@@ -340,7 +342,7 @@ def launch_spring_integrate_adjoint(
     )
     if node_count == 0:
         return
-    wp.launch(
+    launch(
         spring_integrate_adjoint,
         dim=node_count,
         inputs=[v, damping, mass, force, spring_force_sum, grad_x_next, grad_v_next, float(dt)],
@@ -366,7 +368,7 @@ def launch_spring_force_adjoint(
     _check_node_arrays(x.shape[0], grad_force, grad_x)
     if edges.shape[0] == 0:
         return
-    wp.launch(
+    launch(
         spring_force_adjoint,
         dim=_edge_thread_count(edges.shape[0], edges_per_thread),
         inputs=[x, edges, rest_offset, stiffness, grad_force, edges_per_thread],
@@ -382,7 +384,7 @@ def launch_isometry_terms(x: wp.array, edges: wp.array, rest_offset: wp.array, t
         raise ValueError(f"terms must have shape (2, {edges.shape[0]}), got {terms.shape}")
     if edges.shape[0] == 0:
         return
-    wp.launch(isometry_terms, dim=edges.shape[0], inputs=[x, edges, rest_offset], outputs=[terms], device=x.device)
+    launch(isometry_terms, dim=edges.shape[0], inputs=[x, edges, rest_offset], outputs=[terms], device=x.device)
 
 
 def launch_isometry_adjoint(
@@ -398,7 +400,7 @@ def launch_isometry_adjoint(
     _check_node_arrays(x.shape[0], grad_x)
     if edges.shape[0] == 0:
         return
-    wp.launch(
+    launch(
         isometry_adjoint,
         dim=edges.shape[0],
         inputs=[x, edges, rest_offset, grad_scale],
@@ -412,7 +414,7 @@ def launch_damping_terms(v: wp.array, terms: wp.array) -> None:
     _check_node_arrays(v.shape[0], terms)
     if v.shape[0] == 0:
         return
-    wp.launch(damping_terms, dim=v.shape[0], inputs=[v], outputs=[terms], device=v.device)
+    launch(damping_terms, dim=v.shape[0], inputs=[v], outputs=[terms], device=v.device)
 
 
 def launch_damping_adjoint(v: wp.array, grad_scale: wp.array, grad_v: wp.array) -> None:
@@ -420,4 +422,4 @@ def launch_damping_adjoint(v: wp.array, grad_scale: wp.array, grad_v: wp.array) 
     _check_node_arrays(v.shape[0], grad_v)
     if v.shape[0] == 0:
         return
-    wp.launch(damping_adjoint, dim=v.shape[0], inputs=[v, grad_scale], outputs=[grad_v], device=v.device)
+    launch(damping_adjoint, dim=v.shape[0], inputs=[v, grad_scale], outputs=[grad_v], device=v.device)

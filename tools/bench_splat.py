@@ -67,23 +67,30 @@ def make_scene(gaussian_count: int, width: int, height: int, *, device: str, see
 
 @contextlib.contextmanager
 def _count_warp_calls(counter: dict):
-    """Count ``wp.launch`` and ``warp.utils`` scan/sort calls made inside the block."""
-    originals = (wp.launch, wp.utils.array_scan, wp.utils.radix_sort_pairs)
+    """Count kernel launches (``wp.launch`` and the reused commands of ``warpavatar.kernels.launch``) and Warp's
+    scan and sort calls (through ``warp.utils`` or the rasterizer's direct calls) made inside the block."""
+    originals = (wp.launch, wp.Launch.launch, wp.utils.array_scan, wp.utils.radix_sort_pairs,
+                 splat_bridge.radix_sort_pairs, splat_bridge.inclusive_scan)
 
-    def counted(name, function):
+    def counted(name, function, *, unless_recording=False):
         def wrapper(*args, **kwargs):
-            counter[name] = counter.get(name, 0) + 1
+            if not (unless_recording and kwargs.get("record_cmd")):  # a recorded command counts when launched
+                counter[name] = counter.get(name, 0) + 1
             return function(*args, **kwargs)
 
         return wrapper
 
-    wp.launch = counted("launch", originals[0])
-    wp.utils.array_scan = counted("utils", originals[1])
-    wp.utils.radix_sort_pairs = counted("utils", originals[2])
+    wp.launch = counted("launch", originals[0], unless_recording=True)
+    wp.Launch.launch = counted("launch", originals[1])
+    wp.utils.array_scan = counted("utils", originals[2])
+    wp.utils.radix_sort_pairs = counted("utils", originals[3])
+    splat_bridge.radix_sort_pairs = counted("utils", originals[4])
+    splat_bridge.inclusive_scan = counted("utils", originals[5])
     try:
         yield counter
     finally:
-        wp.launch, wp.utils.array_scan, wp.utils.radix_sort_pairs = originals
+        (wp.launch, wp.Launch.launch, wp.utils.array_scan, wp.utils.radix_sort_pairs, splat_bridge.radix_sort_pairs,
+         splat_bridge.inclusive_scan) = originals
 
 
 def _ours(scene: dict, parameters: list):

@@ -1,8 +1,8 @@
 """Differentiable Gaussian-splatting rasterizer: torch autograd bridge to the Warp kernels of ``kernels/splat.py``.
 
 One forward pass makes four Warp kernel launches (projection, key emission, tile ranges, compositing) plus
-three ``warp.utils`` calls (the depth sort of the Gaussians, the prefix sum of their tile counts in depth order,
-the sort of the (Gaussian, tile) pairs by tile: two radix sorts over 4-byte keys that give the order of one
+three calls of Warp's native sort and scan (the depth sort of the Gaussians, the prefix sum of their tile counts
+in depth order, the sort of the (Gaussian, tile) pairs by tile: two radix sorts over 4-byte keys that give the order of one
 over 8-byte (tile, depth) keys, see ``kernels/splat.py``), one small torch fill (the prefix sum's buffer with the
 pair count and the flags; the key emission clears the tile ranges), a copy of the sorted ids when a backward may
 follow (it keeps 4 bytes a pair, not the sort's double buffer; a pass whose inputs need no gradient skips it),
@@ -35,8 +35,9 @@ has run (an upper bound would cost far more memory, as any Gaussian may cover th
 In every mode non-finite inputs raise a ``ValueError`` (fixed mode: when the caller checks the status).
 
 Host work per call is kept small: kernel arguments are Warp launch descriptors
-(:func:`~warpavatar._src.warp_utils.warp_descriptor`), not ``wp.array`` objects, and only the scan and the sort
-get arrays. Memory a pass holds, per Gaussian / pair / pixel, is listed in ``docs/rasterizer_memory.md``.
+(:func:`~warpavatar._src.warp_utils.warp_descriptor`), not ``wp.array`` objects, the launches reuse recorded
+commands (:mod:`warpavatar.kernels.launch`), and the sort and scan get the tensors' pointers
+(:func:`~warpavatar._src.warp_utils.radix_sort_pairs`, :func:`~warpavatar._src.warp_utils.inclusive_scan`). Memory a pass holds, per Gaussian / pair / pixel, is listed in ``docs/rasterizer_memory.md``.
 """
 
 from __future__ import annotations
@@ -51,8 +52,8 @@ import warp as wp
 
 from warpavatar._src import splat_replay
 from warpavatar._src.splat_replay import ReplayCache
-from warpavatar._src.warp_utils import (check_tensor, to_warp, torch_stream_scope, warp_descriptor,
-                                        write_only_descriptor)
+from warpavatar._src.warp_utils import (check_tensor, inclusive_scan, radix_sort_pairs, torch_stream_scope,
+                                        warp_descriptor, write_only_descriptor)
 from warpavatar.kernels import splat as splat_kernels
 
 __all__ = ["rasterize_gaussians", "RasterInfo", "rasterizer_replays", "rasterizer_status", "run_pass",
@@ -145,12 +146,8 @@ def _sort_by_depth(depth_sort, tile_ends) -> None:
         return
     depth_keys, depth_order = depth_sort
     # Stable: equal depths keep the index order. The scan reads the counts in place, from the sorted records.
-    wp.utils.radix_sort_pairs(to_warp(depth_keys), to_warp(depth_order, wp.vec2i), gaussian_count, begin_bit=0,
-                              end_bit=splat_kernels.DEPTH_SORT_BITS)
-    w_tile_ends = to_warp(tile_ends)
-    counts = wp.array(ptr=depth_order.data_ptr() + 4, dtype=wp.int32, shape=(gaussian_count,), strides=(8,),
-                      device=w_tile_ends.device, copy=False)
-    wp.utils.array_scan(counts, w_tile_ends, inclusive=True)
+    radix_sort_pairs(depth_keys, depth_order, gaussian_count, begin_bit=0, end_bit=splat_kernels.DEPTH_SORT_BITS)
+    inclusive_scan(depth_order[:, 1], tile_ends, stride=2)
 
 
 def _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radii, tile_ranges, *, width, height,
@@ -182,8 +179,8 @@ def _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radi
             w_xy_opacity, w_conics, w_radii, warp_descriptor(depth_order[:gaussian_count], wp.vec2i),
             warp_descriptor(tile_ends), width=width, height=height, keys=warp_descriptor(sort_keys[:count]),
             gaussian_ids=warp_descriptor(sorted_ids[:count]), tile_ranges=warp_descriptor(tile_ranges))
-        wp.utils.radix_sort_pairs(to_warp(sort_keys), to_warp(sorted_ids), count, begin_bit=0,
-                                  end_bit=splat_kernels.tile_key_bits(tiles_x * tiles_y))
+        radix_sort_pairs(sort_keys, sorted_ids, count, begin_bit=0,
+                         end_bit=splat_kernels.tile_key_bits(tiles_x * tiles_y))
         if capacity is None:
             splat_kernels.launch_tile_ranges(warp_descriptor(sort_keys), count, warp_descriptor(tile_ranges))
         else:

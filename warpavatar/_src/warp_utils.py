@@ -7,6 +7,7 @@ Rules every bridge follows:
       as the
       launch descriptors Warp passes to kernels (:func:`warp_descriptor`, a fifth of ``wp.from_torch``'s
       cost);
+    * Warp's sort and scan get the tensors' pointers (:func:`radix_sort_pairs`, :func:`inclusive_scan`);
     * kernels run on the device of their inputs and, on CUDA, on torch's current stream
       (:func:`torch_stream_scope`), so they order correctly with the surrounding torch work;
     * Warp is initialized lazily and quietly the first time an op runs.
@@ -34,6 +35,8 @@ __all__ = [
     "warp_stream_of",
     "available_devices",
     "check_tensor",
+    "radix_sort_pairs",
+    "inclusive_scan",
 ]
 
 
@@ -185,10 +188,22 @@ def warp_descriptor(tensor: torch.Tensor, dtype=None):
     """
     if not tensor.is_contiguous():
         raise ValueError(f"warp_descriptor needs a contiguous tensor, got strides {tensor.stride()}")
-    dtype, shape, strides = _array_layout(tensor, dtype)
-    descriptor = _array_descriptor_type()(tensor.data_ptr(), 0, len(shape), shape, strides)
+    key = (tensor.dtype, dtype, tensor.shape)
+    template = _DESCRIPTOR_TEMPLATES.get(key)
+    if template is None:
+        _, shape, strides = _array_layout(tensor, dtype)
+        if len(_DESCRIPTOR_TEMPLATES) >= _LAYOUTS_KEPT:
+            _DESCRIPTOR_TEMPLATES.clear()
+        template = _DESCRIPTOR_TEMPLATES[key] = _array_descriptor_type()(0, 0, len(shape), shape, strides)
+    # A copy of the layout's template with the pointer set: a quarter of the structure constructor's cost.
+    descriptor = _array_descriptor_type().from_buffer_copy(template)
+    descriptor.data = tensor.data_ptr()
     descriptor._tensor = tensor
     return descriptor
+
+
+# Launch descriptors without a pointer, per (torch dtype, Warp dtype, shape): warp_descriptor copies them.
+_DESCRIPTOR_TEMPLATES: dict[tuple, ctypes.Structure] = {}
 
 
 def write_only_descriptor(sink: torch.Tensor, element_count: int, dtype):
@@ -304,3 +319,87 @@ def check_tensor(name: str, tensor, shape: tuple, *, dtype_kind: str = "float", 
         raise TypeError(f"{name} must be an integer tensor, got {tensor.dtype}")
     if device is not None and tensor.device != torch.device(device):
         raise ValueError(f"{name} is on {tensor.device} but the other inputs are on {device}")
+
+
+# Warp's native sort and scan entry points, called with the tensors' pointers: what ``wp.utils.radix_sort_pairs``
+# and ``wp.utils.array_scan`` end in, without building a ``wp.array`` for each operand (about 7 us of host time
+# each). Looked up once; where this Warp version lays them out otherwise, the public functions are used.
+@functools.lru_cache(maxsize=None)
+def _native_core():
+    init_warp()
+    try:
+        from warp._src.context import runtime  # noqa: PLC0415
+        core = runtime.core
+        names = ("wp_radix_sort_pairs_float_device", "wp_radix_sort_pairs_float_host",
+                 "wp_radix_sort_pairs_int_device", "wp_radix_sort_pairs_int_host",
+                 "wp_array_scan_int_device", "wp_array_scan_int_host")
+        if all(hasattr(core, name) for name in names):
+            return core
+    except Exception:  # noqa: BLE001 (any other layout: the public functions)
+        pass
+    return None
+
+
+_SORT_KEY_SUFFIX = {torch.float32: "float", torch.int32: "int"}
+
+
+def radix_sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, *, begin_bit: int, end_bit: int) -> None:
+    """Sort the first ``count`` (key, value) pairs by key, stably, in place, as ``wp.utils.radix_sort_pairs``.
+
+    Args:
+        keys: contiguous float32 or int32 tensor of at least ``2 * count`` elements (the second half is the
+            sort's scratch space).
+        values: contiguous tensor of at least ``2 * count`` elements of 4 or 8 bytes each (e.g. int32 [2 N] or
+            int32 [2 N, 2]), on the same device.
+        count: pairs to sort.
+        begin_bit, end_bit: the key bits sorted on.
+
+    Runs on Warp's current device and stream (:class:`torch_stream_scope`).
+    """
+    if count == 0 or begin_bit == end_bit:
+        return
+    value_bytes = values.element_size() * (values[0].numel() if values.dim() > 1 else 1)
+    suffix = _SORT_KEY_SUFFIX.get(keys.dtype)
+    if (suffix is None or value_bytes not in (4, 8) or not keys.is_contiguous() or not values.is_contiguous()
+            or keys.numel() < 2 * count or values.shape[0] < 2 * count):
+        raise ValueError(f"radix_sort_pairs: keys must be contiguous float32 or int32 and both arrays hold 2 * {count} "
+                         f"elements of 4 or 8 bytes, got {keys.dtype} {list(keys.shape)} and {values.dtype} "
+                         f"{list(values.shape)}")
+    core = _native_core()
+    if core is None:
+        value_dtype = wp.int32 if value_bytes == 4 else wp.vec2i
+        wp.utils.radix_sort_pairs(to_warp(keys), to_warp(values.view(-1) if value_bytes == 4 else values.view(-1, 2),
+                                                         value_dtype), count, begin_bit=begin_bit, end_bit=end_bit)
+        return
+    where = "device" if keys.is_cuda else "host"
+    getattr(core, f"wp_radix_sort_pairs_{suffix}_{where}")(keys.data_ptr(), values.data_ptr(), count, begin_bit,
+                                                           end_bit, value_bytes)
+
+
+def inclusive_scan(values: torch.Tensor, out: torch.Tensor, *, stride: int = 1) -> None:
+    """``out[i] = sum(values[0 : (i + 1) * stride : stride])``: the inclusive prefix sum of every ``stride``-th
+    int32 of ``values``, starting with the first, as ``wp.utils.array_scan`` computes it.
+
+    Args:
+        values: int32 tensor whose storage, from its first element, holds ``out.numel()`` values ``stride``
+            elements apart (e.g. the second column of a contiguous [N, 2] tensor's view that starts at it).
+        out: contiguous int32 tensor receiving the sums, on the same device.
+        stride: elements between consecutive values.
+
+    Runs on Warp's current device and stream (:class:`torch_stream_scope`).
+    """
+    count = out.numel()
+    if count == 0:
+        return
+    if values.dtype != torch.int32 or out.dtype != torch.int32 or not out.is_contiguous():
+        raise ValueError(f"inclusive_scan needs int32 tensors (a contiguous output), got {values.dtype} and {out.dtype}")
+    core = _native_core()
+    if core is None:
+        source = wp.array(ptr=values.data_ptr(), dtype=wp.int32, shape=(count,), strides=(4 * stride,),
+                          device=_warp_device_object(values.device), copy=False)
+        wp.utils.array_scan(source, to_warp(out), inclusive=True)
+        return
+    where = "device" if values.is_cuda else "host"
+    ok = getattr(core, f"wp_array_scan_int_{where}")(values.data_ptr(), out.data_ptr(), count, 4 * stride, 4, 1, True)
+    if values.is_cuda and not ok:
+        raise RuntimeError("Warp's scan failed on the device")
