@@ -586,19 +586,20 @@ class RasterInfo(Mapping):
         return 4
 
 
-def rasterizer_replays(*, after: int | None = 3, max_bytes: int = 1 << 30) -> int:
+def rasterizer_replays(*, after: int | None = 3, max_bytes: int = 128 << 20) -> int:
     """Set when repeated forward calls of one shape are replayed from a CUDA graph, and release what the cached
     graphs hold (:mod:`warpavatar._src.splat_replay`).
 
     A replayed call skips most of the forward's host work (at 40k Gaussians the forward went from 1.56 to 0.68 ms
     on an H100), but its graph keeps the shape's inputs, outputs and sort buffers allocated between calls: about
     as much again as the call's own peak at small images (21 MiB for an 89k-Gaussian avatar at 384x384), 93 /
-    244 / 432 MiB at 100k / 500k / 1M Gaussians at 1080p. Where memory is short, ``after=None`` keeps every call
-    eager (the speculative mode, nothing held between calls).
+    244 / 432 MiB at 100k / 500k / 1M Gaussians at 1080p; by default no shape holds over 128 MiB (larger passes
+    are bound by the GPU's work and gain little). Where memory is short, ``after=None`` keeps every call eager
+    (the speculative mode, nothing held between calls).
 
     Args:
         after: consecutive calls of one shape after which its pass is captured (>= 1); None: never replay.
-        max_bytes: shapes whose graph would hold more than this many bytes stay eager (> 0).
+        max_bytes: shapes whose graph would hold more than this many bytes stay eager (> 0; default 128 MiB).
 
     Returns:
         The bytes the cached graphs held, now released.
