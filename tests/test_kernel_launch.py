@@ -172,6 +172,9 @@ def test_sort_and_scan_match_torch(device, native, monkeypatch):
                          begin_bit=0, end_bit=31)
     with pytest.raises(ValueError, match="int32"):
         inclusive_scan(torch.zeros(4, device=device), torch.zeros(4, dtype=torch.int32, device=device))
+    with pytest.raises(ValueError, match="4 values 2 apart do not fit"):
+        inclusive_scan(torch.ones(6, dtype=torch.int32, device=device)[1:], torch.zeros(4, dtype=torch.int32,
+                                                                                       device=device), stride=2)
 
 
 @wp.kernel

@@ -49,9 +49,9 @@ def main(argv=None) -> int:
                         help="avatar mode: precision of the MLPs' float32 GEMMs in the training step and in playback "
                              "(warpavatar-fit --matmul-precision; default: the fitted avatar's config, else tf32)")
     parser.add_argument("--replay", choices=("on", "off"), default="on",
-                        help="splat and avatar modes: on (default) replays a rasterizer pass of a repeated shape from a "
-                             "CUDA graph, as warpavatar does by default; off keeps every pass eager (nothing held "
-                             "between calls: warpavatar._src.splat.rasterizer_replays(after=None))")
+                        help="splat and avatar modes: on (default) replays a rasterizer pass of a repeated shape "
+                             "from a CUDA graph, as warpavatar does by default; off keeps every pass eager (nothing "
+                             "held between calls: warpavatar.ops.rasterizer_replays(after=None))")
     args = parser.parse_args(argv)
     if args.replay == "off":
         from warpavatar._src.splat import rasterizer_replays  # noqa: PLC0415

@@ -1,13 +1,13 @@
 """Differentiable Gaussian-splatting rasterizer: torch autograd bridge to the Warp kernels of ``kernels/splat.py``.
 
-One forward pass makes four Warp kernel launches (projection, key emission, tile ranges, compositing) plus
-three calls of Warp's native sort and scan (the depth sort of the Gaussians, the prefix sum of their tile counts
-in depth order, the sort of the (Gaussian, tile) pairs by tile: two radix sorts over 4-byte keys that give the order of one
+One forward pass makes four Warp kernel launches (projection, key emission, tile ranges, compositing) plus three
+calls of Warp's native sort and scan (the depth sort of the Gaussians, the prefix sum of their tile counts in depth
+order, the sort of the (Gaussian, tile) pairs by tile: two radix sorts over 4-byte keys that give the order of one
 over 8-byte (tile, depth) keys, see ``kernels/splat.py``), one small torch fill (the prefix sum's buffer with the
 pair count and the flags; the key emission clears the tile ranges), a copy of the sorted ids when a backward may
-follow (it keeps 4 bytes a pair, not the sort's double buffer; a pass whose inputs need no gradient skips it),
-and one host synchronization. One backward pass makes two Warp
-launches (compositing backward, projection adjoint), one torch fill and no synchronization.
+follow (it keeps 4 bytes a pair, not the sort's double buffer; a pass whose inputs need no gradient skips it), and
+one host synchronization. One backward pass makes two Warp launches (compositing backward, projection adjoint), one
+torch fill and no synchronization.
 
 The sort buffers must hold every (Gaussian, tile) pair, a number known only on the device once the projection
 has run (an upper bound would cost far more memory, as any Gaussian may cover the whole image). Four modes:
@@ -37,7 +37,8 @@ In every mode non-finite inputs raise a ``ValueError`` (fixed mode: when the cal
 Host work per call is kept small: kernel arguments are Warp launch descriptors
 (:func:`~warpavatar._src.warp_utils.warp_descriptor`), not ``wp.array`` objects, the launches reuse recorded
 commands (:mod:`warpavatar.kernels.launch`), and the sort and scan get the tensors' pointers
-(:func:`~warpavatar._src.warp_utils.radix_sort_pairs`, :func:`~warpavatar._src.warp_utils.inclusive_scan`). Memory a pass holds, per Gaussian / pair / pixel, is listed in ``docs/rasterizer_memory.md``.
+(``warp_utils.radix_sort_pairs`` and ``inclusive_scan``). Memory a pass holds, per Gaussian / pair / pixel,
+is listed in ``docs/rasterizer_memory.md``.
 """
 
 from __future__ import annotations

@@ -362,14 +362,14 @@ def radix_sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, *, be
     suffix = _SORT_KEY_SUFFIX.get(keys.dtype)
     if (suffix is None or value_bytes not in (4, 8) or not keys.is_contiguous() or not values.is_contiguous()
             or keys.numel() < 2 * count or values.shape[0] < 2 * count):
-        raise ValueError(f"radix_sort_pairs: keys must be contiguous float32 or int32 and both arrays hold 2 * {count} "
-                         f"elements of 4 or 8 bytes, got {keys.dtype} {list(keys.shape)} and {values.dtype} "
-                         f"{list(values.shape)}")
+        raise ValueError(f"radix_sort_pairs: keys must be contiguous float32 or int32 and both arrays hold "
+                         f"2 * {count} elements of 4 or 8 bytes, got {keys.dtype} {list(keys.shape)} and "
+                         f"{values.dtype} {list(values.shape)}")
     core = _native_core()
     if core is None:
-        value_dtype = wp.int32 if value_bytes == 4 else wp.vec2i
-        wp.utils.radix_sort_pairs(to_warp(keys), to_warp(values.view(-1) if value_bytes == 4 else values.view(-1, 2),
-                                                         value_dtype), count, begin_bit=begin_bit, end_bit=end_bit)
+        words = values.view(torch.int32)  # the values as 4-byte words: one or two an element
+        typed = to_warp(words.view(-1), wp.int32) if value_bytes == 4 else to_warp(words.view(-1, 2), wp.vec2i)
+        wp.utils.radix_sort_pairs(to_warp(keys), typed, count, begin_bit=begin_bit, end_bit=end_bit)
         return
     where = "device" if keys.is_cuda else "host"
     getattr(core, f"wp_radix_sort_pairs_{suffix}_{where}")(keys.data_ptr(), values.data_ptr(), count, begin_bit,
@@ -392,7 +392,10 @@ def inclusive_scan(values: torch.Tensor, out: torch.Tensor, *, stride: int = 1) 
     if count == 0:
         return
     if values.dtype != torch.int32 or out.dtype != torch.int32 or not out.is_contiguous():
-        raise ValueError(f"inclusive_scan needs int32 tensors (a contiguous output), got {values.dtype} and {out.dtype}")
+        raise ValueError(f"inclusive_scan needs int32 tensors (a contiguous output), got {values.dtype} and "
+                         f"{out.dtype}")
+    if values.untyped_storage().nbytes() // 4 - values.storage_offset() < (count - 1) * stride + 1:
+        raise ValueError(f"inclusive_scan: {count} values {stride} apart do not fit in the input's storage")
     core = _native_core()
     if core is None:
         source = wp.array(ptr=values.data_ptr(), dtype=wp.int32, shape=(count,), strides=(4 * stride,),
