@@ -2,19 +2,18 @@
 
 ``wp.launch`` converts every argument to its C form on every call (18 us of host time for the rasterizer's
 fifteen-argument compositing kernel on this project's 2-core development machine, 2 us reused). On the host-bound
-hot paths (an eager rasterizer pass launches seven kernels, and a pass at avatar scale takes less GPU time than the
-host needs to queue it), that packing is a large share of the host's work. :func:`launch` records one
-``warp.Launch`` command per kernel, device, block size and direction the first time, and later only copies the new
-arguments into the command's own parameter block (an array argument is a 64-byte descriptor copied in place; a
-scalar is written only when it changed) before launching it: about 2 us plus a fraction of a microsecond per
-argument.
+hot paths (an eager rasterizer pass launches four kernels and calls Warp's sort and scan three times, and a pass at
+avatar scale takes less GPU time than the host needs to queue it), that packing is a large share of the host's work.
+:func:`launch` records one ``warp.Launch`` command per kernel, device, block size and direction the first time, and
+later only copies the new arguments into the command's own parameter block (an array argument is a 56-byte
+descriptor copied in place; a scalar is written only when it changed) before launching it: 2 us for the compositing
+kernel.
 
-What it does not do that ``wp.launch`` does: record onto a ``wp.Tape``, launch under a Warp API capture (APIC)
-or in Warp's deterministic mode (generic kernels, whose overload depends on the arguments, go through
-``wp.launch``). A command
-holds no reference to the arguments of its last call (their descriptors are copied, not kept), so a launch never
-keeps a buffer alive longer than ``wp.launch`` would; as with ``wp.launch``, the caller keeps its buffers alive
-until the kernel has been queued, and stream order does the rest.
+What it does not do that ``wp.launch`` does: record onto a ``wp.Tape``, launch under a Warp API capture (APIC) or in
+Warp's deterministic mode (generic kernels, whose overload depends on the arguments, go through ``wp.launch``). A
+command holds no reference to the arguments of its last call (their descriptors are copied, not kept), so a launch
+never keeps a buffer alive longer than ``wp.launch`` would; as with ``wp.launch``, the caller keeps its buffers
+alive until the kernel has been queued, and stream order does the rest.
 
 Commands are kept per thread (a command's parameter block is rewritten by every call).
 """

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_common import markdown_table  # noqa: E402
 from error_breakdown import height_band_mask, masked_psnr  # noqa: E402
 
 from warpavatar import data  # noqa: E402
@@ -186,11 +187,10 @@ def main(argv=None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return 2
     names = list(rows[0]["psnr"])
-    print("| frame | nodes | " + " | ".join(f"{name} mask / slab" for name in names) + " | moved (node spacings) |")
-    print("|---" * (len(names) + 3) + "|")
-    for row in rows:
-        cells = [f"{row['psnr'][n]:.2f} / {row['band'][n]:.2f}" if n in row["psnr"] else "-" for n in names]
-        print(f"| {row['frame']} | {row['mode']} | " + " | ".join(cells) + f" | {row['moved']:.2f} |")
+    print(markdown_table([
+        {"frame": row["frame"], "nodes": row["mode"],
+         **{f"{n} mask / slab": f"{row['psnr'][n]:.2f} / {row['band'][n]:.2f}" for n in names if n in row["psnr"]},
+         "moved (node spacings)": f"{row['moved']:.2f}"} for row in rows]))
     if args.json:
         write_json_atomic(args.json, rows)
     return 0

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_common import markdown_table  # noqa: E402
 from error_breakdown import masked_psnr  # noqa: E402
 from garment_oracle import garment_tool_parser, load_garment_tool_inputs, slab_of  # noqa: E402
 
@@ -226,11 +227,10 @@ def main(argv=None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return 2
     names = list(rows[0]["iou"])
-    print("| cloth | " + " | ".join(f"{name} slab IoU / dB" for name in names) + " |")
-    print("|---" * (len(names) + 1) + "|")
-    for row in rows:
-        cells = [f"{row['iou'][n]:.3f} / {row['psnr'][n]:.2f}" if n in row["iou"] else "-" for n in names]
-        print(f"| {_label(row['variant'])} | " + " | ".join(cells) + " |")
+    print(markdown_table([
+        {"cloth": _label(row["variant"]),
+         **{f"{n} slab IoU / dB": f"{row['iou'][n]:.3f} / {row['psnr'][n]:.2f}" for n in names if n in row["iou"]}}
+        for row in rows]))
     if args.json:
         write_json_atomic(args.json, rows)
     return 0
