@@ -10,7 +10,7 @@ import torch
 
 from warpavatar import ops
 from warpavatar._src import splat as splat_bridge
-from warpavatar._src import splat_replay
+from warpavatar._src import address_graphs, splat_replay
 
 from test_splat import DIFFERENTIABLE, make_scene, random_cotangents, render, render_and_grad
 from test_splat_speculative import _assert_same_pass, assert_bad_value_raises
@@ -21,6 +21,7 @@ def replays(monkeypatch):
     """Speculation and replays on every device, with an empty table of pair counts and no graph cached."""
     monkeypatch.setattr(splat_bridge, "_SPECULATE_ON_CPU", True)
     monkeypatch.setattr(splat_replay, "_REPLAY_ON_CPU", True)
+    monkeypatch.setattr(splat_replay, "REPLAY_AFTER", 3)
     monkeypatch.setattr(splat_bridge, "_RECENT_PAIRS", {})
     cache = splat_replay.ReplayCache(run_pass=splat_bridge.run_pass, buffer_type=splat_bridge.PassBuffers,
                                      tile_grid=splat_bridge._tile_grid,
@@ -42,7 +43,7 @@ def _exact(scene, sizes, cotangents, **options):
 
 def _assert_same_as_exact(scene, sizes, cotangents, replayed, *, like_pairs: int = 3):
     """Outputs bit-equal to the exact pass's; gradients within four times what exact passes differ by among
-    themselves (CUDA's atomic additions sum in another order every pass; on CPU they are equal), or 1e-5 of their
+    themselves (CUDA's atomic additions sum in another order every pass; on CPU they are equal), or 1e-4 of their
     largest value. The spread is the largest over ``like_pairs`` pairs of exact passes: a replayed pass differs
     from an exact one as one exact pass does from another, and one pair's spread alone is sometimes small."""
     exact = [_exact(scene, sizes, cotangents, densify=True) for _ in range(like_pairs + 1)]
@@ -56,7 +57,7 @@ def _assert_same_as_exact(scene, sizes, cotangents, replayed, *, like_pairs: int
     for name, a in gradients(first).items():
         scale = a.abs().max()
         spread = max((gradients(other)[name] - a).abs().max() for other in exact[1:])
-        assert scale > 0 and (gradients(replayed)[name] - a).abs().max() <= max(4 * spread, 1e-5 * scale), name
+        assert scale > 0 and (gradients(replayed)[name] - a).abs().max() <= max(4 * spread, 1e-4 * scale), name
 
 
 def _calls_until_replayed(scene, sizes, cotangents, cache):
@@ -226,24 +227,27 @@ def test_replays_serve_callers_in_and_out_of_inference_mode(device, replays, cap
         assert torch.equal(a, b)
 
 
-def test_the_public_switch_turns_replays_off_and_releases_their_memory(device, replays, monkeypatch):
-    """``ops.rasterizer_replays``: ``after=None`` keeps every call eager; a number sets the streak that captures;
-    each call returns the bytes the cached graphs held and releases them; bad values are clear errors."""
+def test_the_public_switch_sets_the_mode_and_releases_the_graphs_memory(device, replays, monkeypatch):
+    """``ops.rasterizer_replays``: ``mode="off"`` keeps every call eager; ``"owned"`` captures after ``after``
+    calls in a row; each call returns the bytes the owned graphs held and releases them; the default mode is
+    ``"address"``; bad values are clear errors."""
     monkeypatch.setattr(splat_replay, "REPLAY_AFTER", splat_replay.REPLAY_AFTER)  # (restored after the test)
     monkeypatch.setattr(splat_replay, "REPLAY_MAX_BYTES", splat_replay.REPLAY_MAX_BYTES)
+    monkeypatch.setattr(address_graphs, "CAPTURE_AFTER", address_graphs.CAPTURE_AFTER)
     scene, sizes = make_scene(23, device=device, gaussian_count=200)
     cotangents = random_cotangents(sizes, device, 23)
-    assert ops.rasterizer_replays(after=None) == 0
+    assert ops.rasterizer_replays(mode="off") == 0
+    assert address_graphs.CAPTURE_AFTER is None and splat_replay.REPLAY_AFTER is None
     for _ in range(6):
         render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents)
     assert replays.captures == 0 and replays.held_bytes() == 0
-    ops.rasterizer_replays(after=1)
+    ops.rasterizer_replays(mode="owned", after=1)
     for _ in range(3):  # an exact call, one speculative, then the replay's capture
         render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents)
-    assert replays.captures == 1
+    assert replays.captures == 1 and address_graphs.CAPTURE_AFTER is None
     held = replays.held_bytes()
     assert held > 0 and ops.rasterizer_replays() == held and replays.held_bytes() == 0
-    assert splat_replay.REPLAY_AFTER == 3
-    for bad in (dict(after=0), dict(after=1.5), dict(max_bytes=0)):
+    assert splat_replay.REPLAY_AFTER is None and address_graphs.CAPTURE_AFTER == address_graphs.DEFAULT_CAPTURE_AFTER
+    for bad in (dict(mode="fast"), dict(after=0), dict(after=1.5), dict(max_bytes=0)):
         with pytest.raises(ValueError, match=next(iter(bad))):
             ops.rasterizer_replays(**bad)

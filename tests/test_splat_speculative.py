@@ -53,13 +53,14 @@ def test_a_repeated_call_speculates_and_matches_the_exact_pass(device, speculati
     exact = render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents, densify=True)
     capacity = speculation._speculative_capacity(key)
     pairs = int(speculation._RECENT_PAIRS[key][-1])
-    assert pairs > 200 and capacity == max(1024, -(-pairs * 12 // 10))
+    assert pairs > 200 and max(1024, 1.03 * pairs) <= capacity <= max(1024, 1.03 * pairs) * (1 + 1 / 64)
     speculative = render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents, densify=True)
     _assert_same_pass(exact, speculative)
     assert (speculative[2] - exact[2]).abs().max() <= 1e-5 * exact[2].abs().max()
-    # The speculative pass sorted in buffers of the guessed size (padding slots sort after every tile).
+    # The speculative pass sorted in buffers of the guessed size (padding slots sort after every tile) and kept
+    # the ids of the pairs only.
     sorted_ids, pair_count = _saved_sorted_ids(scene, sizes)
-    assert pair_count == pairs and sorted_ids.shape[0] == capacity > pairs
+    assert pair_count == pairs and sorted_ids.shape[0] == pairs < capacity
 
 
 def test_a_short_guess_bins_again_with_exact_buffers(device, speculation):
@@ -111,6 +112,6 @@ def test_the_history_looks_back_a_fixed_number_of_calls(speculation):
     key = (torch.device("cpu"), 8, 8, 1)
     for count in [50_000] + [2_000] * speculation.SPECULATIVE_HISTORY:
         speculation._remember_pairs(key, count)
-    assert speculation._speculative_capacity(key) == 2_400  # the 50k call has left the window
-    speculation._remember_pairs(key, 10)
-    assert speculation._speculative_capacity(key) == 2_400
+    assert speculation._speculative_capacity(key) == 2_080  # the 50k call has left the window (1.03 x 2000,
+    speculation._remember_pairs(key, 10)                      # rounded up to 32)
+    assert speculation._speculative_capacity(key) == 2_080  # a drop keeps the most

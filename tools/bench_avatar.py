@@ -5,7 +5,8 @@ Times, side by side in one run:
 * the rasterizer (forward, forward + backward, peak memory) on the avatar's posed and shaded Gaussians (the first
   training frame's pose and camera), at the training size and at 1920x1080 (the camera's intrinsics scaled to
   that width, the principal point re-centred), against ``gsplat.rasterization`` on the same Gaussians when
-  gsplat imports (CUDA only);
+  gsplat imports (CUDA only); the notes give the pairs sorted, the peaks, what graphs of ``--replay owned`` hold
+  between calls and how many timed calls were replayed by address (the default mode);
 * the training step (``Trainer.train_step``) at the avatar's Gaussian count, past densification (the steady step),
   eager and replayed from a CUDA graph, with the work of one step counted: Warp launches (``wp.launch`` plus the
   scan and sort of ``warp.utils``), torch operators (each dispatched aten op, about one kernel each on CUDA), host
@@ -44,7 +45,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from bench_common import time_function  # noqa: E402
-from bench_splat import _count_warp_calls, _gsplat, _measure, _ratio  # noqa: E402
+from bench_splat import _count_warp_calls, _gsplat, _measure, _pair_count, _ratio  # noqa: E402
 
 from warpavatar import data  # noqa: E402
 from warpavatar._src import splat as splat_bridge  # noqa: E402
@@ -216,19 +217,24 @@ def _raster_rows(avatar, video, device, warmup, repeats, quick) -> list[dict]:
             return rasterize_gaussians(*parameters, scene["K"], scene["world_to_camera"], width, height)
 
         splat_bridge._REPLAYS.clear()  # each size alone: no graph of the other size held on
+        splat_bridge._PASS_GRAPHS.clear()
+        replays_before = splat_bridge._PASS_GRAPHS.replays
         forward_ms, backward_ms, peak = _measure(ours, parameters, device, warmup, repeats)
+        address_replays = splat_bridge._PASS_GRAPHS.replays - replays_before
         held = splat_bridge._REPLAYS.held_bytes() / 2**20
+        pairs = _pair_count(dict(scene, **dict(zip(("means", "quats", "scales", "opacities", "colors"), tensors))))
         row = {"measure": "rasterizer fwd / fwd+bwd ms", "size": f"{width}x{height}",
                "ours": f"{forward_ms:.3f} / {forward_ms + backward_ms:.3f}", "gsplat": None, "ratio": None,
-               "notes": f"{tensors[0].shape[0]} Gaussians; peak {peak:.0f} MiB + {held:.0f} MiB held by the "
-                        f"replayed pass's graph" if peak is not None else f"{tensors[0].shape[0]} Gaussians"}
+               "notes": f"{tensors[0].shape[0]} Gaussians; peak {peak:.1f} MiB + {held:.1f} MiB held by the "
+                        f"replayed pass's graph; {address_replays} calls replayed by address; {pairs} pairs"
+                        if peak is not None else f"{tensors[0].shape[0]} Gaussians"}
         theirs = _gsplat(scene, parameters) if device.startswith("cuda") else None
         if theirs is not None:
             g_forward, g_backward, g_peak = _measure(theirs, parameters, device, warmup, repeats)
             row.update(gsplat=f"{g_forward:.3f} / {g_forward + g_backward:.3f}",
                        ratio=f"{_ratio(forward_ms, g_forward):.2f} / "
                              f"{_ratio(forward_ms + backward_ms, g_forward + g_backward):.2f}")
-            row["notes"] += f" (gsplat peak {g_peak:.0f} MiB)"
+            row["notes"] += f" (gsplat peak {g_peak:.1f} MiB)"
         rows.append(row)
     return rows
 

@@ -48,15 +48,15 @@ def main(argv=None) -> int:
     parser.add_argument("--matmul-precision", choices=("tf32", "fp32"), default=None,
                         help="avatar mode: precision of the MLPs' float32 GEMMs in the training step and in playback "
                              "(warpavatar-fit --matmul-precision; default: the fitted avatar's config, else tf32)")
-    parser.add_argument("--replay", choices=("on", "off"), default="on",
-                        help="splat and avatar modes: on (default) replays a rasterizer pass of a repeated shape "
-                             "from a CUDA graph, as warpavatar does by default; off keeps every pass eager (nothing "
-                             "held between calls: warpavatar.ops.rasterizer_replays(after=None))")
+    parser.add_argument("--replay", choices=("address", "owned", "off"), default="address",
+                        help="splat and avatar modes: how repeated rasterizer passes skip their host work "
+                             "(warpavatar.ops.rasterizer_replays): address (default, as warpavatar runs) replays a "
+                             "pass whose buffers' addresses repeat from a CUDA graph; owned replays a repeated shape "
+                             "from a graph holding its own buffers; off launches every kernel from Python")
     args = parser.parse_args(argv)
-    if args.replay == "off":
-        from warpavatar._src.splat import rasterizer_replays  # noqa: PLC0415
+    from warpavatar._src.splat import rasterizer_replays  # noqa: PLC0415
 
-        rasterizer_replays(after=None)
+    rasterizer_replays(mode=args.replay)
 
     modes = MODES if args.mode == "all" else (args.mode,)
     if args.device.startswith("cuda"):

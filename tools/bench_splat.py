@@ -12,10 +12,11 @@ options, render_mode "RGB+D" so that it also computes depth) on the same inputs,
 ``launches`` counts the ``wp.launch`` calls of one forward / one backward, plus the ``warp.utils`` scan and
 sort calls (each a few CUB kernels; a forward makes one scan and two sorts, by depth and by tile). ``pairs`` is the number of (Gaussian, tile) pairs sorted and walked by the
 compositing (ours: the sum of the projection's tile counts; gsplat: the length of its ``isect_ids``).
-``replayed calls`` counts our timed calls served by a replayed CUDA graph (``warpavatar/_src/splat_replay.py``:
-a shape's pass is captured after a few repeated calls), and ``graph MiB`` what its graphs hold between calls
-(``ReplayCache.held_bytes``: fixed inputs and outputs, and the pass's sort buffers in the capture's pool).
-They exist before the measured call, so ``peak MiB`` is above them; ``peak ratio`` counts them in: (peak +
+``replayed calls`` counts our timed calls served by a CUDA graph: by default one keyed by the addresses of the
+call's buffers (``warpavatar/_src/address_graphs.py``: nothing held between calls); with ``--replay owned`` one
+holding its own buffers (``warpavatar/_src/splat_replay.py``), and then ``graph MiB`` is what its graphs hold
+between calls (``ReplayCache.held_bytes``: fixed inputs and outputs, and the pass's sort buffers in the capture's
+pool). Those exist before the measured call, so ``peak MiB`` is above them; ``peak ratio`` counts them in: (peak +
 graph MiB) / gsplat's peak.
 """
 
@@ -204,7 +205,7 @@ def run(device: str, quick: bool) -> list[dict]:
         backward_calls = dict(counter)
         del outputs
 
-        replays_before = splat_bridge._REPLAYS.replays
+        replays_before = splat_bridge._REPLAYS.replays + splat_bridge._PASS_GRAPHS.replays
         forward_ms, backward_ms, peak = _measure(ours, parameters, device, warmup, repeats)
         row = {
             "gaussians": gaussian_count,
@@ -214,7 +215,7 @@ def run(device: str, quick: bool) -> list[dict]:
             "peak MiB": peak,
             "launches fwd/bwd": (f"{forward_calls.get('launch', 0)}+{forward_calls.get('utils', 0)} utils / "
                                  f"{backward_calls.get('launch', 0)}"),
-            "replayed calls": splat_bridge._REPLAYS.replays - replays_before,
+            "replayed calls": splat_bridge._REPLAYS.replays + splat_bridge._PASS_GRAPHS.replays - replays_before,
             "graph MiB": splat_bridge._REPLAYS.held_bytes() / 2**20,
             "pairs": _pair_count(scene),
             "gsplat pairs": None,
@@ -242,6 +243,7 @@ def run(device: str, quick: bool) -> list[dict]:
         rows.append(row)
         del scene, parameters
         splat_bridge._REPLAYS.clear()  # each row alone: no graph of an earlier row's shape held on
+        splat_bridge._PASS_GRAPHS.clear()
         if device.startswith("cuda"):
             torch.cuda.empty_cache()
     return rows

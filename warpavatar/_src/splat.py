@@ -6,7 +6,8 @@ order, the sort of the (Gaussian, tile) pairs by tile: two radix sorts over 4-by
 over 8-byte (tile, depth) keys, see ``kernels/splat.py``), one small torch fill (the prefix sum's buffer with the
 pair count and the flags; the key emission clears the tile ranges), a copy of the sorted ids when a backward may
 follow (it keeps 4 bytes a pair, not the sort's double buffer; a pass whose inputs need no gradient skips it), and
-one host synchronization. One backward pass makes two Warp launches (compositing backward, projection adjoint), one
+one host synchronization; in the speculative mode a call whose buffers' addresses repeat replays all of that but
+the copy from one CUDA graph. One backward pass makes two Warp launches (compositing backward, projection adjoint), one
 torch fill and no synchronization.
 
 The sort buffers must hold every (Gaussian, tile) pair, a number known only on the device once the projection
@@ -14,10 +15,15 @@ has run (an upper bound would cost far more memory, as any Gaussian may cover th
 
 * **Speculative** (CUDA, the default once a call of the same image size and Gaussian count has been seen): the
   buffers get a capacity of :data:`SPECULATIVE_HEADROOM` times the most pairs of the last
-  :data:`SPECULATIVE_HISTORY` such calls, and the whole pass is queued without waiting; the pair count and the
-  non-finite-input flag are read once at the end (the one synchronization). When the pairs did not fit, the
-  tile binning and compositing run again with exact buffers, so the result is always exact. The host thus
-  queues every kernel while the GPU works, instead of waiting for the projection half-way.
+  :data:`SPECULATIVE_HISTORY` such calls (more where their counts rise), every buffer is allocated first, and
+  the whole pass is queued without waiting; the pair count and the non-finite-input flag are read once at the
+  end (the one synchronization), and only then are the pairs' ids copied out of the sort's double buffer. When
+  the pairs did not fit, the tile binning and compositing run again with exact buffers, so the result is always
+  exact. The host thus queues every kernel while the GPU works, instead of waiting for the projection half-way.
+  Where a call's buffers come back at the addresses of a recent call's (torch's caching allocator hands out the
+  same blocks to the same sequence of allocations: a render loop, a training step), its launches are replayed
+  from a CUDA graph keyed by those addresses (:mod:`warpavatar._src.address_graphs`): one graph launch instead
+  of some twenty launches from Python, and no memory held between calls.
 * **Exact** (CPU, and the first call of a size on CUDA): the pair count is read after the depth sort and its
   prefix sum, and the buffers get exactly that size.
 * **Fixed** (``intersection_capacity``): the buffers have that size, the key kernel gives unused slots a padding
@@ -25,12 +31,13 @@ has run (an upper bound would cost far more memory, as any Gaussian may cover th
   captured in a CUDA graph; the pair count and the input flags stay on the device (``info["status"]``) for
   the caller to check when it reads other values anyway (:func:`rasterizer_status`).
 
-* **Replayed** (CUDA, :mod:`warpavatar._src.splat_replay`): once a few consecutive speculative calls of one shape
-  (image size, Gaussian count, SH layout) have fitted their guess, that shape's fixed-capacity pass is captured
-  into a CUDA graph and later calls replay it: their inputs copied in by one concatenation, the graph replayed,
-  its outputs copied out (three copies) and the status read. The host's work per call drops from some twenty
-  launches to five; the results are the speculative mode's. A pass that outgrew the graph is passed again with
-  exact buffers.
+* **Replayed with its own buffers** (CUDA, opt-in: :func:`rasterizer_replays`, :mod:`warpavatar._src.splat_replay`):
+  once a few consecutive speculative calls of one shape (image size, Gaussian count, SH layout) have fitted their
+  guess, that shape's fixed-capacity pass is captured into a CUDA graph with its own inputs, outputs and sort
+  buffers, and later calls replay it: their inputs copied in by one concatenation, the graph replayed, its
+  outputs copied out (three copies) and the status read. Whatever the call's addresses, but the graph holds about
+  as much memory again as the pass between calls. A pass that outgrew the graph is passed again with exact
+  buffers.
 
 In every mode non-finite inputs raise a ``ValueError`` (fixed mode: when the caller checks the status).
 
@@ -51,7 +58,8 @@ from typing import NamedTuple
 import torch
 import warp as wp
 
-from warpavatar._src import splat_replay
+from warpavatar._src import address_graphs, splat_replay
+from warpavatar._src.address_graphs import AddressKeyedGraphs
 from warpavatar._src.splat_replay import ReplayCache
 from warpavatar._src.warp_utils import (check_tensor, inclusive_scan, radix_sort_pairs, torch_stream_scope,
                                         warp_descriptor, write_only_descriptor)
@@ -60,8 +68,9 @@ from warpavatar.kernels import splat as splat_kernels
 __all__ = ["rasterize_gaussians", "RasterInfo", "rasterizer_replays", "rasterizer_status", "run_pass",
            "allocate_pass_buffers", "PassBuffers", "SPECULATIVE_HEADROOM", "SPECULATIVE_HISTORY"]
 
-SPECULATIVE_HEADROOM = 1.2
-"""Speculative capacity as a multiple of the most pairs of recent calls of the same size (see the module doc)."""
+SPECULATIVE_HEADROOM = 1.03
+"""Speculative capacity as a multiple of the most pairs of recent calls of the same size, or of the last call's
+pairs plus the largest rise between consecutive recent calls where that is more (:func:`_speculative_capacity`)."""
 
 SPECULATIVE_HISTORY = 8
 """How many recent calls of one (device, image size, Gaussian count) the speculative capacity looks back on."""
@@ -120,7 +129,16 @@ def _speculative_capacity(key: tuple) -> int | None:
     recent = _RECENT_PAIRS.get(key)
     if not recent:
         return None
-    return max(_SPECULATIVE_MINIMUM, math.ceil(SPECULATIVE_HEADROOM * max(recent)))
+    # Calls that repeat one count (a scene rendered again, a training step's small moves) get a few per cent
+    # above the most; calls whose counts grow get the largest recent rise on top of the last. Rounded up to 1/64
+    # of the capacity's power of two, so that slightly different histories give the same capacity (and the same
+    # buffers: address_graphs).
+    counts = list(recent)
+    rise = max((later - earlier for earlier, later in zip(counts, counts[1:])), default=0)
+    guess = max(max(counts), counts[-1] + rise)
+    capacity = max(_SPECULATIVE_MINIMUM, math.ceil(SPECULATIVE_HEADROOM * guess))
+    step = 1 << max(capacity.bit_length() - 7, 0)
+    return -(-capacity // step) * step
 
 
 def _remember_pairs(key: tuple, count: int) -> None:
@@ -151,6 +169,35 @@ def _sort_by_depth(depth_sort, tile_ends) -> None:
     inclusive_scan(depth_order[:, 1], tile_ends, stride=2)
 
 
+def _tile_sort_buffers(slots: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The tile sort's double buffers for ``slots`` pairs: int32 keys [2 slots] and Gaussian ids [2 slots]."""
+    return (torch.empty(2 * slots, device=device, dtype=torch.int32),
+            torch.empty(2 * slots, device=device, dtype=torch.int32))
+
+
+def _queue_binning(slots, sort_keys, sorted_ids, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radii,
+                   tile_ranges, *, width, height, padded: bool) -> None:
+    """Queue the binning of the (Gaussian, tile) pairs into ``slots`` slots of :func:`_tile_sort_buffers`: the
+    key emission (which clears ``tile_ranges``), the tile sort and the tile ranges. ``padded``: the slots are a
+    capacity, whose unused slots hold a padding key that sorts last and belongs to no tile, and pairs past it
+    are dropped; else ``slots`` is the exact pair count. Reads nothing from the device."""
+    tiles_x, tiles_y = _tile_grid(width, height)
+    gaussian_count = tile_ends.shape[0]
+    if not (slots and gaussian_count):
+        tile_ranges.zero_()  # no pair: every tile's range is empty (the emission clears them otherwise)
+        return
+    splat_kernels.launch_emit_tile_keys(
+        w_xy_opacity, w_conics, w_radii, warp_descriptor(depth_sort[1][:gaussian_count], wp.vec2i),
+        warp_descriptor(tile_ends), width=width, height=height, keys=warp_descriptor(sort_keys[:slots]),
+        gaussian_ids=warp_descriptor(sorted_ids[:slots]), tile_ranges=warp_descriptor(tile_ranges))
+    radix_sort_pairs(sort_keys, sorted_ids, slots, begin_bit=0,
+                     end_bit=splat_kernels.tile_key_bits(tiles_x * tiles_y))
+    if padded:
+        splat_kernels.launch_tile_ranges_padded(warp_descriptor(sort_keys), slots, warp_descriptor(tile_ranges))
+    else:
+        splat_kernels.launch_tile_ranges(warp_descriptor(sort_keys), slots, warp_descriptor(tile_ranges))
+
+
 def _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radii, tile_ranges, *, width, height,
          ids_out=None, compact=True):
     """Sort the (Gaussian, tile) pairs; returns the sorted Gaussian ids (one per pair, or per capacity slot).
@@ -158,40 +205,27 @@ def _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radi
     ``depth_sort`` and ``tile_ends`` [N] are as :func:`_sort_by_depth` left them; ``status`` ([pair count,
     flags]) is a view that ends with its last entry. Without a ``capacity`` the buffers have the exact size:
     ``status`` is read from the device (the one host synchronization) and non-finite input raises. With one,
-    nothing is read: unused slots hold a padding key that sorts last and belongs to no tile, and pairs past the
-    capacity are dropped. ``tile_ranges`` [tiles, 2] need not be cleared: the emission kernel (or, without pairs,
-    a fill) does it. ``ids_out`` (with a ``capacity``): a buffer of ``capacity`` int32 that receives the ids,
-    returned instead of a fresh copy. ``compact=False`` (nothing reads the ids after the pass: no backward)
-    returns them in place, a view of the sort's double buffer, without the copy.
+    nothing is read (see :func:`_queue_binning`). ``ids_out`` (with a ``capacity``): a buffer of ``capacity``
+    int32 that receives the ids, returned instead of a fresh copy. ``compact=False`` (nothing reads the ids
+    after the pass: no backward) returns them in place, a view of the sort's double buffer, without the copy.
     """
-    device = tile_ranges.device
-    tiles_x, tiles_y = _tile_grid(width, height)
-    gaussian_count = tile_ends.shape[0]
-    depth_order = depth_sort[1]
     if capacity is None:
         count, flags = status.tolist()  # the one host sync
         _raise_on_bad_inputs(flags)
     else:
         count = capacity
-    sort_keys = torch.empty(2 * count, device=device, dtype=torch.int32)
-    sorted_ids = torch.empty(2 * count, device=device, dtype=torch.int32)
-    if count and gaussian_count:
-        splat_kernels.launch_emit_tile_keys(
-            w_xy_opacity, w_conics, w_radii, warp_descriptor(depth_order[:gaussian_count], wp.vec2i),
-            warp_descriptor(tile_ends), width=width, height=height, keys=warp_descriptor(sort_keys[:count]),
-            gaussian_ids=warp_descriptor(sorted_ids[:count]), tile_ranges=warp_descriptor(tile_ranges))
-        radix_sort_pairs(sort_keys, sorted_ids, count, begin_bit=0,
-                         end_bit=splat_kernels.tile_key_bits(tiles_x * tiles_y))
-        if capacity is None:
-            splat_kernels.launch_tile_ranges(warp_descriptor(sort_keys), count, warp_descriptor(tile_ranges))
-        else:
-            splat_kernels.launch_tile_ranges_padded(warp_descriptor(sort_keys), count, warp_descriptor(tile_ranges))
-    else:
-        tile_ranges.zero_()  # no pair: every tile's range is empty (the emission clears them otherwise)
-    # The sort's second halves were its scratch: the backward keeps only the sorted ids (4 bytes a pair, not
-    # the 8 of the double buffer), copied once the keys' 8 bytes a pair are released. Without Gaussians no
-    # tile has a range, and the ids (of a capacity) are never read.
+    sort_keys, sorted_ids = _tile_sort_buffers(count, tile_ranges.device)
+    _queue_binning(count, sort_keys, sorted_ids, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radii,
+                   tile_ranges, width=width, height=height, padded=capacity is not None)
     del sort_keys
+    return _kept_ids(sorted_ids, count, ids_out=ids_out, compact=compact)
+
+
+def _kept_ids(sorted_ids, count: int, *, ids_out=None, compact=True):
+    """The first ``count`` sorted ids as the backward keeps them (see :func:`_bin`). The sort's second halves
+    were its scratch: the backward keeps only the ids (4 bytes a pair, not the 8 of the double buffer), copied
+    once the caller has released the keys' 8 bytes a pair. Without Gaussians no tile has a range, and the ids
+    are never read."""
     if ids_out is not None:
         ids_out.copy_(sorted_ids[:count])
         return ids_out
@@ -239,8 +273,8 @@ def allocate_pass_buffers(gaussian_count: int, width: int, height: int, device: 
 
 def run_pass(means, quats, scales, opacities, coefficients, background, K, world_to_camera, *, width: int,
              height: int, sh_degree: int, capacity: int | None, speculative: bool,
-             buffers: PassBuffers, compact_ids: bool = True,
-             pixel_state: bool = True) -> tuple[PassBuffers, int | None]:
+             buffers: PassBuffers, compact_ids: bool = True, pixel_state: bool = True,
+             graphs: AddressKeyedGraphs | None = None) -> tuple[PassBuffers, int | None]:
     """Queue one forward pass into ``buffers`` (see the module doc for the three modes).
 
     Args:
@@ -253,6 +287,8 @@ def run_pass(means, quats, scales, opacities, coefficients, background, K, world
             stay in the sort's buffer (8 bytes a pair, released with the pass) instead of a 4-byte copy.
         pixel_state: False when no backward will run: ``final_transmittance`` and ``last_index`` are then not
             written (their buffers hold garbage).
+        graphs: in the speculative mode, where the pass's launches are replayed from when its buffers' addresses
+            repeat (:mod:`warpavatar._src.address_graphs`); None: launched one by one.
 
     Returns:
         ``(buffers, pair_count)``: the buffers with ``status`` and ``sorted_ids`` set, and the pair count where
@@ -261,68 +297,101 @@ def run_pass(means, quats, scales, opacities, coefficients, background, K, world
     device = means.device
     gaussian_count = means.shape[0]
     used_coefficients = 1 if sh_degree < 0 else (sh_degree + 1) ** 2
-    i32 = dict(device=device, dtype=torch.int32)
-    # One zeroed int32 allocation: a zero, the inclusive prefix sum of the tile counts in depth order and the
-    # non-finite-input flag; the last two are the pair count and the flag (one read fetches both; 0 pairs
-    # without Gaussians).
-    tile_ends_and_flag = torch.zeros(gaussian_count + 2, **i32)
+    # One int32 allocation, zeroed by the pass: a zero, the inclusive prefix sum of the tile counts in depth
+    # order and the non-finite-input flag; the last two are the pair count and the flag (one read fetches both;
+    # 0 pairs without Gaussians).
+    tile_ends_and_flag = torch.empty(gaussian_count + 2, device=device, dtype=torch.int32)
     depth_sort = _depth_sort_buffers(gaussian_count, device)
+    tile_ends = tile_ends_and_flag[1:gaussian_count + 1]
+    status = tile_ends_and_flag[gaussian_count:]
     out = buffers
-    with torch_stream_scope(device):
-        # Kernel arguments as launch descriptors (a fraction of a wp.array's host cost); the scan and the sort
-        # of warp.utils take wp.arrays.
-        w_xy_opacity = warp_descriptor(out.xy_opacity, wp.vec3)
-        w_conics = warp_descriptor(out.conics, wp.vec3)
-        w_color_depth = warp_descriptor(out.color_depth, wp.vec4)
-        w_radii = warp_descriptor(out.radii, wp.vec2i)
-        tile_ends = tile_ends_and_flag[1:gaussian_count + 1]
+
+    def queue_front():
+        """Clear the prefix sum's buffer, project, sort by depth and sum the tile counts."""
+        tile_ends_and_flag.zero_()
         splat_kernels.launch_project(
             warp_descriptor(means, wp.vec3), warp_descriptor(quats, wp.vec4), warp_descriptor(scales, wp.vec3),
             warp_descriptor(opacities), warp_descriptor(coefficients, wp.vec3),
             warp_descriptor(K.view(1, 3, 3), wp.mat33), warp_descriptor(world_to_camera.view(1, 4, 4), wp.mat44),
             width=width, height=height, sh_degree=sh_degree, used_coefficients=used_coefficients,
-            xy_opacity=w_xy_opacity, conics=w_conics, color_depth=w_color_depth, radii=w_radii,
+            xy_opacity=warp_descriptor(out.xy_opacity, wp.vec3), conics=warp_descriptor(out.conics, wp.vec3),
+            color_depth=warp_descriptor(out.color_depth, wp.vec4), radii=warp_descriptor(out.radii, wp.vec2i),
             depth_keys=warp_descriptor(depth_sort[0][:gaussian_count]),
             depth_order=warp_descriptor(depth_sort[1][:gaussian_count], wp.vec2i),
             bad_input_flags=warp_descriptor(tile_ends_and_flag[gaussian_count + 1:]),
         )
         _sort_by_depth(depth_sort, tile_ends)
-        status = tile_ends_and_flag[gaussian_count:]
-        w_background = warp_descriptor(background.view(1, 3), wp.vec3)
-        w_pixels = dict(image=warp_descriptor(out.image.view(-1, 3), wp.vec3),
-                        alpha=warp_descriptor(out.alpha.view(-1)), depth=warp_descriptor(out.depth.view(-1)),
-                        final_transmittance=warp_descriptor(out.final_transmittance.reshape(-1)),
-                        last_index=warp_descriptor(out.last_index.reshape(-1)))
 
-        def bin_and_composite(capacity, ids_out=None):
-            sorted_ids = _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radii,
-                              out.tile_ranges, width=width, height=height, ids_out=ids_out, compact=compact_ids)
-            splat_kernels.launch_composite_forward(
-                warp_descriptor(out.tile_ranges), warp_descriptor(sorted_ids), w_xy_opacity, w_conics,
-                w_color_depth, w_background, width=width, height=height, pixel_state=pixel_state, **w_pixels)
-            return sorted_ids
+    def queue_composite(sorted_ids):
+        splat_kernels.launch_composite_forward(
+            warp_descriptor(out.tile_ranges), warp_descriptor(sorted_ids), warp_descriptor(out.xy_opacity, wp.vec3),
+            warp_descriptor(out.conics, wp.vec3), warp_descriptor(out.color_depth, wp.vec4),
+            warp_descriptor(background.view(1, 3), wp.vec3), width=width, height=height, pixel_state=pixel_state,
+            image=warp_descriptor(out.image.view(-1, 3), wp.vec3), alpha=warp_descriptor(out.alpha.view(-1)),
+            depth=warp_descriptor(out.depth.view(-1)),
+            final_transmittance=warp_descriptor(out.final_transmittance.reshape(-1)),
+            last_index=warp_descriptor(out.last_index.reshape(-1)))
 
-        count = None
-        if capacity is not None and not speculative:  # fixed: nothing read
+    def bin_and_composite(capacity, ids_out=None):
+        w_geometry = (warp_descriptor(out.xy_opacity, wp.vec3), warp_descriptor(out.conics, wp.vec3), depth_sort,
+                      tile_ends, warp_descriptor(out.radii, wp.vec2i), out.tile_ranges)
+        sorted_ids = _bin(status, capacity, *w_geometry, width=width, height=height, ids_out=ids_out,
+                          compact=compact_ids)
+        queue_composite(sorted_ids)
+        return sorted_ids
+
+    count = None
+    with torch_stream_scope(device):
+        if capacity is None:  # exact: the pair count read half-way
+            queue_front()
+            sorted_ids = bin_and_composite(None)
+            count = int(sorted_ids.shape[0])  # the exact mode's buffers hold the pair count
+        elif not speculative:  # fixed: nothing read
+            queue_front()
             sorted_ids = bin_and_composite(capacity, out.sorted_ids)
             if out.status is not None:
                 out.status.copy_(status)
                 status = out.status
-        else:
-            sorted_ids = bin_and_composite(capacity)
-            if speculative:
-                count, flags = status.tolist()  # the one host sync, once the whole pass is queued
-                _raise_on_bad_inputs(flags)
-                if count > capacity:  # the guess was short: again with exact buffers (the emission clears ranges)
-                    sorted_ids = bin_and_composite(count)
+        else:  # speculative: every buffer allocated first, the whole pass queued (or replayed), then one read
+            sort_keys, slot_ids = _tile_sort_buffers(capacity, device)
+
+            def queue_pass():
+                queue_front()
+                _queue_binning(capacity, sort_keys, slot_ids, warp_descriptor(out.xy_opacity, wp.vec3),
+                               warp_descriptor(out.conics, wp.vec3), depth_sort, tile_ends,
+                               warp_descriptor(out.radii, wp.vec2i), out.tile_ranges, width=width, height=height,
+                               padded=True)
+                queue_composite(slot_ids[:capacity])
+
+            if graphs is None:
+                queue_pass()
             else:
-                count = int(sorted_ids.shape[0])  # the exact mode's buffers hold the pair count
+                tensors = (means, quats, scales, opacities, coefficients, background, K, world_to_camera,
+                           tile_ends_and_flag, depth_sort[1], sort_keys, slot_ids, out.xy_opacity, out.conics,
+                           out.color_depth, out.radii, out.tile_ranges, out.image, out.alpha, out.depth,
+                           out.final_transmittance, out.last_index)
+                # Everything the launches take: the addresses, and the sizes and scalars that fix the rest.
+                key = (device, width, height, sh_degree, capacity, pixel_state, coefficients.shape[1],
+                       gaussian_count, *[tensor.data_ptr() for tensor in tensors])
+                graphs.run(key, queue_pass, device=device)
+            count, flags = status.tolist()  # the one host sync, once the whole pass is queued
+            _raise_on_bad_inputs(flags)
+            del sort_keys
+            if count > capacity:  # the guess was short: again with exact buffers (the emission clears ranges)
+                del slot_ids
+                sorted_ids = bin_and_composite(count)
+            else:  # only the pairs' ids are kept (the padding slots sort last and belong to no tile)
+                sorted_ids = _kept_ids(slot_ids, count, compact=compact_ids)
     return out._replace(status=status, sorted_ids=sorted_ids), count
 
 
 _REPLAYS = ReplayCache(run_pass=run_pass, buffer_type=PassBuffers, tile_grid=_tile_grid,
                        raise_on_bad_inputs=_raise_on_bad_inputs)
 """The graphs of recently repeated call shapes (:mod:`warpavatar._src.splat_replay`)."""
+
+_PASS_GRAPHS = AddressKeyedGraphs()
+"""The speculative passes' launches, replayed where their buffers' addresses repeat
+(:mod:`warpavatar._src.address_graphs`)."""
 
 
 class _RasterizeGaussians(torch.autograd.Function):
@@ -350,7 +419,8 @@ class _RasterizeGaussians(torch.autograd.Function):
             passed, count = run_pass(*inputs, **sizes, capacity=capacity, speculative=speculative,
                                      buffers=allocate_pass_buffers(gaussian_count, width, height, device),
                                      compact_ids=any(ctx.needs_input_grad[:5]),
-                                     pixel_state=any(ctx.needs_input_grad[:6]))
+                                     pixel_state=any(ctx.needs_input_grad[:6]),
+                                     graphs=_PASS_GRAPHS if speculative else None)
         if intersection_capacity is None:
             _remember_pairs(speculation_key, count)
             if speculative and count <= capacity:
@@ -587,35 +657,47 @@ class RasterInfo(Mapping):
         return 4
 
 
-def rasterizer_replays(*, after: int | None = 3, max_bytes: int = 128 << 20) -> int:
-    """Set when repeated forward calls of one shape are replayed from a CUDA graph, and release what the cached
-    graphs hold (:mod:`warpavatar._src.splat_replay`).
+def rasterizer_replays(*, mode: str = "address", after: int = 3, max_bytes: int = 128 << 20) -> int:
+    """Set how repeated forward calls skip their host work, and release what cached graphs hold.
 
-    A replayed call skips most of the forward's host work (at 40k Gaussians the forward went from 1.56 to 0.68 ms
-    on an H100), but its graph keeps the shape's inputs, outputs and sort buffers allocated between calls: about
-    as much again as the call's own peak at small images (21 MiB for an 89k-Gaussian avatar at 384x384), 93 /
-    244 / 432 MiB at 100k / 500k / 1M Gaussians at 1080p; by default no shape holds over 128 MiB (larger passes
-    are bound by the GPU's work and gain little). Where memory is short, ``after=None`` keeps every call eager
-    (the speculative mode, nothing held between calls).
+    An eager forward pass queues about twenty launches from Python, more host time than the GPU needs for an
+    avatar's frame. Three modes:
+
+    * ``"address"`` (the default): a call whose buffers have the addresses of a recent call's (as torch's
+      caching allocator gives them to a loop that allocates the same way every time) replays that call's
+      launches from a CUDA graph (:mod:`warpavatar._src.address_graphs`); nothing is held between calls but
+      the graphs' sort scratch space, and calls whose buffers move run eagerly.
+    * ``"owned"``: a shape called ``after`` times in a row (each fitting its guessed capacity) is captured with
+      its own inputs, outputs and sort buffers and replayed whatever the call's addresses
+      (:mod:`warpavatar._src.splat_replay`): the fewest host steps, but the graph holds about as much memory
+      again as the pass between calls (21 MiB for an 89k-Gaussian avatar at 384x384; 93 / 244 / 432 MiB at
+      100k / 500k / 1M Gaussians at 1080p), and no shape that would hold over ``max_bytes`` is captured.
+    * ``"off"``: every launch from Python.
 
     Args:
-        after: consecutive calls of one shape after which its pass is captured (>= 1); None: never replay.
-        max_bytes: shapes whose graph would hold more than this many bytes stay eager (> 0; default 128 MiB).
+        mode: ``"address"``, ``"owned"`` or ``"off"``.
+        after: with ``"owned"``, the calls in a row after which a shape is captured (>= 1).
+        max_bytes: with ``"owned"``, shapes whose graph would hold more than this many bytes stay eager (> 0;
+            default 128 MiB).
 
     Returns:
-        The bytes the cached graphs held, now released.
+        The bytes the owned graphs held, now released.
 
     Raises:
-        ValueError: ``after`` below 1, ``max_bytes`` not positive.
+        ValueError: an unknown mode, ``after`` below 1, ``max_bytes`` not positive.
     """
-    if after is not None and (int(after) != after or after < 1):
-        raise ValueError(f"after must be an integer >= 1 or None, got {after!r}")
+    if mode not in ("address", "owned", "off"):
+        raise ValueError(f"mode must be address, owned or off, got {mode!r}")
+    if int(after) != after or after < 1:
+        raise ValueError(f"after must be an integer >= 1, got {after!r}")
     if not max_bytes > 0:
         raise ValueError(f"max_bytes must be > 0, got {max_bytes!r}")
     held = _REPLAYS.held_bytes()
     _REPLAYS.clear()
-    splat_replay.REPLAY_AFTER = None if after is None else int(after)
+    _PASS_GRAPHS.clear()
+    splat_replay.REPLAY_AFTER = int(after) if mode == "owned" else None
     splat_replay.REPLAY_MAX_BYTES = int(max_bytes)
+    address_graphs.CAPTURE_AFTER = address_graphs.DEFAULT_CAPTURE_AFTER if mode == "address" else None
     return held
 
 

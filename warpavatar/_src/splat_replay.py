@@ -41,7 +41,7 @@ import torch
 
 __all__ = ["REPLAY_AFTER", "REPLAYS_KEPT", "REPLAY_MAX_BYTES", "SHRINK_FACTOR", "ReplayCache", "held_bytes"]
 
-REPLAY_AFTER = 3
+REPLAY_AFTER = None
 """Consecutive fitting calls of one shape after which its pass is captured (None: never replay)."""
 
 REPLAYS_KEPT = 1
