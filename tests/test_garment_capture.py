@@ -140,9 +140,10 @@ def test_a_steady_garment_step_reads_nothing_from_the_device(video, tmp_path):
     cache = [tensor.clone() for tensor in extension.cache]
     uploads = _Uploads()
     with uploads:
+        torch.tensor([1.0])  # the detector's own check: a host value made into a tensor is seen
         counts = load_tool("bench_avatar").count_step_work(trainer.train_step, device="cpu", steps=2)
     assert counts["host_reads"] == 0, counts
-    assert uploads.seen > 0 and uploads.places == [], uploads.places  # (the CPU optimizers make some)
+    assert uploads.seen > 0 and uploads.places == [], uploads.places
     assert not torch.equal(cache[0], extension.cache[0])  # the windows ran and wrote the cache back
 
 

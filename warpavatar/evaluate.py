@@ -21,6 +21,7 @@ import torch
 import tqdm
 
 from warpavatar import metrics, ops
+from warpavatar.optim import Adam
 
 __all__ = ["evaluate_avatar", "evaluate_held_out", "refine_frame_pose", "write_json_atomic"]
 
@@ -65,8 +66,7 @@ def refine_frame_pose(avatar, camera, bone_transforms: torch.Tensor, image: torc
         grid = avatar.field.grid_weights() if grid is None else grid
     rotation = torch.zeros(1, avatar.joint_count, 3, device=device, requires_grad=True)
     translation = torch.zeros(1, 3, device=device, requires_grad=True)
-    optimizer = torch.optim.Adam([{"params": [rotation], "lr": lr_rotation},
-                                  {"params": [translation], "lr": lr_translation}])
+    optimizer = Adam([{"params": [rotation], "lr": lr_rotation}, {"params": [translation], "lr": lr_translation}])
     frozen = [parameter for parameter in avatar.parameters() if parameter.requires_grad]
     for parameter in frozen:
         parameter.requires_grad_(False)

@@ -18,8 +18,7 @@ import warp as wp
 
 from warpavatar._src.warp_utils import init_warp, warp_device, warp_stream_of
 
-__all__ = ["CAPTURE_MODE", "cuda_graphs_available", "capture_cuda_graph", "capture_or_fall_back", "resolve_cuda_graph",
-           "adam_options"]
+__all__ = ["CAPTURE_MODE", "cuda_graphs_available", "capture_cuda_graph", "capture_or_fall_back", "resolve_cuda_graph"]
 
 CAPTURE_MODE = "thread_local"
 """The CUDA stream-capture mode of both sides (torch's ``capture_error_mode``: ``global``, ``thread_local`` or
@@ -29,14 +28,6 @@ CAPTURE_MODE = "thread_local"
 def cuda_graphs_available(device) -> bool:
     """Whether ``device`` is a CUDA device (the only kind whose work can be captured)."""
     return torch.device(device).type == "cuda" and torch.cuda.is_available()
-
-
-def adam_options(device) -> dict:
-    """Keyword options of ``torch.optim.Adam`` for parameters on ``device``: on CUDA the fused kernels, safe to
-    capture in a CUDA graph (their step counts stay on the device); elsewhere the multi-tensor (foreach) loop."""
-    if torch.device(device).type == "cuda":
-        return {"fused": True, "capturable": True}
-    return {"foreach": True}
 
 
 def resolve_cuda_graph(mode: str, device) -> bool:

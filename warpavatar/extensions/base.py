@@ -44,6 +44,8 @@ from typing import Any, Callable, ClassVar, NamedTuple
 
 import torch
 
+from warpavatar.optim import Optimizer
+
 __all__ = ["option", "NoOptions", "LossTerm", "FitContext", "StepContext", "Extension"]
 
 
@@ -229,8 +231,9 @@ class Extension:
         """This step's loss terms by name."""
         return {}
 
-    def optimizers(self, step: StepContext) -> list[torch.optim.Optimizer]:
-        """The optimizers that step in this step."""
+    def optimizers(self, step: StepContext) -> list[Optimizer | torch.optim.Optimizer]:
+        """The optimizers that step in this step (:mod:`warpavatar.optim`'s, or torch's: anything with ``step``,
+        ``zero_grad``, ``param_groups`` and ``state``)."""
         return []
 
     def after_backward(self, step: StepContext) -> None:

@@ -50,6 +50,7 @@ from warpavatar import ops
 from warpavatar.extensions.base import Extension, LossTerm, option
 from warpavatar.extensions.graph import GRAPH_PRESETS, GraphMotionOptions, NodeGraph, graph_nodes
 from warpavatar.geometry import match_pose, mlp
+from warpavatar.optim import Adam, Optimizer
 
 __all__ = ["SecondaryDynamics", "DynamicsState", "DynamicsOptions", "DynamicsExtension"]
 
@@ -482,8 +483,8 @@ class DynamicsExtension(Extension):
         self.part = self.fit.avatar.add_part(part)
         springs = [part.stiffness_raw, part.anchor_raw, part.damping_raw]
         network = [p for p in part.parameters() if all(p is not q for q in springs)]
-        self.optimizer = torch.optim.Adam([{"params": network, "lr": self.options.lr_dynamics},
-                                           {"params": springs, "lr": self.options.lr_dynamics_springs}])
+        self.optimizer = Adam([{"params": network, "lr": self.options.lr_dynamics},
+                               {"params": springs, "lr": self.options.lr_dynamics_springs}])
         self.drive = None  # computed with the cache (refresh) or, after a resume, on first use
         self.cache = None
 
@@ -545,7 +546,7 @@ class DynamicsExtension(Extension):
                 "damping": LossTerm(options.lambda_damping, part.damping(state)),
                 "displacement": LossTerm(options.lambda_displacement, part.magnitude(state))}
 
-    def optimizers(self, step) -> list[torch.optim.Optimizer]:
+    def optimizers(self, step) -> list[Optimizer | torch.optim.Optimizer]:
         return [] if self.state is None else [self.optimizer]
 
     def on_gaussians_renumbered(self, source_index: torch.Tensor) -> None:

@@ -67,12 +67,12 @@ from dataclasses import dataclass
 import torch
 
 from warpavatar import ops
-from warpavatar._src.cuda_graph import adam_options
 from warpavatar.extensions.base import Extension, LossTerm, option
 from warpavatar.extensions.garment_detection import detect_garments, related_joints
 from warpavatar.extensions.graph import voxel_downsample
 from warpavatar.geometry import match_pose
 from warpavatar.model.parts import AvatarPart
+from warpavatar.optim import Adam, Optimizer
 from warpavatar.sim import (Capsules, ClothGraph, ClothModel, ClothState, capsules_near, cloth_graph,
                             fit_body_capsules, nearest_nodes, node_rotations, pose_capsules, ride_on_nodes)
 from warpavatar.sim.capsules import select
@@ -472,20 +472,6 @@ def _split_groups(saved: dict) -> tuple[dict, dict]:
     return one(saved["param_groups"][0]), one(saved["param_groups"][1])
 
 
-def _load_optimizer(optimizer: torch.optim.Optimizer, saved: dict) -> None:
-    """Load a saved state but keep the optimizer's own implementation (a checkpoint written before the cloth's Adam
-    was fused would otherwise switch it back): its options, and step counts where its kernels want them."""
-    kept = [{name: group[name] for name in ("fused", "capturable", "foreach") if name in group}
-            for group in optimizer.param_groups]
-    optimizer.load_state_dict(saved)
-    for group, options in zip(optimizer.param_groups, kept):
-        group.update(options)
-        for parameter in group["params"]:
-            moments = optimizer.state.get(parameter, {})
-            if "step" in moments and (options.get("fused") or options.get("capturable")):
-                moments["step"] = moments["step"].to(dtype=torch.float32, device=parameter.device)
-
-
 def body_detection_options(skeleton, field) -> dict:
     """The arguments of :func:`detect_garments` that come from the body: the skeleton's bones and up axis (rules
     1, 5 and 6 of :mod:`.garment_detection`) and the skinning field's largest voxel side [world units], the
@@ -635,9 +621,9 @@ class GarmentExtension(Extension):
         self.bones: torch.Tensor | None = None  # the training frames' skinning transforms [T,J+E,4,4]
         self.refreshed = -1
         self.step = 0
-        self.optimizer: torch.optim.Optimizer | None = None  # the cloth's physics
-        self.rest_optimizer: torch.optim.Optimizer | None = None  # its rest shape's offsets, while learned
-        self.states_optimizer: torch.optim.Optimizer | None = None  # the training frames' fitted cloth states
+        self.optimizer: Adam | None = None  # the cloth's physics
+        self.rest_optimizer: Adam | None = None  # its rest shape's offsets, while learned
+        self.states_optimizer: Adam | None = None  # the training frames' fitted cloth states
         #: the training frames' optical flows to the next and to the previous frame [T,h,w,2] each (float16, in
         #: pixels of the frames), made with the states (:func:`training_flows`)
         self.flows: tuple[torch.Tensor, torch.Tensor] | None = None
@@ -823,26 +809,19 @@ class GarmentExtension(Extension):
 
     def _use(self, part: GarmentPart) -> None:
         self.part = self.fit.avatar.add_part(part)
-        # fused on every device: its step takes a device flag that skips the update (``found_inf``, the flag a
-        # gradient scaler sets), which a step at the first frame raises without a host branch
-        options = self._fused_adam_options()
+        # its step takes a device flag that skips the update (``found_inf``, the flag a gradient scaler sets),
+        # which a step at the first frame raises without a host branch
         cloth = part.cloth
         physics = [p for name, p in cloth.named_parameters() if name != "rest_offset_logit"]
-        self.optimizer = torch.optim.Adam(physics, lr=self.options.lr_garment, **options)
+        self.optimizer = Adam(physics, lr=self.options.lr_garment)
         self.optimizer.found_inf = self.skip_update
         # the rest shape's offsets have an optimizer of their own, which the first frame does not skip: its window
         # starts at the skinned rest shape, so the image loss reaches them there too
         self.rest_optimizer = (None if cloth.rest_offset_logit is None else
-                               torch.optim.Adam([cloth.rest_offset_logit], lr=self.options.lr_garment_rest, **options))
+                               Adam([cloth.rest_offset_logit], lr=self.options.lr_garment_rest))
         self.states_optimizer = None  # made once the states exist (the first refresh)
         self.cache = None
         self.bones = None
-
-    def _fused_adam_options(self) -> dict:
-        """The fit's Adam options for this device, fused (what every optimizer of the garment uses)."""
-        options = {name: value for name, value in adam_options(self.fit.device).items() if name != "foreach"}
-        options["fused"] = True
-        return options
 
     @property
     def fits_states(self) -> bool:
@@ -851,11 +830,11 @@ class GarmentExtension(Extension):
 
     def _start_states(self, displacements: torch.Tensor) -> None:
         """Start the fitted states at the simulated rollout's displacements [T,M,3] (once, at the first refresh),
-        with an Adam of their own (fused, like the cloth's)."""
+        with an Adam of their own."""
         part = self.part
         part.frame_states = torch.nn.Parameter(displacements.detach().clone() * part.free_mask)
         lr = self.options.lr_garment_states * part.hyper["voxel_size"]
-        self.states_optimizer = torch.optim.Adam([part.frame_states], lr=lr, **self._fused_adam_options())
+        self.states_optimizer = Adam([part.frame_states], lr=lr)
         cameras = self.fit.frames.cameras
         self.intrinsics = torch.stack([camera.K for camera in cameras])
         self.world_to_cameras = torch.stack([camera.world_to_camera for camera in cameras])
@@ -1120,7 +1099,7 @@ class GarmentExtension(Extension):
                              garment_uncovered=LossTerm(options.lambda_garment_silhouette, uncovered))
         return terms
 
-    def optimizers(self, step) -> list[torch.optim.Optimizer]:
+    def optimizers(self, step) -> list[Optimizer | torch.optim.Optimizer]:
         if not self.training:
             return []
         optimizers = [self.optimizer] if self.rest_optimizer is None else [self.optimizer, self.rest_optimizer]
@@ -1208,14 +1187,14 @@ class GarmentExtension(Extension):
             saved, saved_rest = state["optimizer"], state.get("rest_optimizer")
             if saved_rest is None and len(saved["param_groups"]) == 2:  # one optimizer with the offsets' group
                 saved, saved_rest = _split_groups(saved)
-            _load_optimizer(self.optimizer, saved)
+            self.optimizer.load_state_dict(saved)
             if self.rest_optimizer is not None and saved_rest is not None:
-                _load_optimizer(self.rest_optimizer, saved_rest)
+                self.rest_optimizer.load_state_dict(saved_rest)
             if self.fits_states and self.part.frame_states.shape[0]:  # (states fitted before the checkpoint)
                 states = self.part.frame_states.detach().clone()
                 self._start_states(states)
                 if state.get("states_optimizer") is not None:
-                    _load_optimizer(self.states_optimizer, state["states_optimizer"])
+                    self.states_optimizer.load_state_dict(state["states_optimizer"])
             if state["cache"] is not None:
                 self.cache = tuple(tensor.to(self.fit.device) for tensor in state["cache"])
                 self.bones = self._training_bones()

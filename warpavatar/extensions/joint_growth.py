@@ -45,6 +45,7 @@ from warpavatar import ops
 from warpavatar.extensions.base import Extension, option
 from warpavatar.geometry import fourier_features, match_pose, mlp, quat_from_vector, quat_to_matrix
 from warpavatar.model.parts import AvatarPart
+from warpavatar.optim import Adam, Optimizer
 
 __all__ = ["motion_kernel", "assignment_weights", "joint_gradients", "joint_gradient_sums", "locate_parents",
            "ExtraJoints", "JointGrowthOptions", "JointGrowthExtension"]
@@ -490,14 +491,14 @@ class JointGrowthExtension(Extension):
             part = ExtraJoints.from_file_state(state, device=fit.device)
         fit.skinning.add_joints(part.parents)
         self.part = fit.avatar.add_part(part)
-        self.optimizer = torch.optim.Adam(part.parameters(), lr=self.options.lr_extra_joints)
+        self.optimizer = Adam(part.parameters(), lr=self.options.lr_extra_joints)
 
     # ---------------------------------------------------------------------------------------------- hooks
     def begin_step(self, step) -> None:
         if not self.grown and step.step >= self.options.grow_at:
             self._grow(step.step)
 
-    def optimizers(self, step) -> list[torch.optim.Optimizer]:
+    def optimizers(self, step) -> list[Optimizer | torch.optim.Optimizer]:
         return [] if self.part is None else [self.optimizer]
 
     def after_backward(self, step) -> None:

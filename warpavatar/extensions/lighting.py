@@ -22,6 +22,7 @@ from warpavatar.extensions.base import Extension, option
 from warpavatar.geometry import quat_rotate
 from warpavatar.model.parts import AvatarPart
 from warpavatar.model.skinning_field import closest_on_segments
+from warpavatar.optim import Adam, Optimizer
 
 __all__ = ["WorldLighting", "outward_normals", "LightingOptions", "LightingExtension"]
 
@@ -104,9 +105,9 @@ class LightingExtension(Extension):
         skeleton = self.fit.frames.skeleton
         self.part = self.fit.avatar.add_part(WorldLighting(torch.as_tensor(skeleton.heads),
                                                            torch.as_tensor(skeleton.tails)).to(self.fit.device))
-        self.optimizer = torch.optim.Adam(self.part.parameters(), lr=self.options.lr_lighting)
+        self.optimizer = Adam(self.part.parameters(), lr=self.options.lr_lighting)
 
-    def optimizers(self, step) -> list[torch.optim.Optimizer]:
+    def optimizers(self, step) -> list[Optimizer | torch.optim.Optimizer]:
         return [self.optimizer]
 
     def state_dict(self) -> dict:

@@ -21,12 +21,12 @@ from dataclasses import dataclass
 import torch
 
 from warpavatar import ops
-from warpavatar._src.cuda_graph import adam_options
 from warpavatar._src.precision import current_mlp_dtype, float32_sums, mlp_matmuls
 from warpavatar.extensions.base import Extension, LossTerm, option
 from warpavatar.geometry import Linear, linear_rows, match_pose, mlp, quat_from_vector, quat_multiply
 from warpavatar.model.frozen import tensor_versions
 from warpavatar.model.parts import AvatarPart
+from warpavatar.optim import Adam, Optimizer
 from warpavatar.model.skinning_field import box_encoding
 
 __all__ = ["PoseCorrection", "relative_rotations_6d", "corrected_gaussians", "PoseCorrectionOptions",
@@ -451,7 +451,7 @@ class PoseCorrectionExtension(Extension):
         if options.frame_codes:
             part.set_frame_poses(fit.frames.bone_transforms)
         self.part = fit.avatar.add_part(part)
-        self.optimizer = torch.optim.Adam(part.parameters(), lr=fit.config.field_lr, **adam_options(fit.device))
+        self.optimizer = Adam(part.parameters(), lr=fit.config.field_lr)
 
     def step_capturable(self, step) -> bool:
         return True  # device work only; what changes (train_field) changes the step's graph key too
@@ -464,7 +464,7 @@ class PoseCorrectionExtension(Extension):
             return {}
         return {"pose_correction": LossTerm(self.options.lambda_pose_correction, self.part.regularization())}
 
-    def optimizers(self, step) -> list[torch.optim.Optimizer]:
+    def optimizers(self, step) -> list[Optimizer | torch.optim.Optimizer]:
         return [self.optimizer] if step.train_field else []
 
     def state_dict(self) -> dict:

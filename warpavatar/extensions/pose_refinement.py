@@ -59,18 +59,18 @@ import numpy as np
 import torch
 
 from warpavatar import ops
-from warpavatar._src.cuda_graph import adam_options
 from warpavatar.data import write_poses
 from warpavatar.extensions.base import Extension, LossTerm, option
 from warpavatar.geometry import match_pose
 from warpavatar.model.kinematics import posed_pivots, rigid_poses, smoothing_corrections
 from warpavatar.model.parts import AvatarPart
+from warpavatar.optim import Adam, Optimizer
 
 __all__ = ["PoseRefinement", "PoseRefinementOptions", "PoseRefinementExtension", "VectorAdam",
            "refinement_last_step"]
 
 
-class VectorAdam(torch.optim.Optimizer):
+class VectorAdam(Optimizer):
     """Adam whose second moment is shared by the components of each vector (the last dimension of a parameter):
     a joint's axis-angle correction, a root's offset.
 
@@ -345,9 +345,8 @@ class PoseRefinementExtension(Extension):
                   {"params": [part.translation], "lr": torch.tensor(self.base_lr[1], device=fit.device)}]
         if self.options.pose_moments == "vector":
             self.optimizer = VectorAdam(groups)
-        else:  # (torch's multi-tensor loop takes no tensor learning rate unless capturable, i.e. on CUDA)
-            self.optimizer = torch.optim.Adam(groups, **(adam_options(fit.device) if fit.device.type == "cuda"
-                                                         else {"foreach": False}))
+        else:
+            self.optimizer = Adam(groups)
 
     def _prior_target(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The corrections [T,J,3], [T,3] that bring the training frames to the given motion smoothed in time (every
@@ -429,7 +428,7 @@ class PoseRefinementExtension(Extension):
             terms["pose_smooth"] = LossTerm(self.options.lambda_pose_smooth, smooth)
         return terms
 
-    def optimizers(self, step) -> list[torch.optim.Optimizer]:
+    def optimizers(self, step) -> list[Optimizer | torch.optim.Optimizer]:
         return [self.optimizer] if self._training(step) else []
 
     @torch.no_grad()

@@ -23,6 +23,7 @@ from warpavatar import ops
 from warpavatar.extensions.base import Extension, LossTerm, option
 from warpavatar.extensions.graph import GRAPH_PRESETS, GraphMotionOptions, NodeGraph, graph_nodes
 from warpavatar.geometry import match_pose
+from warpavatar.optim import Optimizer
 
 __all__ = ["SecondaryMotion", "SecondaryMotionOptions", "SecondaryMotionExtension"]
 
@@ -151,7 +152,7 @@ class SecondaryMotionExtension(Extension):
                 "damping": LossTerm(options.lambda_damping, part.damping(step.index)),
                 "displacement": LossTerm(options.lambda_displacement, part.magnitude(step.index))}
 
-    def optimizers(self, step) -> list[torch.optim.Optimizer]:
+    def optimizers(self, step) -> list[Optimizer | torch.optim.Optimizer]:
         return [] if self.part is None else [self.optimizer]
 
     def after_backward(self, step) -> None:

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import torch
 
-from warpavatar._src.cuda_graph import adam_options
 from warpavatar._src.precision import matmul_precision
 from warpavatar.extensions.base import LossTerm
 from warpavatar.model.skinning_field import VoxelSkinningField, bone_distance_prior, bone_sample_points
+from warpavatar.optim import Adam, Optimizer
 
 __all__ = ["SkinningStage"]
 
@@ -35,7 +35,7 @@ class SkinningStage:
         #: the warm-up's target [D*H*W, J]: the rigid bone-distance prior at every grid point
         self.prior = bone_distance_prior(field.grid_points.reshape(-1, 3), heads, tails,
                                          temperature=config.skinning_prior_temperature * extent)
-        self.optimizer = torch.optim.Adam(field.parameters(), lr=config.field_lr, **adam_options(device))
+        self.optimizer = Adam(field.parameters(), lr=config.field_lr)
         self._frozen: torch.Tensor | None = None  # the grid while the field is frozen
         self._current: tuple[int, torch.Tensor] | None = None  # (step, its grid)
         # --field-cells active: the grid with a padding row [D*H*W+1, J] (evaluated whole at the last choice, the
@@ -185,7 +185,7 @@ class SkinningStage:
         bone = self.field.bone_loss(self.bone_samples, self.bone_sample_index, step.grid, groups=groups)
         return {"bone": LossTerm(self.config.lambda_bone, bone)}
 
-    def optimizers(self, step) -> list[torch.optim.Optimizer]:
+    def optimizers(self, step) -> list[Optimizer | torch.optim.Optimizer]:
         return [self.optimizer] if step.train_field else []
 
     def add_joints(self, parents: torch.Tensor) -> None:
@@ -193,8 +193,7 @@ class SkinningStage:
         optimizer keeps its moments for every parameter but the replaced last layer."""
         old_parameters = list(self.field.parameters())
         self.field.add_joints(parents)
-        optimizer = torch.optim.Adam(self.field.parameters(), lr=self.config.field_lr,
-                                     **adam_options(self.field.bbox_min.device))
+        optimizer = Adam(self.field.parameters(), lr=self.config.field_lr)
         kept = {id(parameter) for parameter in self.field.parameters()}
         for parameter in old_parameters:
             if id(parameter) in kept and parameter in self.optimizer.state:

@@ -11,8 +11,8 @@ import math
 
 import torch
 
-from warpavatar._src.cuda_graph import adam_options
 from warpavatar.geometry import SH_C0, quat_to_matrix
+from warpavatar.optim import Adam
 
 __all__ = ["rgb_to_sh_dc", "sh_dc_to_rgb", "GaussianModel"]
 
@@ -57,7 +57,7 @@ class GaussianModel(torch.nn.Module):
         self.opacity_logits = torch.nn.Parameter(torch.full((count,), logit, device=means.device))
         self.sh_dc = torch.nn.Parameter(rgb_to_sh_dc(rgb.float()).reshape(count, 1, 3).clone())
         self.sh_rest = torch.nn.Parameter(rest)
-        self.optimizer: torch.optim.Adam | None = None
+        self.optimizer: Adam | None = None
 
     # ----------------------------------------------------------------------------------------------- access
     @property
@@ -85,10 +85,9 @@ class GaussianModel(torch.nn.Module):
 
     # --------------------------------------------------------------------------------------------- optimizer
     def make_optimizer(self, *, lr_position: float, lr_scale: float, lr_rotation: float, lr_opacity: float,
-                       lr_color: float) -> torch.optim.Adam:
+                       lr_color: float) -> Adam:
         """Create the Adam optimizer with one group per parameter (3DGS settings, eps 1e-15)."""
-        options = adam_options(self.means.device)
-        if options.get("capturable"):  # a tensor, so that a captured step reads the rate of the step it replays
+        if self.means.is_cuda:  # a tensor, so that a captured step reads the rate of the step it replays
             lr_position = torch.tensor(float(lr_position), device=self.means.device)
         groups = [
             {"params": [self.means], "lr": lr_position, "name": "means"},
@@ -98,7 +97,7 @@ class GaussianModel(torch.nn.Module):
             {"params": [self.sh_dc], "lr": lr_color, "name": "sh_dc"},
             {"params": [self.sh_rest], "lr": lr_color / 20.0, "name": "sh_rest"},
         ]
-        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, **options)
+        self.optimizer = Adam(groups, lr=0.0, eps=1e-15)
         return self.optimizer
 
     def set_position_lr(self, lr: float) -> None:
@@ -106,7 +105,7 @@ class GaussianModel(torch.nn.Module):
             if group["name"] == "means":
                 if isinstance(group["lr"], torch.Tensor):
                     group["lr"].fill_(lr)  # in place: a captured optimizer step reads this tensor
-                elif self.optimizer.defaults.get("capturable"):  # a float again (a loaded state dict)
+                elif self.means.is_cuda:  # a float again (a loaded state dict)
                     group["lr"] = torch.tensor(float(lr), device=self.means.device)
                 else:
                     group["lr"] = lr
