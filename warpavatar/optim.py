@@ -135,6 +135,11 @@ def _by_device_and_dtype(tensors: Iterable[torch.Tensor]) -> dict[tuple, list[to
     return grouped
 
 
+_TORCH_ADAM_OPTIONS = {"amsgrad": False, "maximize": False, "foreach": None, "capturable": False,
+                       "differentiable": False, "fused": True, "decoupled_weight_decay": False}
+"""The options of ``torch.optim.Adam`` that :class:`Adam`'s step amounts to (written into its state dicts)."""
+
+
 class Adam(Optimizer):
     """Adam (Kingma and Ba), one fused kernel launch per parameter group and device: ``torch.optim.Adam(...,
     fused=True)``'s results without its imports (see the module doc).
@@ -170,6 +175,15 @@ class Adam(Optimizer):
             raise ValueError(f"weight_decay must be >= 0, got {weight_decay}")
         super().__init__(params, dict(lr=lr, betas=tuple(betas), eps=eps, weight_decay=weight_decay))
         self.found_inf: torch.Tensor | None = None
+
+    def state_dict(self) -> dict:
+        """:meth:`Optimizer.state_dict`, each group also naming the options ``torch.optim.Adam`` records (fused, no
+        amsgrad, ...), so that torch's Adam loading it goes on with the same kernel."""
+        saved = super().state_dict()
+        for group in saved["param_groups"]:
+            for key, value in _TORCH_ADAM_OPTIONS.items():
+                group.setdefault(key, value)
+        return saved
 
     @staticmethod
     def _loaded_value(key: str, value, parameter: torch.Tensor):
