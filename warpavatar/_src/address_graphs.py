@@ -69,14 +69,14 @@ class AddressKeyedGraphs:
         self.eager = 0
 
     def clear(self) -> None:
-        """Drop every graph and count."""
+        """Drop every graph and the counts of recent keys (the statistics above stay)."""
         self._graphs.clear()
         self._seen.clear()
 
     def run(self, key: tuple, queue: Callable[[], None], *, device: torch.device) -> None:
         """Queue ``queue``'s work on torch's current stream of ``device``: replayed, captured then launched, or
         run eagerly (see the module doc). ``key`` must name everything the work depends on."""
-        if (CAPTURE_AFTER is None or device.type != "cuda" or torch.cuda.is_current_stream_capturing()):
+        if CAPTURE_AFTER is None or device.type != "cuda" or torch.cuda.is_current_stream_capturing():
             self.eager += 1
             queue()
             return

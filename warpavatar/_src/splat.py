@@ -35,9 +35,9 @@ has run (an upper bound would cost far more memory, as any Gaussian may cover th
   once a few consecutive speculative calls of one shape (image size, Gaussian count, SH layout) have fitted their
   guess, that shape's fixed-capacity pass is captured into a CUDA graph with its own inputs, outputs and sort
   buffers, and later calls replay it: their inputs copied in by one concatenation, the graph replayed, its
-  outputs copied out (three copies) and the status read. Whatever the call's addresses, but the graph holds about
-  as much memory again as the pass between calls. A pass that outgrew the graph is passed again with exact
-  buffers.
+  outputs copied out (three copies) and the status read. It serves a call wherever its tensors are, but the
+  graph holds about as much memory again as the pass between calls. A pass that outgrew the graph is passed
+  again with exact buffers.
 
 In every mode non-finite inputs raise a ``ValueError`` (fixed mode: when the caller checks the status).
 
