@@ -81,6 +81,18 @@ def test_a_short_guess_bins_again_with_exact_buffers(device, speculation):
     assert speculation._speculative_capacity(key) >= needed
 
 
+
+def test_rising_counts_get_their_largest_rise_on_top_of_the_last(speculation):
+    key = (torch.device("cpu"), 8, 8, 2)
+    for count in (20_000, 20_500, 22_000, 22_400):  # rises of 500, 1500 and 400
+        speculation._remember_pairs(key, count)
+    capacity = speculation._speculative_capacity(key)
+    guess = 1.03 * (22_400 + 1_500)
+    assert guess <= capacity <= guess * (1 + 1 / 64) and capacity % 256 == 0  # (2^15 <= capacity < 2^16: 1/128)
+    speculation._remember_pairs(key, 21_000)  # a fall: the last plus the largest rise, or the most if more
+    guess = 1.03 * max(22_400, 21_000 + 1_500)
+    assert guess <= speculation._speculative_capacity(key) <= guess * (1 + 1 / 64) < capacity
+
 @pytest.mark.parametrize("name", ["means", "opacities", "colors"])
 def test_non_finite_inputs_raise_in_the_speculative_mode_too(device, speculation, name):
     scene, sizes = make_scene(13, device=device, gaussian_count=120)
