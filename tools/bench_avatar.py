@@ -222,12 +222,14 @@ def _raster_rows(avatar, video, device, warmup, repeats, quick) -> list[dict]:
         forward_ms, backward_ms, peak = _measure(ours, parameters, device, warmup, repeats)
         address_replays = splat_bridge._PASS_GRAPHS.replays - replays_before
         held = splat_bridge._REPLAYS.held_bytes() / 2**20
-        pairs = _pair_count(dict(scene, **dict(zip(("means", "quats", "scales", "opacities", "colors"), tensors))))
+        notes = f"{tensors[0].shape[0]} Gaussians"
+        if peak is not None:  # (CUDA)
+            pairs = _pair_count(dict(scene, **dict(zip(("means", "quats", "scales", "opacities", "colors"), tensors))))
+            notes += (f"; peak {peak:.1f} MiB + {held:.1f} MiB held by the replayed pass's graph; {address_replays} "
+                      f"calls replayed by address; {pairs} pairs")
         row = {"measure": "rasterizer fwd / fwd+bwd ms", "size": f"{width}x{height}",
                "ours": f"{forward_ms:.3f} / {forward_ms + backward_ms:.3f}", "gsplat": None, "ratio": None,
-               "notes": f"{tensors[0].shape[0]} Gaussians; peak {peak:.1f} MiB + {held:.1f} MiB held by the "
-                        f"replayed pass's graph; {address_replays} calls replayed by address; {pairs} pairs"
-                        if peak is not None else f"{tensors[0].shape[0]} Gaussians"}
+               "notes": notes}
         theirs = _gsplat(scene, parameters) if device.startswith("cuda") else None
         if theirs is not None:
             g_forward, g_backward, g_peak = _measure(theirs, parameters, device, warmup, repeats)

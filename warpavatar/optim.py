@@ -3,7 +3,7 @@
 ``torch.optim.Optimizer`` imports ``torch._dynamo`` (and with it sympy and much of torch.distributed) the first time
 a parameter group is added, a step taken or a state saved, to keep those methods out of ``torch.compile``'s tracing.
 Nothing here is compiled, and the import is a large part of a fit's set-up: without it the trainer's construction
-takes 1.4 s less on this project's 2-core development machine, and on the H100 machines that check the fit's time,
+takes 0.8-1.6 s less on this project's 2-core development machine, and on the H100 machines that check the fit's time,
 whose torch install has no cached bytecode, it took 0.86 s against 5.29 s with torch's Adam (two machines of session
 25). :class:`Optimizer` keeps the API the fit uses (``param_groups``, ``state``, ``step``, ``zero_grad``,
 ``state_dict``, ``load_state_dict``, ``add_param_group``) and torch's state-dict layout, so checkpoints written with
@@ -78,7 +78,7 @@ class Optimizer:
                     else:
                         parameter.grad.requires_grad_(False)
                     grads.append(parameter.grad)
-        for same_kind in _by_device_and_dtype(grads).values():
+        for (same_kind,) in _columns_by_kind((grad,) for grad in grads).values():
             torch._foreach_zero_(same_kind)
 
     def state_dict(self) -> dict:
@@ -129,10 +129,14 @@ class Optimizer:
         raise NotImplementedError
 
 
-def _by_device_and_dtype(tensors: Iterable[torch.Tensor]) -> dict[tuple, list[torch.Tensor]]:
-    grouped: dict[tuple, list[torch.Tensor]] = {}
-    for tensor in tensors:
-        grouped.setdefault((tensor.device, tensor.dtype), []).append(tensor)
+def _columns_by_kind(rows: Iterable[tuple[torch.Tensor, ...]]) -> dict[tuple, list[list[torch.Tensor]]]:
+    """Rows of tensors grouped by the (device, dtype) of each row's first tensor, as columns: the per-operand lists
+    that torch's multi-tensor kernels take, each of one device and dtype."""
+    grouped: dict[tuple, list[list[torch.Tensor]]] = {}
+    for row in rows:
+        columns = grouped.setdefault((row[0].device, row[0].dtype), [[] for _ in row])
+        for column, tensor in zip(columns, row):
+            column.append(tensor)
     return grouped
 
 
@@ -205,7 +209,7 @@ class Adam(Optimizer):
             with torch.enable_grad():
                 loss = closure()
         for group in self.param_groups:
-            params, grads, exp_avgs, exp_avg_sqs, steps = [], [], [], [], []
+            rows = []  # (parameter, gradient, first moment, second moment, step count)
             for parameter in group["params"]:
                 if parameter.grad is None:
                     continue
@@ -216,29 +220,17 @@ class Adam(Optimizer):
                     state["step"] = torch.zeros((), dtype=torch.float32, device=parameter.device)
                     state["exp_avg"] = torch.zeros_like(parameter, memory_format=torch.preserve_format)
                     state["exp_avg_sq"] = torch.zeros_like(parameter, memory_format=torch.preserve_format)
-                params.append(parameter)
-                grads.append(parameter.grad)
-                exp_avgs.append(state["exp_avg"])
-                exp_avg_sqs.append(state["exp_avg_sq"])
-                steps.append(state["step"])
-            if not params:
-                continue
+                rows.append((parameter, parameter.grad, state["exp_avg"], state["exp_avg_sq"], state["step"]))
             beta1, beta2 = group["betas"]
-            kinds: dict[tuple, list[int]] = {}
-            for index, parameter in enumerate(params):
-                kinds.setdefault((parameter.device, parameter.dtype), []).append(index)
-            for (device, _), chosen in kinds.items():
+            for (device, _), (params, grads, exp_avgs, exp_avg_sqs, steps) in _columns_by_kind(rows).items():
                 lr = group["lr"]
                 if isinstance(lr, torch.Tensor) and lr.device != device:
                     lr = float(lr) if lr.device.type == "cpu" else lr.to(device)
                 found_inf = None if self.found_inf is None else self.found_inf.to(device)
-                step_counts = [steps[index] for index in chosen]
-                torch._foreach_add_(step_counts, 1)
-                torch._fused_adam_(
-                    [params[index] for index in chosen], [grads[index] for index in chosen],
-                    [exp_avgs[index] for index in chosen], [exp_avg_sqs[index] for index in chosen], [], step_counts,
-                    amsgrad=False, lr=lr, beta1=beta1, beta2=beta2, weight_decay=group["weight_decay"],
-                    eps=group["eps"], maximize=False, grad_scale=None, found_inf=found_inf)
+                torch._foreach_add_(steps, 1)
+                torch._fused_adam_(params, grads, exp_avgs, exp_avg_sqs, [], steps, amsgrad=False, lr=lr, beta1=beta1,
+                                   beta2=beta2, weight_decay=group["weight_decay"], eps=group["eps"], maximize=False,
+                                   grad_scale=None, found_inf=found_inf)
                 if found_inf is not None:  # a skipped step does not count
-                    torch._foreach_sub_(step_counts, [found_inf] * len(step_counts))
+                    torch._foreach_sub_(steps, [found_inf] * len(steps))
         return loss

@@ -175,19 +175,22 @@ def _tile_sort_buffers(slots: int, device: torch.device) -> tuple[torch.Tensor, 
             torch.empty(2 * slots, device=device, dtype=torch.int32))
 
 
-def _queue_binning(slots, sort_keys, sorted_ids, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radii,
-                   tile_ranges, *, width, height, padded: bool) -> None:
+def _queue_binning(slots, sort_keys, sorted_ids, buffers, depth_sort, tile_ends, *, width, height,
+                   padded: bool) -> None:
     """Queue the binning of the (Gaussian, tile) pairs into ``slots`` slots of :func:`_tile_sort_buffers`: the
-    key emission (which clears ``tile_ranges``), the tile sort and the tile ranges. ``padded``: the slots are a
-    capacity, whose unused slots hold a padding key that sorts last and belongs to no tile, and pairs past it
-    are dropped; else ``slots`` is the exact pair count. Reads nothing from the device."""
+    key emission (which clears ``buffers.tile_ranges``), the tile sort and the tile ranges. ``depth_sort`` and
+    ``tile_ends`` [N] are as :func:`_sort_by_depth` left them. ``padded``: the slots are a capacity, whose unused
+    slots hold a padding key that sorts last and belongs to no tile, and pairs past it are dropped; else
+    ``slots`` is the exact pair count. Reads nothing from the device."""
     tiles_x, tiles_y = _tile_grid(width, height)
     gaussian_count = tile_ends.shape[0]
+    tile_ranges = buffers.tile_ranges
     if not (slots and gaussian_count):
         tile_ranges.zero_()  # no pair: every tile's range is empty (the emission clears them otherwise)
         return
     splat_kernels.launch_emit_tile_keys(
-        w_xy_opacity, w_conics, w_radii, warp_descriptor(depth_sort[1][:gaussian_count], wp.vec2i),
+        warp_descriptor(buffers.xy_opacity, wp.vec3), warp_descriptor(buffers.conics, wp.vec3),
+        warp_descriptor(buffers.radii, wp.vec2i), warp_descriptor(depth_sort[1][:gaussian_count], wp.vec2i),
         warp_descriptor(tile_ends), width=width, height=height, keys=warp_descriptor(sort_keys[:slots]),
         gaussian_ids=warp_descriptor(sorted_ids[:slots]), tile_ranges=warp_descriptor(tile_ranges))
     radix_sort_pairs(sort_keys, sorted_ids, slots, begin_bit=0,
@@ -198,34 +201,13 @@ def _queue_binning(slots, sort_keys, sorted_ids, w_xy_opacity, w_conics, depth_s
         splat_kernels.launch_tile_ranges(warp_descriptor(sort_keys), slots, warp_descriptor(tile_ranges))
 
 
-def _bin(status, capacity, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radii, tile_ranges, *, width, height,
-         ids_out=None, compact=True):
-    """Sort the (Gaussian, tile) pairs; returns the sorted Gaussian ids (one per pair, or per capacity slot).
-
-    ``depth_sort`` and ``tile_ends`` [N] are as :func:`_sort_by_depth` left them; ``status`` ([pair count,
-    flags]) is a view that ends with its last entry. Without a ``capacity`` the buffers have the exact size:
-    ``status`` is read from the device (the one host synchronization) and non-finite input raises. With one,
-    nothing is read (see :func:`_queue_binning`). ``ids_out`` (with a ``capacity``): a buffer of ``capacity``
-    int32 that receives the ids, returned instead of a fresh copy. ``compact=False`` (nothing reads the ids
-    after the pass: no backward) returns them in place, a view of the sort's double buffer, without the copy.
-    """
-    if capacity is None:
-        count, flags = status.tolist()  # the one host sync
-        _raise_on_bad_inputs(flags)
-    else:
-        count = capacity
-    sort_keys, sorted_ids = _tile_sort_buffers(count, tile_ranges.device)
-    _queue_binning(count, sort_keys, sorted_ids, w_xy_opacity, w_conics, depth_sort, tile_ends, w_radii,
-                   tile_ranges, width=width, height=height, padded=capacity is not None)
-    del sort_keys
-    return _kept_ids(sorted_ids, count, ids_out=ids_out, compact=compact)
-
-
 def _kept_ids(sorted_ids, count: int, *, ids_out=None, compact=True):
-    """The first ``count`` sorted ids as the backward keeps them (see :func:`_bin`). The sort's second halves
-    were its scratch: the backward keeps only the ids (4 bytes a pair, not the 8 of the double buffer), copied
-    once the caller has released the keys' 8 bytes a pair. Without Gaussians no tile has a range, and the ids
-    are never read."""
+    """The first ``count`` sorted ids as the backward keeps them. The sort's second halves were its scratch: the
+    backward keeps only the ids (4 bytes a pair, not the 8 of the double buffer), copied once the caller has
+    released the keys' 8 bytes a pair. ``ids_out``: a buffer that receives them, returned instead of a fresh copy
+    (a fixed capacity's pass). ``compact=False`` (nothing reads the ids after the pass: no backward) returns them
+    in place, a view of the sort's double buffer, without the copy. Without Gaussians no tile has a range, and
+    the ids are never read."""
     if ids_out is not None:
         ids_out.copy_(sorted_ids[:count])
         return ids_out
@@ -267,7 +249,7 @@ def allocate_pass_buffers(gaussian_count: int, width: int, height: int, device: 
         depth=torch.empty(height, width, **f32), radii=torch.empty(gaussian_count, 2, **i32),
         xy_opacity=torch.empty(gaussian_count, 3, **f32), color_depth=torch.empty(gaussian_count, 4, **f32),
         status=None, conics=torch.empty(gaussian_count, 3, **f32),
-        tile_ranges=torch.empty(tiles_x * tiles_y, 2, **i32),  # cleared by _bin
+        tile_ranges=torch.empty(tiles_x * tiles_y, 2, **i32),  # cleared by the binning
         final_transmittance=pixel_state[0].view(torch.float32), last_index=pixel_state[1], sorted_ids=None)
 
 
@@ -332,23 +314,28 @@ def run_pass(means, quats, scales, opacities, coefficients, background, K, world
             final_transmittance=warp_descriptor(out.final_transmittance.reshape(-1)),
             last_index=warp_descriptor(out.last_index.reshape(-1)))
 
-    def bin_and_composite(capacity, ids_out=None):
-        w_geometry = (warp_descriptor(out.xy_opacity, wp.vec3), warp_descriptor(out.conics, wp.vec3), depth_sort,
-                      tile_ends, warp_descriptor(out.radii, wp.vec2i), out.tile_ranges)
-        sorted_ids = _bin(status, capacity, *w_geometry, width=width, height=height, ids_out=ids_out,
-                          compact=compact_ids)
-        queue_composite(sorted_ids)
-        return sorted_ids
+    def queue_binned_composite(slots, sort_keys, slot_ids, *, padded):
+        _queue_binning(slots, sort_keys, slot_ids, out, depth_sort, tile_ends, width=width, height=height,
+                       padded=padded)
+        queue_composite(slot_ids[:slots])
 
-    count = None
+    def bin_and_composite(slots, *, padded, ids_out=None):
+        """Bin into fresh buffers of ``slots`` slots and composite; returns the kept ids (keys released first)."""
+        sort_keys, slot_ids = _tile_sort_buffers(slots, device)
+        queue_binned_composite(slots, sort_keys, slot_ids, padded=padded)
+        del sort_keys
+        return _kept_ids(slot_ids, slots, ids_out=ids_out, compact=compact_ids)
+
     with torch_stream_scope(device):
-        if capacity is None:  # exact: the pair count read half-way
+        if capacity is None:  # exact: the pair count read half-way (the one host sync)
             queue_front()
-            sorted_ids = bin_and_composite(None)
-            count = int(sorted_ids.shape[0])  # the exact mode's buffers hold the pair count
+            count, flags = status.tolist()
+            _raise_on_bad_inputs(flags)
+            sorted_ids = bin_and_composite(count, padded=False)
         elif not speculative:  # fixed: nothing read
             queue_front()
-            sorted_ids = bin_and_composite(capacity, out.sorted_ids)
+            count = None
+            sorted_ids = bin_and_composite(capacity, padded=True, ids_out=out.sorted_ids)
             if out.status is not None:
                 out.status.copy_(status)
                 status = out.status
@@ -357,11 +344,7 @@ def run_pass(means, quats, scales, opacities, coefficients, background, K, world
 
             def queue_pass():
                 queue_front()
-                _queue_binning(capacity, sort_keys, slot_ids, warp_descriptor(out.xy_opacity, wp.vec3),
-                               warp_descriptor(out.conics, wp.vec3), depth_sort, tile_ends,
-                               warp_descriptor(out.radii, wp.vec2i), out.tile_ranges, width=width, height=height,
-                               padded=True)
-                queue_composite(slot_ids[:capacity])
+                queue_binned_composite(capacity, sort_keys, slot_ids, padded=True)
 
             if graphs is None:
                 queue_pass()
@@ -379,7 +362,7 @@ def run_pass(means, quats, scales, opacities, coefficients, background, K, world
             del sort_keys
             if count > capacity:  # the guess was short: again with exact buffers (the emission clears ranges)
                 del slot_ids
-                sorted_ids = bin_and_composite(count)
+                sorted_ids = bin_and_composite(count, padded=True)
             else:  # only the pairs' ids are kept (the padding slots sort last and belong to no tile)
                 sorted_ids = _kept_ids(slot_ids, count, compact=compact_ids)
     return out._replace(status=status, sorted_ids=sorted_ids), count
