@@ -222,6 +222,36 @@ def test_saturated_piles_need_several_batches(device):
         assert_grads_close(grads[name], ref_grads[name], name)
 
 
+@pytest.mark.parametrize("kernel", ["default", "wide"])
+def test_both_backward_kernels_match_reference(device, kernel, monkeypatch):
+    """The compositing backward's two kernels (launch bounds and warp sums of their own), each forced on every
+    grid: a pile of several batches per tile, then a scene with the densification sums (12 values a Gaussian)."""
+    chosen = kernels.composite_backward_kernel if kernel == "default" else kernels.composite_backward_wide_kernel
+    monkeypatch.setattr(kernels, "backward_kernel_for", lambda tile_count, device: chosen)
+    pile, pile_sizes = make_scene(6, gaussian_count=700, width=40, height=32, device=device,
+                                  opacity_range=(0.3, 0.99), awkward=False)
+    pile["scales"] = pile["scales"].clamp(min=0.12)
+    for seed, (scene, sizes) in ((6, (pile, pile_sizes)), (2, make_scene(2, gaussian_count=300, width=64, height=48,
+                                                                          sh_degree=1, device=device))):
+        cotangents = random_cotangents(sizes, device, seed)
+        with cpu_cooperative_blocks():
+            _, grads, densify = render_and_grad(ops.rasterize_gaussians, scene, sizes, cotangents, densify=True)
+        _, ref_grads, ref_densify = render_reference(scene, sizes, cotangents, densify=True)
+        for name in ref_grads:
+            assert_grads_close(grads[name], ref_grads[name], f"{kernel} {name}")
+        assert_grads_close(densify, ref_densify, f"{kernel} densify_grad_out")
+
+
+def test_backward_kernel_choice_follows_the_grid(device):
+    chosen = kernels.backward_kernel_for
+    if not wp.get_device(device).is_cuda:
+        assert chosen(10**6, device) is kernels.composite_backward_kernel
+        return
+    sms = wp.get_device(device).sm_count
+    assert chosen(kernels.WIDE_GRID_TILES_PER_SM * sms - 1, device) is kernels.composite_backward_kernel
+    assert chosen(kernels.WIDE_GRID_TILES_PER_SM * sms, device) is kernels.composite_backward_wide_kernel
+
+
 def test_cpu_cooperative_blocks_match_reference():
     """The CUDA execution model on CPU: 256 fibers per tile sharing batches, block-wide early exit."""
     for seed, count, sh_degree in ((7, 700, None), (8, 200, 3)):
