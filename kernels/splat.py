@@ -862,17 +862,41 @@ def launch_composite_forward(tile_ranges, sorted_ids, xy_opacity, conics, color_
 # 4. Compositing, backward
 # ----------------------------------------------------------------------------------------------------------
 
-# Sums one Gaussian's gradient contributions over the 32 lanes of each warp, then lane 0 adds them to the
-# structure-of-arrays buffer (layout: GRAD_RECORD_FLOATS). Every lane of a warp must reach the call together;
-# the caller guarantees it by iterating block-uniform loops and passing ``active = 0`` from idle lanes.
-_WARP_SUM_ADD_SNIPPET = r"""
+# The warp-sum snippets' shared parts: one Gaussian's gradient values as locals, and their atomic adds into the
+# structure-of-arrays buffer (layout: GRAD_RECORD_FLOATS).
+_RECORD_VALUES = r"""
     float m0 = v_mean2d[0], m1 = v_mean2d[1];
     float c0 = v_conic[0], c1 = v_conic[1], c2 = v_conic[2];
     float o0 = v_opacity;
     float r0 = v_color[0], r1 = v_color[1], r2 = v_color[2];
     float d0 = v_depth;
     float a0 = wp::abs(m0), a1 = wp::abs(m1);
-#if defined(__CUDA_ARCH__)
+"""
+
+_ADD_RECORD = r"""
+    const long long n = (long long)gaussian_count;
+    const long long g = (long long)gaussian;
+    float* base = grads.data;
+    wp::atomic_add(base + 2 * g, m0);
+    wp::atomic_add(base + 2 * g + 1, m1);
+    wp::atomic_add(base + 2 * n + 3 * g, c0);
+    wp::atomic_add(base + 2 * n + 3 * g + 1, c1);
+    wp::atomic_add(base + 2 * n + 3 * g + 2, c2);
+    wp::atomic_add(base + 5 * n + g, o0);
+    wp::atomic_add(base + 6 * n + 3 * g, r0);
+    wp::atomic_add(base + 6 * n + 3 * g + 1, r1);
+    wp::atomic_add(base + 6 * n + 3 * g + 2, r2);
+    wp::atomic_add(base + 9 * n + g, d0);
+    if (with_abs) {
+        wp::atomic_add(base + 10 * n + 2 * g, a0);
+        wp::atomic_add(base + 10 * n + 2 * g + 1, a1);
+    }
+"""
+
+# Sums one Gaussian's gradient contributions over the 32 lanes of each warp, then lane 0 adds them to the buffer
+# (on CPU every thread adds its own). Every lane of a warp must reach the call together; the caller guarantees it
+# by iterating block-uniform loops and passing ``active = 0`` from idle lanes.
+_WARP_SUM_ADD_SNIPPET = _RECORD_VALUES + r"""#if defined(__CUDA_ARCH__)
     const unsigned int full_mask = 0xffffffffu;
     if (__any_sync(full_mask, active != 0) == 0)
         return;
@@ -897,25 +921,7 @@ _WARP_SUM_ADD_SNIPPET = r"""
     if (!active)
         return;
 #endif
-    const long long n = (long long)gaussian_count;
-    const long long g = (long long)gaussian;
-    float* base = grads.data;
-    wp::atomic_add(base + 2 * g, m0);
-    wp::atomic_add(base + 2 * g + 1, m1);
-    wp::atomic_add(base + 2 * n + 3 * g, c0);
-    wp::atomic_add(base + 2 * n + 3 * g + 1, c1);
-    wp::atomic_add(base + 2 * n + 3 * g + 2, c2);
-    wp::atomic_add(base + 5 * n + g, o0);
-    wp::atomic_add(base + 6 * n + 3 * g, r0);
-    wp::atomic_add(base + 6 * n + 3 * g + 1, r1);
-    wp::atomic_add(base + 6 * n + 3 * g + 2, r2);
-    wp::atomic_add(base + 9 * n + g, d0);
-    if (with_abs) {
-        wp::atomic_add(base + 10 * n + 2 * g, a0);
-        wp::atomic_add(base + 10 * n + 2 * g + 1, a1);
-    }
-"""
-
+""" + _ADD_RECORD
 
 
 @wp.func_native(_WARP_SUM_ADD_SNIPPET)
@@ -933,13 +939,13 @@ def warp_sum_atomic_add(
 ): ...
 
 
-# The same sum and add as _WARP_SUM_ADD_SNIPPET with fewer instructions, for the wide-grid kernel. The up to 12 values are reduced by recursive halving
-# ("transpose" reduction): at each of the five butterfly steps a lane keeps half of its values and swaps the
-# other half with its partner, so the warp makes 8 + 4 + 2 + 1 + 1 = 16 shuffles instead of 5 per value (60),
-# and ends with lane pair (2j, 2j+1) holding the whole warp's sum of value j, which the even lanes add to the
-# buffer together (one atomic instruction instead of 12 issued one after another by lane 0). Measured on an
-# H100/H200 it is the faster of the two at 64 registers a thread (4 blocks a multiprocessor) and the slower
-# at 96 (2 blocks), which is why each kernel has its own.
+# The same sum and add as _WARP_SUM_ADD_SNIPPET with fewer instructions, for the wide-grid kernel. The up to 12
+# values are reduced by recursive halving ("transpose" reduction): at each of the five butterfly steps a lane
+# keeps half of its values and swaps the other half with its partner, so the warp makes 8 + 4 + 2 + 1 + 1 = 16
+# shuffles instead of 5 per value (60), and ends with lane pair (2j, 2j+1) holding the whole warp's sum of value
+# j, which the even lanes add to the buffer together (one atomic instruction instead of 12 issued one after
+# another by lane 0). Measured on an H100/H200 it is the faster of the two at 64 registers a thread (4 blocks a
+# multiprocessor) and the slower at 96 (2 blocks), which is why each kernel has its own.
 _WARP_SUM_ADD_TRANSPOSED_SNIPPET = r"""
 #if defined(__CUDA_ARCH__)
     const unsigned int full_mask = 0xffffffffu;
@@ -992,25 +998,10 @@ _WARP_SUM_ADD_TRANSPOSED_SNIPPET = r"""
         offset = 10 * n + 2 * g + (j - 10);
     wp::atomic_add(grads.data + offset, total);
 #else
+""" + _RECORD_VALUES + r"""
     if (!active)
         return;
-    const long long n = (long long)gaussian_count;
-    const long long g = (long long)gaussian;
-    float* base = grads.data;
-    wp::atomic_add(base + 2 * g, v_mean2d[0]);
-    wp::atomic_add(base + 2 * g + 1, v_mean2d[1]);
-    wp::atomic_add(base + 2 * n + 3 * g, v_conic[0]);
-    wp::atomic_add(base + 2 * n + 3 * g + 1, v_conic[1]);
-    wp::atomic_add(base + 2 * n + 3 * g + 2, v_conic[2]);
-    wp::atomic_add(base + 5 * n + g, v_opacity);
-    wp::atomic_add(base + 6 * n + 3 * g, v_color[0]);
-    wp::atomic_add(base + 6 * n + 3 * g + 1, v_color[1]);
-    wp::atomic_add(base + 6 * n + 3 * g + 2, v_color[2]);
-    wp::atomic_add(base + 9 * n + g, v_depth);
-    if (with_abs) {
-        wp::atomic_add(base + 10 * n + 2 * g, wp::abs(v_mean2d[0]));
-        wp::atomic_add(base + 10 * n + 2 * g + 1, wp::abs(v_mean2d[1]));
-    }
+""" + _ADD_RECORD + r"""
 #endif
 """
 
@@ -1184,7 +1175,8 @@ def backward_kernel_for(tile_count: int, device):
     ``device``: :data:`composite_backward_wide_kernel` on CUDA from :data:`WIDE_GRID_TILES_PER_SM` tiles per
     multiprocessor on, else :data:`composite_backward_kernel`."""
     device = wp.get_device(device)
-    if device.is_cuda and tile_count >= WIDE_GRID_TILES_PER_SM * max(1, int(getattr(device, "sm_count", 0) or 0)):
+    multiprocessors = int(getattr(device, "sm_count", 0) or 0) if device.is_cuda else 0
+    if multiprocessors and tile_count >= WIDE_GRID_TILES_PER_SM * multiprocessors:
         return composite_backward_wide_kernel
     return composite_backward_kernel
 
