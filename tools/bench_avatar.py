@@ -23,7 +23,9 @@ Times, side by side in one run:
   ``render`` call plus its GPU work, timed by events around one call and a synchronization, median).
 
 Without ``--avatar`` (as ``--quick`` on CPU does) the avatar is the one a fresh fit of the video starts from.
-``--video`` defaults to the built-in demo subject. Times are medians (``bench_common.time_function``).
+``--video`` defaults to the built-in demo subject. Times are medians (``bench_common.time_function``); the
+rasterizer rows time ours and gsplat in ``--rounds`` interleaved rounds (default 2) and show one value or the range
+"low-high" over the rounds.
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from bench_common import time_function  # noqa: E402
+from bench_common import interleaved_rounds, time_function, value_range  # noqa: E402
 from bench_splat import _count_warp_calls, _gsplat, _measure, _pair_count, _ratio  # noqa: E402
 
 from warpavatar import data  # noqa: E402
@@ -203,7 +205,7 @@ def _camera_at(camera, width: int, height: int, device: str):
 
 
 # --------------------------------------------------------------------------------------------- rows
-def _raster_rows(avatar, video, device, warmup, repeats, quick) -> list[dict]:
+def _raster_rows(avatar, video, device, warmup, repeats, quick, rounds=2) -> list[dict]:
     from warpavatar.ops import rasterize_gaussians
 
     tensors, camera = _posed_scene(avatar, video, device)
@@ -219,26 +221,39 @@ def _raster_rows(avatar, video, device, warmup, repeats, quick) -> list[dict]:
         splat_bridge._REPLAYS.clear()  # each size alone: no graph of the other size held on
         splat_bridge._PASS_GRAPHS.clear()
         replays_before = splat_bridge._PASS_GRAPHS.replays
-        forward_ms, backward_ms, peak = _measure(ours, parameters, device, warmup, repeats)
+        theirs = _gsplat(scene, parameters)
+        runs = interleaved_rounds({
+            "ours": lambda: _measure(ours, parameters, device, warmup, repeats),
+            "gsplat": None if theirs is None else (lambda: _measure(theirs, parameters, device, warmup, repeats)),
+        }, rounds)
         address_replays = splat_bridge._PASS_GRAPHS.replays - replays_before
         held = splat_bridge._REPLAYS.held_bytes() / 2**20
+        forward_ms, backward_ms, peak = ([run[i] for run in runs["ours"]] for i in range(3))
         notes = f"{tensors[0].shape[0]} Gaussians"
-        if peak is not None:  # (CUDA)
+        if peak[0] is not None:  # (CUDA)
             pairs = _pair_count(dict(scene, **dict(zip(("means", "quats", "scales", "opacities", "colors"), tensors))))
-            notes += (f"; peak {peak:.1f} MiB + {held:.1f} MiB held by the replayed pass's graph; {address_replays} "
-                      f"calls replayed by address; {pairs} pairs")
+            notes += (f"; peak {max(peak):.1f} MiB + {held:.1f} MiB held by the replayed pass's graph; "
+                      f"{address_replays} calls replayed by address; {pairs} pairs")
         row = {"measure": "rasterizer fwd / fwd+bwd ms", "size": f"{width}x{height}",
-               "ours": f"{forward_ms:.3f} / {forward_ms + backward_ms:.3f}", "gsplat": None, "ratio": None,
-               "notes": notes}
-        theirs = _gsplat(scene, parameters) if device.startswith("cuda") else None
+               "ours": _pair_cell(forward_ms, [f + b for f, b in zip(forward_ms, backward_ms)]), "gsplat": None,
+               "ratio": None, "notes": notes}
         if theirs is not None:
-            g_forward, g_backward, g_peak = _measure(theirs, parameters, device, warmup, repeats)
-            row.update(gsplat=f"{g_forward:.3f} / {g_forward + g_backward:.3f}",
-                       ratio=f"{_ratio(forward_ms, g_forward):.2f} / "
-                             f"{_ratio(forward_ms + backward_ms, g_forward + g_backward):.2f}")
-            row["notes"] += f" (gsplat peak {g_peak:.1f} MiB)"
+            g_forward, g_backward, g_peak = ([run[i] for run in runs["gsplat"]] for i in range(3))
+            row.update(gsplat=_pair_cell(g_forward, [f + b for f, b in zip(g_forward, g_backward)]),
+                       ratio=_pair_cell([_ratio(f, g) for f, g in zip(forward_ms, g_forward)],
+                                        [_ratio(f + b, g + h) for f, b, g, h in
+                                         zip(forward_ms, backward_ms, g_forward, g_backward)], digits=2))
+            row["notes"] += f" (gsplat peak {max(g_peak):.1f} MiB)"
         rows.append(row)
     return rows
+
+
+def _pair_cell(first: list, second: list, digits: int = 3) -> str:
+    """The table cell "first / second", each one value or its range over the rounds."""
+    def text(values):
+        cell = value_range(values, digits)
+        return f"{cell:.{digits}f}" if isinstance(cell, float) else str(cell)
+    return f"{text(first)} / {text(second)}"
 
 
 def _step_row(trainer, video, device, warmup, repeats) -> dict:
@@ -314,17 +329,17 @@ def _playback_rows(avatar, video, device, repeats, quick, modes=("off",), *, pre
 
 
 def run(device: str, quick: bool, *, avatar: str | None = None, video: str | None = None,
-        garment: bool = False, matmul_precision: str | None = None) -> list[dict]:
+        garment: bool = False, matmul_precision: str | None = None, rounds: int = 2) -> list[dict]:
     """Benchmark rows (see the module docstring); ``garment``: with a garment forced on the fresh avatar
     (:data:`GARMENT_CONFIG`; a fitted avatar's own config decides); ``matmul_precision``: the MLPs' GEMMs in
-    the step and in playback (default: the config's)."""
+    the step and in playback (default: the config's); ``rounds``: the rasterizer rows' interleaved rounds."""
     warmup, repeats = (1, 3) if quick else (5, 20)
     video_folder, config, fitted = _load(avatar, video, device, quick, garment)
     if matmul_precision is not None:
         config = dataclasses.replace(config, matmul_precision=matmul_precision)
     with tempfile.TemporaryDirectory() as folder:
         eager = _steady_trainer(video_folder, config, fitted, device, folder, cuda_graph="off")
-        rows = _raster_rows(eager.avatar, video_folder, device, warmup, repeats, quick)
+        rows = _raster_rows(eager.avatar, video_folder, device, warmup, repeats, quick, rounds)
         rows.append(_step_row(eager, video_folder, device, warmup, repeats))
     rows += _playback_rows(eager.avatar, video_folder, device, repeats, quick, precision=config.matmul_precision)
     if device.startswith("cuda"):  # last: a capture that fails must not cost the rows above

@@ -12,7 +12,7 @@ from typing import Callable
 
 import torch
 
-__all__ = ["time_function", "peak_memory_scope", "markdown_table"]
+__all__ = ["time_function", "peak_memory_scope", "markdown_table", "interleaved_rounds", "value_range"]
 
 
 def time_function(fn: Callable[[], object], *, device: str, warmup: int = 5, repeats: int = 20) -> float:
@@ -89,3 +89,33 @@ def markdown_table(rows: list[dict]) -> str:
     lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
     lines += ["| " + " | ".join(cell(row.get(k)) for k in keys) + " |" for row in rows]
     return "\n".join(lines)
+
+
+def interleaved_rounds(measures: dict[str, Callable[[], object] | None], rounds: int) -> dict[str, list]:
+    """Call each measurement ``rounds`` times, the order reversed every other round (so that a machine's drift, a
+    clock that settles or a neighbour's load, falls on both sides), and return each one's results in round order.
+
+    Args:
+        measures: name -> a function returning one measurement (None: skipped, gets an empty list).
+        rounds: how many times each runs (>= 1).
+    """
+    if rounds < 1:
+        raise ValueError(f"rounds must be >= 1, got {rounds}")
+    names = [name for name, measure in measures.items() if measure is not None]
+    results: dict[str, list] = {name: [] for name in measures}
+    for index in range(rounds):
+        for name in (names if index % 2 == 0 else names[::-1]):
+            results[name].append(measures[name]())
+    return results
+
+
+def value_range(values: list, digits: int = 3):
+    """One value (or several equal ones) as itself; several as the string ``"low-high"`` with ``digits`` decimals
+    (a table cell); none, or any None among them, as None."""
+    if not values or any(value is None for value in values):
+        return None
+    low, high = min(values), max(values)
+    if len(values) == 1 or low == high:
+        return values[0]
+    return f"{low:.{digits}f}-{high:.{digits}f}"
+

@@ -48,12 +48,18 @@ def main(argv=None) -> int:
     parser.add_argument("--matmul-precision", choices=("tf32", "fp32"), default=None,
                         help="avatar mode: precision of the MLPs' float32 GEMMs in the training step and in playback "
                              "(warpavatar-fit --matmul-precision; default: the fitted avatar's config, else tf32)")
+    parser.add_argument("--rounds", type=int, default=2,
+                        help="splat and avatar modes: time the rasterizer (ours and gsplat) in this many interleaved "
+                             "rounds, the order reversed every other round, and print each time and ratio as one "
+                             "value or its range over the rounds (default: 2)")
     parser.add_argument("--replay", choices=("address", "owned", "off"), default="address",
                         help="splat and avatar modes: how repeated rasterizer passes skip their host work "
                              "(warpavatar.ops.rasterizer_replays): address (default, as warpavatar runs) replays a "
                              "pass whose buffers' addresses repeat from a CUDA graph; owned replays a repeated shape "
                              "from a graph holding its own buffers; off launches every kernel from Python")
     args = parser.parse_args(argv)
+    if args.rounds < 1:
+        parser.error(f"--rounds must be >= 1, got {args.rounds}")
     from warpavatar._src.splat import rasterizer_replays  # noqa: PLC0415
 
     rasterizer_replays(mode=args.replay)
@@ -72,6 +78,8 @@ def main(argv=None) -> int:
         module = importlib.import_module(f"bench_{mode}")
         extra = ({"avatar": args.avatar, "video": args.video, "garment": args.garment,
                   "matmul_precision": args.matmul_precision} if mode == "avatar" else {})
+        if mode in ("splat", "avatar"):
+            extra["rounds"] = args.rounds
         rows = module.run(device=args.device, quick=args.quick, **extra)
         out.append(f"### {mode}\n\n{markdown_table(rows)}\n")
         print(out[-1], flush=True)

@@ -9,6 +9,9 @@ Per row: forward and backward median times (``bench_common.time_function``: warm
 repetitions timed with CUDA events), peak memory of one forward + backward above the inputs
 (``bench_common.peak_memory_scope``, torch's allocator), the same for ``gsplat.rasterization`` (default
 options, render_mode "RGB+D" so that it also computes depth) on the same inputs, and the ratios ours / gsplat.
+Ours and gsplat are measured in ``--rounds`` interleaved rounds (default 2; the order reversed every other
+round), each round giving its own times and ratios: a cell shows one value, or the range "low-high" over the
+rounds.
 ``launches`` counts the ``wp.launch`` calls of one forward / one backward, plus the ``warp.utils`` scan and
 sort calls (each a few CUB kernels; a forward makes one scan and two sorts, by depth and by tile). ``pairs`` is the number of (Gaussian, tile) pairs sorted and walked by the
 compositing (ours: the sum of the projection's tile counts; gsplat: the length of its ``isect_ids``).
@@ -31,7 +34,7 @@ import warp as wp
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from bench_common import peak_memory_scope, time_function  # noqa: E402
+from bench_common import interleaved_rounds, peak_memory_scope, time_function, value_range  # noqa: E402
 
 from warpavatar._src import splat as splat_bridge  # noqa: E402
 from warpavatar.ops import rasterize_gaussians  # noqa: E402
@@ -111,6 +114,9 @@ def _gsplat_K(scene: dict) -> torch.Tensor:
 
 
 def _gsplat(scene: dict, parameters: list):
+    """gsplat's rasterization of the scene as a function of no arguments, or None (CPU, or no gsplat here)."""
+    if not scene["K"].is_cuda:
+        return None
     try:
         import gsplat
     except Exception:  # not installed, or its CUDA extension cannot build here
@@ -185,8 +191,9 @@ def _ratio(ours, theirs):
     return ours / theirs
 
 
-def run(device: str, quick: bool) -> list[dict]:
-    """Benchmark rows (see the module docstring); ``quick`` uses tiny scenes and few repetitions."""
+def run(device: str, quick: bool, *, rounds: int = 2) -> list[dict]:
+    """Benchmark rows (see the module docstring); ``quick`` uses tiny scenes and few repetitions; ``rounds``:
+    ours and gsplat timed that many times each, interleaved (:func:`bench_common.interleaved_rounds`)."""
     sizes = QUICK_SIZES if quick else FULL_SIZES
     warmup, repeats = (1, 3) if quick else (5, 20)
     rows = []
@@ -205,18 +212,24 @@ def run(device: str, quick: bool) -> list[dict]:
         backward_calls = dict(counter)
         del outputs
 
+        theirs = _gsplat(scene, parameters)
         replays_before = splat_bridge._REPLAYS.replays + splat_bridge._PASS_GRAPHS.replays
-        forward_ms, backward_ms, peak = _measure(ours, parameters, device, warmup, repeats)
+        runs = interleaved_rounds({
+            "ours": lambda: _measure(ours, parameters, device, warmup, repeats),
+            "gsplat": None if theirs is None else (lambda: _measure(theirs, parameters, device, warmup, repeats)),
+        }, rounds)
+        held = splat_bridge._REPLAYS.held_bytes() / 2**20
+        forward_ms, backward_ms, peak = ([run[i] for run in runs["ours"]] for i in range(3))
         row = {
             "gaussians": gaussian_count,
             "resolution": f"{width}x{height}",
-            "fwd ms": forward_ms,
-            "bwd ms": backward_ms,
-            "peak MiB": peak,
+            "fwd ms": value_range(forward_ms),
+            "bwd ms": value_range(backward_ms),
+            "peak MiB": value_range(peak),
             "launches fwd/bwd": (f"{forward_calls.get('launch', 0)}+{forward_calls.get('utils', 0)} utils / "
                                  f"{backward_calls.get('launch', 0)}"),
             "replayed calls": splat_bridge._REPLAYS.replays + splat_bridge._PASS_GRAPHS.replays - replays_before,
-            "graph MiB": splat_bridge._REPLAYS.held_bytes() / 2**20,
+            "graph MiB": held,
             "pairs": _pair_count(scene),
             "gsplat pairs": None,
             "gsplat fwd ms": None,
@@ -227,18 +240,19 @@ def run(device: str, quick: bool) -> list[dict]:
             "fwd+bwd ratio": None,
             "peak ratio": None,
         }
-        theirs = _gsplat(scene, parameters) if device.startswith("cuda") else None
         if theirs is not None:
-            g_forward, g_backward, g_peak = _measure(theirs, parameters, device, warmup, repeats)
+            g_forward, g_backward, g_peak = ([run[i] for run in runs["gsplat"]] for i in range(3))
+            pairs_of_rounds = list(zip(forward_ms, backward_ms, peak, g_forward, g_backward, g_peak))
             row.update({
                 "gsplat pairs": _gsplat_pair_count(scene),
-                "gsplat fwd ms": g_forward,
-                "gsplat bwd ms": g_backward,
-                "gsplat peak MiB": g_peak,
-                "fwd ratio": _ratio(forward_ms, g_forward),
-                "bwd ratio": _ratio(backward_ms, g_backward),
-                "fwd+bwd ratio": _ratio(forward_ms + backward_ms, g_forward + g_backward),
-                "peak ratio": _ratio(None if peak is None else peak + row["graph MiB"], g_peak),
+                "gsplat fwd ms": value_range(g_forward),
+                "gsplat bwd ms": value_range(g_backward),
+                "gsplat peak MiB": value_range(g_peak),
+                "fwd ratio": value_range([_ratio(f, gf) for f, _, _, gf, _, _ in pairs_of_rounds]),
+                "bwd ratio": value_range([_ratio(b, gb) for _, b, _, _, gb, _ in pairs_of_rounds]),
+                "fwd+bwd ratio": value_range([_ratio(f + b, gf + gb) for f, b, _, gf, gb, _ in pairs_of_rounds]),
+                "peak ratio": value_range([_ratio(None if p is None else p + held, gp)
+                                           for _, _, p, _, _, gp in pairs_of_rounds]),
             })
         rows.append(row)
         del scene, parameters
