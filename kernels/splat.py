@@ -740,6 +740,13 @@ def gaussian_alpha(xyo: wp.vec3, conic: wp.vec3, pixel_x: float, pixel_y: float)
     return wp.vec3(wp.min(ALPHA_MAX, xyo[2] * falloff), sigma, falloff)
 
 
+@wp.func
+def tile_pixel(tile: int, lane: int, tiles_x: int):
+    """Column and row of the pixel that thread ``lane`` of tile ``tile`` (row-major, ``tiles_x`` a row) owns."""
+    tile_row = tile // tiles_x
+    return (tile - tile_row * tiles_x) * TILE_SIZE + lane % TILE_SIZE, tile_row * TILE_SIZE + lane // TILE_SIZE
+
+
 @wp.kernel(enable_backward=False)
 def composite_forward_kernel(
     tile_ranges: wp.array2d(dtype=wp.int32),
@@ -766,9 +773,7 @@ def composite_forward_kernel(
     (-1 when none).
     """
     tile, lane = wp.tid()
-    tile_row = tile // tiles_x
-    pixel_x = (tile - tile_row * tiles_x) * TILE_SIZE + lane % TILE_SIZE
-    pixel_y = tile_row * TILE_SIZE + lane // TILE_SIZE
+    pixel_x, pixel_y = tile_pixel(tile, lane, tiles_x)
     inside = pixel_x < width and pixel_y < height
     center_x = float(pixel_x) + 0.5
     center_y = float(pixel_y) + 0.5
@@ -1068,9 +1073,7 @@ def _composite_backward_kernel(sum_and_add, **options):
         """
         tile, lane = wp.tid()
         gaussian_count = xy_opacity.shape[0]
-        tile_row = tile // tiles_x
-        pixel_x = (tile - tile_row * tiles_x) * TILE_SIZE + lane % TILE_SIZE
-        pixel_y = tile_row * TILE_SIZE + lane // TILE_SIZE
+        pixel_x, pixel_y = tile_pixel(tile, lane, tiles_x)
         inside = pixel_x < width and pixel_y < height
         center_x = float(pixel_x) + 0.5
         center_y = float(pixel_y) + 0.5

@@ -1,13 +1,8 @@
 """The benchmark tools' interleaved rounds: measurement order, ranges, and the rasterizer rows built from them."""
 
-import sys
-from pathlib import Path
-
 import pytest
 
 from tests.conftest import load_tool
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))  # the tools import each other by name
 
 
 def test_rounds_alternate_the_order_and_skip_missing_measures():

@@ -36,7 +36,7 @@ from typing import Callable
 import torch
 import warp as wp
 
-from warpavatar._src.warp_utils import init_warp, warp_stream_of
+from warpavatar._src.warp_utils import init_warp, torch_stream_scope, warp_stream_of
 
 __all__ = ["CAPTURE_AFTER", "DEFAULT_CAPTURE_AFTER", "GRAPHS_KEPT", "AddressKeyedGraphs"]
 
@@ -119,8 +119,7 @@ class AddressKeyedGraphs:
         try:
             # Both torch's and Warp's current stream are the side stream (the caller may have selected Warp's
             # stream before: a launch on another stream would break the capture).
-            with torch.cuda.stream(side), wp.ScopedDevice(warp_stream.device), \
-                    wp.ScopedStream(warp_stream, sync_enter=False):
+            with torch.cuda.stream(side), torch_stream_scope(device):
                 wp.capture_begin(stream=warp_stream, force_module_load=False)
                 try:
                     queue()
