@@ -745,8 +745,8 @@ def test_sorted_pairs_are_ordered_by_tile_depth_and_index(device, mode, monkeypa
     image, _, _, info = ops.rasterize_gaussians(*args, sizes["width"], sizes["height"], background=scene["background"],
                                                 return_info=True, intersection_capacity=capacity)
     assert int(info["status"][0]) == pair_count
-    saved = image.grad_fn.saved_tensors
-    tile_ranges, sorted_ids = saved[11].cpu(), saved[12].cpu()
+    saved = image.grad_fn.saved_pass
+    tile_ranges, sorted_ids = saved.tile_ranges.cpu(), saved.sorted_ids.cpu()
     tile_count = tile_ranges.shape[0]
     tiles = torch.full(sorted_ids.shape, tile_count, dtype=torch.int32)  # slots in no range: padding
     for tile, (start, end) in enumerate(tile_ranges.tolist()):
@@ -777,13 +777,18 @@ def test_backward_keeps_one_sorted_id_per_pair_and_no_per_gaussian_scratch(devic
     image, alpha, depth, info = render(ops.rasterize_gaussians, scene, sizes, return_info=True)
     pair_count = int(info["status"][0])
     assert pair_count > 100
-    saved = image.grad_fn.saved_tensors
-    sorted_ids = saved[12]
+    saved = image.grad_fn.saved_pass
+    sorted_ids = saved.sorted_ids
     assert sorted_ids.dtype == torch.int32 and sorted_ids.shape == (pair_count,)
     assert sorted_ids.untyped_storage().nbytes() == 4 * pair_count
     n = scene["means"].shape[0]
-    per_gaussian = sum(t.untyped_storage().nbytes() for t in saved[7:11])
-    assert per_gaussian == 48 * n
+    # The four per-Gaussian records share one allocation of 48 bytes a Gaussian (radii 8, projected means and
+    # opacities 12, conics 12, colours and depths 16), laid end to end.
+    records = (saved.radii, saved.xy_opacity, saved.conics, saved.color_depth)
+    storage = saved.radii.untyped_storage()
+    assert all(t.untyped_storage().data_ptr() == storage.data_ptr() and t.is_contiguous() for t in records)
+    assert storage.nbytes() == 48 * n
+    assert sorted(t.data_ptr() - storage.data_ptr() for t in records) == [0, 8 * n, 20 * n, 32 * n]
     grads = torch.autograd.grad((image, alpha, depth), [scene["means"], scene["opacities"]],
                                 random_cotangents(sizes, device, 5))
     # means' and opacities' gradients share the one zeroed buffer: 10 screen-space floats, 13 parameter floats.

@@ -6,8 +6,9 @@ order, the sort of the (Gaussian, tile) pairs by tile: two radix sorts over 4-by
 over 8-byte (tile, depth) keys, see ``kernels/splat.py``), one small torch fill (the prefix sum's buffer with the
 pair count and the flags; the key emission clears the tile ranges), a copy of the sorted ids when a backward may
 follow (it keeps 4 bytes a pair, not the sort's double buffer; a pass whose inputs need no gradient skips it), and
-one host synchronization; in the speculative mode a call whose buffers' addresses repeat replays all of that but
-the copy from one CUDA graph. One backward pass makes two Warp launches (compositing backward, projection adjoint), one
+one host wait for the pair count (in the speculative mode a copy into pinned host memory after the prefix sum,
+which the host polls while the compositing runs); in the speculative mode a call whose buffers' addresses repeat
+replays all of that but the ids' copy from one CUDA graph. One backward pass makes two Warp launches (compositing backward, projection adjoint), one
 torch fill and no synchronization.
 
 The sort buffers must hold every (Gaussian, tile) pair, a number known only on the device once the projection
@@ -16,10 +17,13 @@ has run (an upper bound would cost far more memory, as any Gaussian may cover th
 * **Speculative** (CUDA, the default once a call of the same image size and Gaussian count has been seen): the
   buffers get a capacity of :data:`SPECULATIVE_HEADROOM` times the most pairs of the last
   :data:`SPECULATIVE_HISTORY` such calls (more where their counts rise), every buffer is allocated first, and
-  the whole pass is queued without waiting; the pair count and the non-finite-input flag are read once at the
-  end (the one synchronization), and only then are the pairs' ids copied out of the sort's double buffer. When
-  the pairs did not fit, the tile binning and compositing run again with exact buffers, so the result is always
-  exact. The host thus queues every kernel while the GPU works, instead of waiting for the projection half-way.
+  the whole pass is queued without waiting; the pair count and the non-finite-input flag are copied into pinned
+  host memory as soon as the prefix sum has them and read there once the whole pass is queued
+  (:mod:`warpavatar._src.status_mailbox`: the host waits for the front half of the pass, not for the
+  compositing), and only then are the pairs' ids copied out of the sort's double buffer (queued behind the
+  compositing). When the pairs did not fit, the tile binning and compositing run again with exact buffers, so
+  the result is always exact. The host thus queues every kernel while the GPU works, instead of waiting for the
+  projection half-way, and does its work after the read (the ids' copy, autograd's) while the GPU composites.
   Where a call's buffers come back at the addresses of a recent call's (torch's caching allocator hands out the
   same blocks to the same sequence of allocations: a render loop, a training step), its launches are replayed
   from a CUDA graph keyed by those addresses (:mod:`warpavatar._src.address_graphs`): one graph launch instead
@@ -44,8 +48,12 @@ In every mode non-finite inputs raise a ``ValueError`` (fixed mode: when the cal
 Host work per call is kept small: kernel arguments are Warp launch descriptors
 (:func:`~warpavatar._src.warp_utils.warp_descriptor`), not ``wp.array`` objects, the launches reuse recorded
 commands (:mod:`warpavatar.kernels.launch`), and the sort and scan get the tensors' pointers
-(``warp_utils.radix_sort_pairs`` and ``inclusive_scan``). Memory a pass holds, per Gaussian / pair / pixel,
-is listed in ``docs/rasterizer_memory.md``.
+(``warp_utils.radix_sort_pairs`` and ``inclusive_scan``). Before a replayed pass's graph launch (the host's work
+the GPU waits for) a call only checks its inputs, skips conversions they do not need, allocates ten buffers
+(the per-Gaussian records in one) and builds the graph's key; the views the launches would need are made only
+where launches are queued. Autograd gets three outputs (the info tensors travel beside them) and packs only the
+inputs; the pass's own intermediates are kept on its context (:class:`SavedPass`). Memory a pass holds, per
+Gaussian / pair / pixel, is listed in ``docs/rasterizer_memory.md``.
 """
 
 from __future__ import annotations
@@ -61,12 +69,13 @@ import warp as wp
 from warpavatar._src import address_graphs, splat_replay
 from warpavatar._src.address_graphs import AddressKeyedGraphs
 from warpavatar._src.splat_replay import ReplayCache
+from warpavatar._src.status_mailbox import StatusMailbox, status_mailbox
 from warpavatar._src.warp_utils import (check_tensor, inclusive_scan, radix_sort_pairs, torch_stream_scope,
                                         warp_descriptor, write_only_descriptor)
 from warpavatar.kernels import splat as splat_kernels
 
 __all__ = ["rasterize_gaussians", "RasterInfo", "rasterizer_replays", "rasterizer_status", "run_pass",
-           "allocate_pass_buffers", "PassBuffers", "SPECULATIVE_HEADROOM", "SPECULATIVE_HISTORY"]
+           "allocate_pass_buffers", "PassBuffers", "SavedPass", "SPECULATIVE_HEADROOM", "SPECULATIVE_HISTORY"]
 
 SPECULATIVE_HEADROOM = 1.03
 """Speculative capacity as a multiple of the most pairs of recent calls of the same size, or of the last call's
@@ -79,7 +88,7 @@ _SPECULATIVE_MINIMUM = 1024  # slots; the capacity never goes below it
 _SPECULATE_ON_CPU = False  # CPU kernels run synchronously: the exact mode costs no wait there (tests set this)
 
 # Pair counts of recent calls, per (device, width, height, Gaussian count).
-_RECENT_PAIRS: dict[tuple, deque] = {}
+_RECENT_PAIRS: dict[tuple, _PairHistory] = {}
 _RECENT_PAIRS_KEPT = 256  # distinct keys kept before the table starts over
 
 _BAD_INPUT_NAMES = (
@@ -118,27 +127,39 @@ def _raise_on_bad_inputs(flags: int) -> None:
         raise ValueError(f"rasterize_gaussians: non-finite values in {', '.join(bad)}")
 
 
+class _PairHistory(deque):
+    """The pair counts of recent calls of one key, and the capacity they give the next call (computed when a count
+    is added, which happens after a pass has been queued: off the next call's path to its launches)."""
+
+    def __init__(self):
+        super().__init__(maxlen=SPECULATIVE_HISTORY)
+        self.capacity = None
+
+    def add(self, count: int) -> None:
+        self.append(count)
+        # Calls that repeat one count (a scene rendered again, a training step's small moves) get a few per cent
+        # above the most; calls whose counts grow get the largest recent rise on top of the last. Rounded up to
+        # 1/64 of the capacity's power of two, so that slightly different histories give the same capacity (and
+        # the same buffers: address_graphs).
+        counts = list(self)
+        rise = max((later - earlier for earlier, later in zip(counts, counts[1:])), default=0)
+        guess = max(max(counts), counts[-1] + rise)
+        capacity = max(_SPECULATIVE_MINIMUM, math.ceil(SPECULATIVE_HEADROOM * guess))
+        step = 1 << max(capacity.bit_length() - 7, 0)
+        self.capacity = -(-capacity // step) * step
+
+
 def _speculative_capacity(key: tuple) -> int | None:
     """The speculative capacity for a call of ``key`` (see the module doc), or None: no call of it seen yet, or
     speculation is off on this device."""
     device = key[0]
-    if device.type != "cuda" and not _SPECULATE_ON_CPU:
+    if device.type == "cuda":
+        if torch.cuda.is_current_stream_capturing():
+            return None  # a capture cannot read the device; callers give a fixed capacity there
+    elif not _SPECULATE_ON_CPU:
         return None
-    if device.type == "cuda" and torch.cuda.is_current_stream_capturing():
-        return None  # a capture cannot read the device; callers give a fixed capacity there
     recent = _RECENT_PAIRS.get(key)
-    if not recent:
-        return None
-    # Calls that repeat one count (a scene rendered again, a training step's small moves) get a few per cent
-    # above the most; calls whose counts grow get the largest recent rise on top of the last. Rounded up to 1/64
-    # of the capacity's power of two, so that slightly different histories give the same capacity (and the same
-    # buffers: address_graphs).
-    counts = list(recent)
-    rise = max((later - earlier for earlier, later in zip(counts, counts[1:])), default=0)
-    guess = max(max(counts), counts[-1] + rise)
-    capacity = max(_SPECULATIVE_MINIMUM, math.ceil(SPECULATIVE_HEADROOM * guess))
-    step = 1 << max(capacity.bit_length() - 7, 0)
-    return -(-capacity // step) * step
+    return None if recent is None else recent.capacity
 
 
 def _remember_pairs(key: tuple, count: int) -> None:
@@ -146,20 +167,40 @@ def _remember_pairs(key: tuple, count: int) -> None:
     if recent is None:
         if len(_RECENT_PAIRS) >= _RECENT_PAIRS_KEPT:
             _RECENT_PAIRS.clear()
-        recent = _RECENT_PAIRS[key] = deque(maxlen=SPECULATIVE_HISTORY)
-    recent.append(int(count))
+        recent = _RECENT_PAIRS[key] = _PairHistory()
+    recent.add(int(count))
 
 
-def _depth_sort_buffers(gaussian_count: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-    """The depth sort's double buffers, in one allocation (24 bytes a Gaussian): float32 keys [2 N] and the
-    records (Gaussian, tile count) as int32 [2 N, 2]. The projection fills their first halves."""
-    buffers = torch.empty(6 * gaussian_count, device=device, dtype=torch.int32)
-    return buffers[4 * gaussian_count:].view(torch.float32), buffers[: 4 * gaussian_count].view(-1, 2)
+def _front_buffers(gaussian_count: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The front half's buffers, as :func:`_front_views` reads them: the depth sort's double buffers in one
+    allocation (24 bytes a Gaussian, released with the pass) and, in another (as ``info["status"]``, a view of it,
+    may outlive the pass), int32 [N + 2] for a zero, the inclusive prefix sum of the tile counts in depth order and
+    the non-finite-input flag, zeroed by the pass.
+
+    Returns:
+        ``(depth_sort_buffers, tile_ends_and_flag)``.
+    """
+    return (torch.empty(6 * gaussian_count, device=device, dtype=torch.int32),
+            torch.empty(gaussian_count + 2, device=device, dtype=torch.int32))
+
+
+def _front_views(front: tuple[torch.Tensor, torch.Tensor]) -> tuple[tuple, torch.Tensor]:
+    """Views of :func:`_front_buffers`: the depth sort's buffers ((Gaussian, tile count) records as int32
+    [2 N, 2], first, 8-byte aligned; float32 keys [2 N]) and the prefix sum ``tile_ends`` [N]. The projection fills
+    the sort's first halves. Made only where launches are queued (a replayed pass needs none of them).
+
+    Returns:
+        ``((depth_keys, depth_order), tile_ends)``.
+    """
+    depth_buffers, tile_ends_and_flag = front
+    n = tile_ends_and_flag.shape[0] - 2
+    return ((depth_buffers[4 * n:].view(torch.float32), depth_buffers[: 4 * n].view(-1, 2)),
+            tile_ends_and_flag[1: n + 1])
 
 
 def _sort_by_depth(depth_sort, tile_ends) -> None:
     """Sort the Gaussians by depth and write ``tile_ends`` [N], the inclusive prefix sum of their tile counts in
-    that order. ``depth_sort`` holds :func:`_depth_sort_buffers` as the projection filled them."""
+    that order. ``depth_sort`` holds :func:`_front_views`' sort buffers as the projection filled them."""
     gaussian_count = tile_ends.shape[0]
     if not gaussian_count:
         return
@@ -239,17 +280,23 @@ class PassBuffers(NamedTuple):
 
 
 def allocate_pass_buffers(gaussian_count: int, width: int, height: int, device: torch.device) -> PassBuffers:
-    """Separate tensors for one eager pass (no ``status`` or ``sorted_ids`` yet: the pass makes them)."""
+    """The buffers of one eager pass (no ``status`` or ``sorted_ids`` yet: the pass makes them), in six
+    allocations: the image, alpha and depth each their own (the caller may keep one alone); the per-Gaussian
+    records (radii, projected means and opacities, conics, colours and depths: 48 bytes a Gaussian, laid end to
+    end) in one, as the backward keeps them all; what the backward reads per pixel (the final transmittance and
+    the last index) in one; the tile ranges."""
     tiles_x, tiles_y = _tile_grid(width, height)
-    f32, i32 = dict(device=device, dtype=torch.float32), dict(device=device, dtype=torch.int32)
-    # What the backward reads per pixel, in one allocation: the final transmittance and the last index.
-    pixel_state = torch.empty(2, height, width, **i32)
+    n = gaussian_count
+    records = torch.empty(12 * n, device=device, dtype=torch.int32)
+    floats = records.view(torch.float32)
+    pixel_state = torch.empty(2, height, width, device=device, dtype=torch.int32)
     return PassBuffers(
-        image=torch.empty(height, width, 3, **f32), alpha=torch.empty(height, width, **f32),
-        depth=torch.empty(height, width, **f32), radii=torch.empty(gaussian_count, 2, **i32),
-        xy_opacity=torch.empty(gaussian_count, 3, **f32), color_depth=torch.empty(gaussian_count, 4, **f32),
-        status=None, conics=torch.empty(gaussian_count, 3, **f32),
-        tile_ranges=torch.empty(tiles_x * tiles_y, 2, **i32),  # cleared by the binning
+        image=torch.empty(height, width, 3, device=device, dtype=torch.float32),
+        alpha=torch.empty(height, width, device=device, dtype=torch.float32),
+        depth=torch.empty(height, width, device=device, dtype=torch.float32),
+        radii=records.as_strided((n, 2), (2, 1), 0), xy_opacity=floats.as_strided((n, 3), (3, 1), 2 * n),
+        conics=floats.as_strided((n, 3), (3, 1), 5 * n), color_depth=floats.as_strided((n, 4), (4, 1), 8 * n),
+        status=None, tile_ranges=torch.empty(tiles_x * tiles_y, 2, device=device, dtype=torch.int32),
         final_transmittance=pixel_state[0].view(torch.float32), last_index=pixel_state[1], sorted_ids=None)
 
 
@@ -261,8 +308,9 @@ def run_pass(means, quats, scales, opacities, coefficients, background, K, world
 
     Args:
         capacity: None for the exact mode; else the sort buffers' size, a guess when ``speculative``.
-        speculative: read the pair count at the end and bin and composite again with exact buffers when the
-            guess was short (raising on non-finite inputs); False with a ``capacity``: nothing is read.
+        speculative: read the pair count as soon as the device has it (a :class:`StatusMailbox`, while the
+            compositing runs on) and bin and composite again with exact buffers when the guess was short (raising
+            on non-finite inputs); False with a ``capacity``: nothing is read.
         buffers: from :func:`allocate_pass_buffers`; a fixed capacity's pass may bring ``status`` [2] and
             ``sorted_ids`` [capacity] to be filled in place (a captured pass keeps them).
         compact_ids: False when no backward will read the pass (no gradient asked for): the sorted ids then
@@ -279,17 +327,17 @@ def run_pass(means, quats, scales, opacities, coefficients, background, K, world
     device = means.device
     gaussian_count = means.shape[0]
     used_coefficients = 1 if sh_degree < 0 else (sh_degree + 1) ** 2
-    # One int32 allocation, zeroed by the pass: a zero, the inclusive prefix sum of the tile counts in depth
-    # order and the non-finite-input flag; the last two are the pair count and the flag (one read fetches both;
-    # 0 pairs without Gaussians).
-    tile_ends_and_flag = torch.empty(gaussian_count + 2, device=device, dtype=torch.int32)
-    depth_sort = _depth_sort_buffers(gaussian_count, device)
-    tile_ends = tile_ends_and_flag[1:gaussian_count + 1]
+    # The depth sort's buffers and the prefix sum of the tile counts, whose last two values are the pair count and
+    # the flag (one read fetches both; 0 pairs without Gaussians).
+    front = _front_buffers(gaussian_count, device)
+    tile_ends_and_flag = front[1]
     status = tile_ends_and_flag[gaussian_count:]
     out = buffers
 
-    def queue_front():
-        """Clear the prefix sum's buffer, project, sort by depth and sum the tile counts."""
+    def queue_front(mailbox=None):
+        """Clear the prefix sum's buffer, project, sort by depth and sum the tile counts (then post the pair
+        count and the flag to ``mailbox``)."""
+        depth_sort, tile_ends = _front_views(front)
         tile_ends_and_flag.zero_()
         splat_kernels.launch_project(
             warp_descriptor(means, wp.vec3), warp_descriptor(quats, wp.vec4), warp_descriptor(scales, wp.vec3),
@@ -303,6 +351,8 @@ def run_pass(means, quats, scales, opacities, coefficients, background, K, world
             bad_input_flags=warp_descriptor(tile_ends_and_flag[gaussian_count + 1:]),
         )
         _sort_by_depth(depth_sort, tile_ends)
+        if mailbox is not None:
+            mailbox.post(status)
 
     def queue_composite(sorted_ids):
         splat_kernels.launch_composite_forward(
@@ -315,6 +365,7 @@ def run_pass(means, quats, scales, opacities, coefficients, background, K, world
             last_index=warp_descriptor(out.last_index.reshape(-1)))
 
     def queue_binned_composite(slots, sort_keys, slot_ids, *, padded):
+        depth_sort, tile_ends = _front_views(front)
         _queue_binning(slots, sort_keys, slot_ids, out, depth_sort, tile_ends, width=width, height=height,
                        padded=padded)
         queue_composite(slot_ids[:slots])
@@ -322,49 +373,55 @@ def run_pass(means, quats, scales, opacities, coefficients, background, K, world
     def bin_and_composite(slots, *, padded, ids_out=None):
         """Bin into fresh buffers of ``slots`` slots and composite; returns the kept ids (keys released first)."""
         sort_keys, slot_ids = _tile_sort_buffers(slots, device)
-        queue_binned_composite(slots, sort_keys, slot_ids, padded=padded)
+        with torch_stream_scope(device):
+            queue_binned_composite(slots, sort_keys, slot_ids, padded=padded)
         del sort_keys
         return _kept_ids(slot_ids, slots, ids_out=ids_out, compact=compact_ids)
 
-    with torch_stream_scope(device):
-        if capacity is None:  # exact: the pair count read half-way (the one host sync)
+    if capacity is None:  # exact: the pair count read half-way (the one host sync)
+        with torch_stream_scope(device):
             queue_front()
-            count, flags = status.tolist()
-            _raise_on_bad_inputs(flags)
-            sorted_ids = bin_and_composite(count, padded=False)
-        elif not speculative:  # fixed: nothing read
+        count, flags = status.tolist()
+        _raise_on_bad_inputs(flags)
+        sorted_ids = bin_and_composite(count, padded=False)
+    elif not speculative:  # fixed: nothing read
+        with torch_stream_scope(device):
             queue_front()
-            count = None
-            sorted_ids = bin_and_composite(capacity, padded=True, ids_out=out.sorted_ids)
-            if out.status is not None:
-                out.status.copy_(status)
-                status = out.status
-        else:  # speculative: every buffer allocated first, the whole pass queued (or replayed), then one read
-            sort_keys, slot_ids = _tile_sort_buffers(capacity, device)
+        count = None
+        sorted_ids = bin_and_composite(capacity, padded=True, ids_out=out.sorted_ids)
+        if out.status is not None:
+            out.status.copy_(status)
+            status = out.status
+    else:  # speculative: every buffer allocated first, the whole pass queued (or replayed), the status read early
+        sort_keys, slot_ids = _tile_sort_buffers(capacity, device)
+        mailbox = status_mailbox(device)
 
-            def queue_pass():
-                queue_front()
+        def queue_pass():
+            with torch_stream_scope(device):
+                queue_front(mailbox)
                 queue_binned_composite(capacity, sort_keys, slot_ids, padded=True)
 
-            if graphs is None:
-                queue_pass()
-            else:
-                tensors = (means, quats, scales, opacities, coefficients, background, K, world_to_camera,
-                           tile_ends_and_flag, depth_sort[1], sort_keys, slot_ids, out.xy_opacity, out.conics,
-                           out.color_depth, out.radii, out.tile_ranges, out.image, out.alpha, out.depth,
-                           out.final_transmittance, out.last_index)
-                # Everything the launches take: the addresses, and the sizes and scalars that fix the rest.
-                key = (device, width, height, sh_degree, capacity, pixel_state, coefficients.shape[1],
-                       gaussian_count, *[tensor.data_ptr() for tensor in tensors])
-                graphs.run(key, queue_pass, device=device)
-            count, flags = status.tolist()  # the one host sync, once the whole pass is queued
-            _raise_on_bad_inputs(flags)
-            del sort_keys
-            if count > capacity:  # the guess was short: again with exact buffers (the emission clears ranges)
-                del slot_ids
-                sorted_ids = bin_and_composite(count, padded=True)
-            else:  # only the pairs' ids are kept (the padding slots sort last and belong to no tile)
-                sorted_ids = _kept_ids(slot_ids, count, compact=compact_ids)
+        mailbox.arm()
+        if graphs is None:
+            queue_pass()
+        else:
+            # Everything the launches take: the addresses, and the sizes and scalars that fix the rest.
+            key = (device, width, height, sh_degree, capacity, pixel_state, coefficients.shape[1], gaussian_count,
+                   mailbox.address, means.data_ptr(), quats.data_ptr(), scales.data_ptr(), opacities.data_ptr(),
+                   coefficients.data_ptr(), background.data_ptr(), K.data_ptr(), world_to_camera.data_ptr(),
+                   front[0].data_ptr(), tile_ends_and_flag.data_ptr(), sort_keys.data_ptr(), slot_ids.data_ptr(),
+                   out.radii.data_ptr(), out.tile_ranges.data_ptr(), out.image.data_ptr(), out.alpha.data_ptr(),
+                   out.depth.data_ptr(), out.last_index.data_ptr())
+            graphs.run(key, queue_pass, device=device)
+        # The one host wait: until the front half has posted the count (the binning and compositing go on).
+        count, flags = mailbox.read()
+        _raise_on_bad_inputs(flags)
+        del sort_keys
+        if count > capacity:  # the guess was short: again with exact buffers (the emission clears ranges)
+            del slot_ids
+            sorted_ids = bin_and_composite(count, padded=True)
+        else:  # only the pairs' ids are kept (the padding slots sort last and belong to no tile)
+            sorted_ids = _kept_ids(slot_ids, count, compact=compact_ids)
     return out._replace(status=status, sorted_ids=sorted_ids), count
 
 
@@ -377,12 +434,32 @@ _PASS_GRAPHS = AddressKeyedGraphs()
 (:mod:`warpavatar._src.address_graphs`)."""
 
 
+class SavedPass(NamedTuple):
+    """What a forward pass keeps for its backward besides its inputs (``grad_fn.saved_pass`` of its image):
+    the per-Gaussian records, the tile ranges, the sorted ids and the per-pixel state (see :class:`PassBuffers`).
+    Kept as an attribute of the autograd context rather than with ``save_for_backward``: these are the pass's
+    own intermediates (never outputs, never changed in place), which spares autograd packing eight tensors a
+    call."""
+
+    xy_opacity: torch.Tensor
+    conics: torch.Tensor
+    color_depth: torch.Tensor
+    radii: torch.Tensor
+    tile_ranges: torch.Tensor
+    sorted_ids: torch.Tensor
+    final_transmittance: torch.Tensor
+    last_index: torch.Tensor
+
+
 class _RasterizeGaussians(torch.autograd.Function):
-    """Autograd wrapper; inputs are already validated, float32 and contiguous (see :func:`rasterize_gaussians`)."""
+    """Autograd wrapper; inputs are already validated, float32 and contiguous (see :func:`rasterize_gaussians`).
+    Its outputs are the image, alpha and depth; the info tensors (radii, the per-Gaussian records, the status),
+    which carry no gradient, are appended to the ``info_out`` list instead of being outputs (less of autograd's
+    work a call)."""
 
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, coefficients, background, K, world_to_camera, width, height,
-                sh_degree, densify_grad_out, intersection_capacity):
+                sh_degree, densify_grad_out, intersection_capacity, info_out):
         device = means.device
         gaussian_count = means.shape[0]
         inputs = (means, quats, scales, opacities, coefficients, background, K, world_to_camera)
@@ -399,31 +476,32 @@ class _RasterizeGaussians(torch.autograd.Function):
                 if passed is None and count is not None:
                     capacity = count  # the replay's graph was outgrown: this many slots fit, nothing is binned twice
         if passed is None:
+            needs = ctx.needs_input_grad
             passed, count = run_pass(*inputs, **sizes, capacity=capacity, speculative=speculative,
                                      buffers=allocate_pass_buffers(gaussian_count, width, height, device),
-                                     compact_ids=any(ctx.needs_input_grad[:5]),
-                                     pixel_state=any(ctx.needs_input_grad[:6]),
+                                     compact_ids=any(needs[:5]), pixel_state=any(needs[:6]),
                                      graphs=_PASS_GRAPHS if speculative else None)
         if intersection_capacity is None:
             _remember_pairs(speculation_key, count)
             if speculative and count <= capacity:
                 _REPLAYS.note_fitting_call(inputs, capacity=capacity, **sizes)
 
-        ctx.save_for_backward(means, quats, scales, coefficients, background, K, world_to_camera,
-                              passed.xy_opacity, passed.conics, passed.color_depth, passed.radii, passed.tile_ranges,
-                              passed.sorted_ids, passed.final_transmittance, passed.last_index)
+        ctx.save_for_backward(means, quats, scales, coefficients, background, K, world_to_camera)
+        ctx.saved_pass = SavedPass(passed.xy_opacity, passed.conics, passed.color_depth, passed.radii,
+                                   passed.tile_ranges, passed.sorted_ids, passed.final_transmittance,
+                                   passed.last_index)
         ctx.width, ctx.height, ctx.sh_degree = width, height, sh_degree
         ctx.densify_grad_out = densify_grad_out
-        # The per-Gaussian buffers are returned as-is for the info dict (built only when asked for), with the
-        # [pair count, bad-input flags] on the device, for a caller that checks them off the hot path.
-        ctx.mark_non_differentiable(passed.radii, passed.xy_opacity, passed.color_depth, passed.status)
-        return passed.image, passed.alpha, passed.depth, passed.radii, passed.xy_opacity, passed.color_depth, \
-            passed.status
+        # The per-Gaussian buffers as-is for the info dict (built only when asked for), with the [pair count,
+        # bad-input flags] on the device, for a caller that checks them off the hot path.
+        info_out.extend((passed.radii, passed.xy_opacity, passed.color_depth, passed.status))
+        return passed.image, passed.alpha, passed.depth
 
     @staticmethod
-    def backward(ctx, grad_image, grad_alpha, grad_depth, *unused_info_grads):
-        (means, quats, scales, coefficients, background, K, world_to_camera, xy_opacity, conics, color_depth, radii,
-         tile_ranges, sorted_ids, final_transmittance, last_index) = ctx.saved_tensors
+    def backward(ctx, grad_image, grad_alpha, grad_depth):
+        means, quats, scales, coefficients, background, K, world_to_camera = ctx.saved_tensors
+        (xy_opacity, conics, color_depth, radii, tile_ranges, sorted_ids, final_transmittance,
+         last_index) = ctx.saved_pass
         device = means.device
         gaussian_count = means.shape[0]
         width, height, sh_degree = ctx.width, ctx.height, ctx.sh_degree
@@ -489,7 +567,7 @@ class _RasterizeGaussians(torch.autograd.Function):
         if ctx.needs_input_grad[5]:
             grad_background = (grad_image * final_transmittance[..., None]).sum(dim=(0, 1))
         return (grad_means, grad_quats, grad_scales, grad_opacities, grad_coefficients, grad_background,
-                None, None, None, None, None, None, None)
+                None, None, None, None, None, None, None, None)
 
 
 def rasterize_gaussians(
@@ -592,21 +670,32 @@ def rasterize_gaussians(
         if densify_grad_out.dtype != torch.float32:
             raise TypeError(f"densify_grad_out must be float32, got {densify_grad_out.dtype}")
 
-    def prepare(tensor):
-        return tensor.to(torch.float32).contiguous()
-
     if intersection_capacity is not None and (isinstance(intersection_capacity, bool) or not isinstance(
             intersection_capacity, int) or intersection_capacity < 1):
         raise ValueError(f"intersection_capacity must be None or an int >= 1, got {intersection_capacity!r}")
 
-    image, alpha, depth, radii, xy_opacity, color_depth, status = _RasterizeGaussians.apply(
-        prepare(means), prepare(quats), prepare(scales), prepare(opacities), prepare(coefficients),
-        prepare(background), prepare(K.detach()), prepare(world_to_camera.detach()), width, height, kernel_degree,
-        densify_grad_out, intersection_capacity,
+    info: list = []
+    image, alpha, depth = _RasterizeGaussians.apply(
+        _float32(means), _float32(quats), _float32(scales), _float32(opacities), _float32(coefficients),
+        _float32(background), _float32(_constant(K)), _float32(_constant(world_to_camera)), width, height,
+        kernel_degree, densify_grad_out, intersection_capacity, info,
     )
     if return_info:
-        return image, alpha, depth, RasterInfo(radii, xy_opacity.detach(), color_depth.detach(), status)
+        radii, xy_opacity, color_depth, status = info
+        return image, alpha, depth, RasterInfo(radii, xy_opacity, color_depth, status)
     return image, alpha, depth
+
+
+def _float32(tensor: torch.Tensor) -> torch.Tensor:
+    """``tensor`` as contiguous float32: itself when it is already (no call into torch)."""
+    if tensor.dtype is torch.float32 and tensor.is_contiguous():
+        return tensor
+    return tensor.to(torch.float32).contiguous()
+
+
+def _constant(tensor: torch.Tensor) -> torch.Tensor:
+    """``tensor`` without gradient (the camera is a constant of the pass)."""
+    return tensor.detach() if tensor.requires_grad else tensor
 
 
 class RasterInfo(Mapping):
