@@ -8,8 +8,8 @@ pair count and the flags; the key emission clears the tile ranges), a copy of th
 follow (it keeps 4 bytes a pair, not the sort's double buffer; a pass whose inputs need no gradient skips it), and
 one host wait for the pair count (in the speculative mode a copy into pinned host memory after the prefix sum,
 which the host polls while the compositing runs); in the speculative mode a call whose buffers' addresses repeat
-replays all of that but the ids' copy from one CUDA graph. One backward pass makes two Warp launches (compositing backward, projection adjoint), one
-torch fill and no synchronization.
+replays all of that but the ids' copy from one CUDA graph. One backward pass makes two Warp launches (compositing
+backward, projection adjoint), one torch fill and no synchronization.
 
 The sort buffers must hold every (Gaussian, tile) pair, a number known only on the device once the projection
 has run (an upper bound would cost far more memory, as any Gaussian may cover the whole image). Four modes:
@@ -69,7 +69,7 @@ import warp as wp
 from warpavatar._src import address_graphs, splat_replay
 from warpavatar._src.address_graphs import AddressKeyedGraphs
 from warpavatar._src.splat_replay import ReplayCache
-from warpavatar._src.status_mailbox import StatusMailbox, status_mailbox
+from warpavatar._src.status_mailbox import status_mailbox
 from warpavatar._src.warp_utils import (check_tensor, inclusive_scan, radix_sort_pairs, torch_stream_scope,
                                         warp_descriptor, write_only_descriptor)
 from warpavatar.kernels import splat as splat_kernels
@@ -308,9 +308,9 @@ def run_pass(means, quats, scales, opacities, coefficients, background, K, world
 
     Args:
         capacity: None for the exact mode; else the sort buffers' size, a guess when ``speculative``.
-        speculative: read the pair count as soon as the device has it (a :class:`StatusMailbox`, while the
-            compositing runs on) and bin and composite again with exact buffers when the guess was short (raising
-            on non-finite inputs); False with a ``capacity``: nothing is read.
+        speculative: read the pair count as soon as the device has it (a status mailbox, while the compositing
+            runs on) and bin and composite again with exact buffers when the guess was short (raising on
+            non-finite inputs); False with a ``capacity``: nothing is read.
         buffers: from :func:`allocate_pass_buffers`; a fixed capacity's pass may bring ``status`` [2] and
             ``sorted_ids`` [capacity] to be filled in place (a captured pass keeps them).
         compact_ids: False when no backward will read the pass (no gradient asked for): the sorted ids then

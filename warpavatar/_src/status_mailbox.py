@@ -21,12 +21,14 @@ On CPU the kernels run synchronously: the copy is made at once and reading retur
 from __future__ import annotations
 
 import ctypes
+import functools
 import threading
 import time
 
 import torch
+import warp as wp
 
-from warpavatar._src.warp_utils import current_stream_handle, init_warp
+from warpavatar._src.warp_utils import current_stream_handle, init_warp, warp_device
 
 __all__ = ["POLL_SECONDS", "StatusMailbox", "status_mailbox"]
 
@@ -64,10 +66,12 @@ class StatusMailbox:
         if self.device.type != "cuda":
             self._values[:] = source.numpy()
             return
-        core = _native_core()
-        stream = current_stream_handle(self.device)
-        if not core.wp_memcpy_d2h(_warp_context(self.device), ctypes.c_void_p(self.address),
-                                  ctypes.c_void_p(source.data_ptr()), 4 * self.slots, ctypes.c_void_p(stream)):
+        copy = _native_copy()
+        if copy is None:
+            self._host.copy_(source, non_blocking=True)
+            return
+        if not copy(_warp_context(self.device), ctypes.c_void_p(self.address), ctypes.c_void_p(source.data_ptr()),
+                    4 * self.slots, ctypes.c_void_p(current_stream_handle(self.device))):
             raise RuntimeError("queueing the status copy to pinned host memory failed")
 
     def read(self) -> list[int]:
@@ -107,11 +111,17 @@ def status_mailbox(device: torch.device, slots: int = 2) -> StatusMailbox:
     return mailbox
 
 
-def _native_core():
+@functools.lru_cache(maxsize=None)
+def _native_copy():
+    """Warp's native device-to-host copy (``wp_memcpy_d2h(context, dest, src, bytes, stream)``, what
+    ``wp.copy`` ends in), or None where this Warp version lays it out otherwise."""
     init_warp()
-    from warp._src.context import runtime  # noqa: PLC0415
+    try:
+        from warp._src.context import runtime  # noqa: PLC0415
 
-    return runtime.core
+        return runtime.core.wp_memcpy_d2h
+    except Exception:  # noqa: BLE001 (any other layout: torch's asynchronous copy)
+        return None
 
 
 _CONTEXTS: dict[torch.device, ctypes.c_void_p] = {}
@@ -121,10 +131,6 @@ def _warp_context(device: torch.device):
     """Warp's CUDA context handle of ``device`` (looked up once)."""
     context = _CONTEXTS.get(device)
     if context is None:
-        import warp as wp  # noqa: PLC0415
-
-        from warpavatar._src.warp_utils import warp_device  # noqa: PLC0415
-
         init_warp()
         context = _CONTEXTS[device] = wp.get_device(warp_device(device)).context
     return context
