@@ -416,13 +416,20 @@ def test_the_oracle_tool_fits_an_instants_nodes_to_its_images(forced, video, tmp
     frame = int(video.frame_ids[0])
     avatar = copy.deepcopy(trainer.avatar)
     asked = [parameter.requires_grad for parameter in avatar.parameters()]
-    rows = tool.oracle_rows(avatar, subject, [frame], steps=20, band=(0.3, 0.9))
+    values = [parameter.detach().clone() for parameter in avatar.parameters()]
+    rows = tool.oracle_rows(avatar, subject, [frame], steps=20, band=(0.3, 0.9), appearance=True)
     assert [parameter.requires_grad for parameter in avatar.parameters()] == asked  # the avatar is left as it was
-    assert [row["mode"] for row in rows] == ["rollout", "training view", "every view"]
-    rollout, single, every = rows
-    assert rollout["moved"] == 0.0 and single["moved"] > 0.0 and every["moved"] > 0.0
+    assert all(torch.equal(a, b) for a, b in zip(values, avatar.parameters()))
+    assert [row["mode"] for row in rows] == ["rollout", "training view", "every view", "every view + appearance"]
+    rollout, single, every, looks = rows
+    assert rollout["moved"] == 0.0 and single["moved"] > 0.0 and every["moved"] > 0.0 and looks["moved"] > 0.0
     assert set(rollout["psnr"]) == {"train", "again"} and rollout["psnr"]["train"] == rollout["psnr"]["again"]
     assert single["psnr"]["train"] > rollout["psnr"]["train"]  # the nodes were fitted to that image
+    # The garment's colours, opacities and scales fitted too: the drawing differs from the nodes-only oracle's, and
+    # after the rows the avatar draws as before.
+    assert looks["psnr"]["train"] != every["psnr"]["train"]
+    again = tool.oracle_rows(avatar, subject, [frame], steps=1, band=(0.3, 0.9))
+    assert again[0]["psnr"] == rollout["psnr"]
     with pytest.raises(ValueError, match="not one of the fit's training frames"):
         tool.oracle_rows(copy.deepcopy(trainer.avatar), subject, [10_000], steps=1)
     bare = copy.deepcopy(trainer.avatar)

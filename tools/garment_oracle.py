@@ -1,6 +1,6 @@
 """Is a simulated garment's error its geometry? Fit one instant's cloth nodes to the images and see what follows.
 
-    python tools/garment_oracle.py AVATAR SUBJECT --frames 20 55 80 [--steps 150] [--scale 1.0]
+    python tools/garment_oracle.py AVATAR SUBJECT --frames 20 55 80 [--steps 150] [--appearance] [--scale 1.0]
         [--height-band 0.28 0.76] [--device cpu] [--json PATH]
 
 ``AVATAR`` is a fit's ``avatar.pt`` (or its folder) with a garment (``--garment auto`` found one); ``SUBJECT`` the
@@ -13,12 +13,17 @@ their colours and their offsets on the nodes) are
   image, ``--steps`` steps from the rollout) -- what one camera can tell;
 * ``every view``: fitted to the training image and every novel view of that instant, in turn, for the same number
   of steps each -- an **oracle**: it reads the held-out images, so its numbers are not an evaluation, only a
-  bound on what the avatar's appearance allows once the cloth is where the images say.
+  bound on what the avatar's appearance allows once the cloth is where the images say;
+* ``every view + appearance`` (``--appearance``): the same oracle, with the garment's Gaussians' colours (SH),
+  opacities and scales fitted too (theirs only; the avatar's values are put back afterwards) -- a bound on what
+  the garment's Gaussians could draw with the cloth in place and a texture learned where it is.
 
 Each row gives the masked PSNR (dB) of the training view and of every novel view of the instant, whole mask and
 the slab between ``--height-band`` heights (as ``tools/error_breakdown.py --height-band``). If the oracle rows are
 high in every view while the training-view rows lift only the training view, the texture is good enough and the
-cloth's 3D shape per instant is what is missing, which the one camera does not determine.
+cloth's 3D shape per instant is what is missing, which the one camera does not determine. If only the appearance
+oracle is high, the texture learned on the fit's cloth is what holds the nodes' oracle back; if neither is, the
+garment's Gaussians themselves (their number and cover) are.
 """
 
 from __future__ import annotations
@@ -41,7 +46,10 @@ from warpavatar.model import Avatar  # noqa: E402
 
 __all__ = ["oracle_rows", "slab_of", "garment_tool_parser", "load_garment_tool_inputs"]
 
-MODES = ("rollout", "training view", "every view")
+MODES = ("rollout", "training view", "every view", "every view + appearance")
+
+# The garment Gaussians' parameters the appearance oracle fits, with Adam steps as in 3DGS's defaults.
+_APPEARANCE_STEPS = {"sh_dc": 2.5e-3, "sh_rest": 1.25e-4, "opacity_logits": 0.05, "log_scales": 5e-3}
 
 
 def _views_of(subject: data.Subject, frame_id: int) -> list[tuple[str, data.VideoFolder, int]]:
@@ -70,16 +78,18 @@ def _psnrs(image: torch.Tensor, video: data.VideoFolder, index: int, band: tuple
 
 
 def oracle_rows(avatar: Avatar, subject: data.Subject, frame_ids: list[int], *, steps: int = 150,
-                band: tuple[float, float] = (0.28, 0.76), learning_rate: float = 0.05) -> list[dict]:
+                band: tuple[float, float] = (0.28, 0.76), learning_rate: float = 0.05,
+                appearance: bool = False) -> list[dict]:
     """The rows of the module docstring: one per (frame id, mode), with ``psnr`` and ``band`` dicts by view.
 
     Args:
-        avatar: a fitted avatar with a ``garment`` part.
+        avatar: a fitted avatar with a ``garment`` part (left as it was).
         subject: its subject (the training folder and the novel views of the same instants).
         frame_ids: training frame ids to look at.
-        steps: Adam steps of each fit (per view for ``every view``).
+        steps: Adam steps of each fit (per view for the oracles).
         band: low and high heights of the slab [world units along the skeleton's up axis].
-        learning_rate: Adam's step, as a fraction of the node spacing.
+        learning_rate: Adam's step for the node positions, as a fraction of the node spacing.
+        appearance: also the ``every view + appearance`` oracle.
 
     Raises:
         ValueError: the avatar has no garment, or a frame id is not among the training frames.
@@ -91,43 +101,70 @@ def oracle_rows(avatar: Avatar, subject: data.Subject, frame_ids: list[int], *, 
     background = torch.as_tensor(subject.train.background, dtype=torch.float32, device=device)
     grid = avatar.field.grid_weights().detach()
     spacing = garment.hyper["voxel_size"]
+    looks = {name: getattr(avatar.gaussians, name) for name in _APPEARANCE_STEPS}
+    member = torch.zeros(avatar.gaussians.means.shape[0], dtype=torch.bool, device=device)
+    member[garment.gaussian_ids] = True
 
     def render(video, index, positions):
         bones = torch.as_tensor(video.bone_transforms[index], dtype=torch.float32, device=device)
         return avatar.render(video.cameras[index], bones, background=background, grid=grid,
                              inputs={garment.name: positions})[0]
 
-    def fitted(start, views):
+    def fitted(start, views, *, with_appearance=False):
         positions = start.clone().requires_grad_()
+        groups = [{"params": [positions], "lr": learning_rate * spacing}]
+        hooks = []
+        if with_appearance:
+            for name, tensor in looks.items():
+                tensor.requires_grad_(True)
+                shape = (-1,) + (1,) * (tensor.dim() - 1)
+                hooks.append(tensor.register_hook(lambda grad, keep=member.view(shape): grad * keep))
+                groups.append({"params": [tensor], "lr": _APPEARANCE_STEPS[name]})
         targets = [(video, index, torch.as_tensor(video.images[index], device=device).float() / 255.0)
                    for _, video, index in views]
-        optimizer = torch.optim.Adam([positions], lr=learning_rate * spacing)
-        for _ in range(steps):
-            for video, index, truth in targets:
-                loss = (render(video, index, positions) - truth).abs().mean()
-                optimizer.zero_grad()
-                loss.backward()
-                optimizer.step()
+        optimizer = torch.optim.Adam(groups)
+        try:
+            for _ in range(steps):
+                for video, index, truth in targets:
+                    loss = (render(video, index, positions) - truth).abs().mean()
+                    optimizer.zero_grad()
+                    loss.backward()
+                    optimizer.step()
+        finally:
+            for hook in hooks:
+                hook.remove()
+            for tensor in looks.values():
+                tensor.requires_grad_(False)
         return positions.detach()
 
     asked = {parameter: parameter.requires_grad for parameter in avatar.parameters()}
-    for parameter in asked:  # (only the node positions are fitted; the flags are put back at the end)
+    for parameter in asked:  # (the flags, and the appearance's values, are put back at the end)
         parameter.requires_grad_(False)
+    kept = {name: tensor.detach().clone() for name, tensor in looks.items()}
     rows = []
     try:
         for frame_id in frame_ids:
             start = garment.frame_positions[_training_instant(subject, garment.frame_poses, frame_id)].detach()
             views = _views_of(subject, frame_id)
-            for mode, positions in (("rollout", start), ("training view", fitted(start, views[:1])),
-                                    ("every view", fitted(start, views))):
+            fits = [("rollout", lambda: start), ("training view", lambda: fitted(start, views[:1])),
+                    ("every view", lambda: fitted(start, views))]
+            if appearance:
+                fits.append(("every view + appearance", lambda: fitted(start, views, with_appearance=True)))
+            for mode, fit in fits:
+                positions = fit()
                 row = {"frame": frame_id, "mode": mode, "psnr": {}, "band": {},
                        "moved": float((positions - start).norm(dim=1).mean() / spacing)}
                 with torch.no_grad():
                     for name, video, index in views:
                         row["psnr"][name], row["band"][name] = _psnrs(render(video, index, positions), video, index,
                                                                       band)
+                    for name, tensor in looks.items():  # the avatar's own appearance again
+                        tensor.copy_(kept[name])
                 rows.append(row)
     finally:
+        with torch.no_grad():
+            for name, tensor in looks.items():
+                tensor.copy_(kept[name])
         for parameter, flag in asked.items():
             parameter.requires_grad_(flag)
     return rows
@@ -176,13 +213,17 @@ def load_garment_tool_inputs(parser: argparse.ArgumentParser, args) -> tuple[dat
 def main(argv=None) -> int:
     parser = garment_tool_parser(__doc__.split("\n\n")[0])
     parser.add_argument("--frames", type=int, nargs="+", required=True, help="training frame ids to look at")
-    parser.add_argument("--steps", type=int, default=150, help="Adam steps of each fit (per view for 'every view')")
+    parser.add_argument("--steps", type=int, default=150, help="Adam steps of each fit (per view for the oracles; "
+                        "default: %(default)s)")
+    parser.add_argument("--appearance", action="store_true", help="also the oracle that fits the garment Gaussians' "
+                        "colours, opacities and scales with the nodes, to every view (default: off)")
     args = parser.parse_args(argv)
     if args.steps < 1:
         parser.error(f"--steps must be >= 1, got {args.steps}")
     try:
         subject, avatar = load_garment_tool_inputs(parser, args)
-        rows = oracle_rows(avatar, subject, args.frames, steps=args.steps, band=tuple(args.height_band))
+        rows = oracle_rows(avatar, subject, args.frames, steps=args.steps, band=tuple(args.height_band),
+                           appearance=args.appearance)
     except (data.VideoFolderError, ValueError, FileNotFoundError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
