@@ -30,7 +30,6 @@ from then on. On CPU there is no graph: the function always runs eagerly.
 from __future__ import annotations
 
 import ctypes
-import functools
 import warnings
 from collections import OrderedDict
 from typing import Callable
@@ -38,7 +37,8 @@ from typing import Callable
 import torch
 import warp as wp
 
-from warpavatar._src.warp_utils import current_stream_handle, init_warp, torch_stream_scope, warp_stream_of
+from warpavatar._src.warp_utils import (current_stream_handle, init_warp, native_entry, torch_stream_scope,
+                                        warp_stream_of)
 
 __all__ = ["CAPTURE_AFTER", "DEFAULT_CAPTURE_AFTER", "GRAPHS_KEPT", "AddressKeyedGraphs"]
 
@@ -58,24 +58,12 @@ def _launch(graph, device: torch.device) -> None:
     """Launch ``graph`` on torch's current stream of ``device``: through Warp the first time (which instantiates
     it), then through Warp's native entry point with the stream's handle (what ``wp.capture_launch`` ends in,
     without its checks and the stream wrapper's lookup)."""
-    if graph.graph_exec is None or _native_launch() is None:
+    launch = native_entry("wp_cuda_graph_launch")  # (graph_exec, stream)
+    if graph.graph_exec is None or launch is None:
         wp.capture_launch(graph, stream=warp_stream_of(torch.cuda.current_stream(device)))
         return
-    if not _native_launch()(graph.graph_exec, ctypes.c_void_p(current_stream_handle(device))):
+    if not launch(graph.graph_exec, ctypes.c_void_p(current_stream_handle(device))):
         raise RuntimeError("launching a CUDA graph of a repeated call failed")
-
-
-@functools.lru_cache(maxsize=None)
-def _native_launch():
-    """Warp's native graph launch (``wp_cuda_graph_launch(exec, stream)``), or None where this Warp version
-    lays it out otherwise."""
-    init_warp()
-    try:
-        from warp._src.context import runtime  # noqa: PLC0415
-
-        return runtime.core.wp_cuda_graph_launch
-    except Exception:  # noqa: BLE001 (any other layout: wp.capture_launch)
-        return None
 
 
 class AddressKeyedGraphs:

@@ -510,7 +510,7 @@ class _RasterizeGaussians(torch.autograd.Function):
         def as_grad(grad, shape):
             if grad is None:
                 return torch.zeros(shape, device=device, dtype=torch.float32)
-            return grad.to(torch.float32).contiguous()
+            return _float32(grad)
 
         grad_image = as_grad(grad_image, (height, width, 3))
         grad_alpha = as_grad(grad_alpha, (height, width))

@@ -21,14 +21,12 @@ On CPU the kernels run synchronously: the copy is made at once and reading retur
 from __future__ import annotations
 
 import ctypes
-import functools
 import threading
 import time
 
 import torch
-import warp as wp
 
-from warpavatar._src.warp_utils import current_stream_handle, init_warp, warp_device
+from warpavatar._src.warp_utils import current_stream_handle, native_entry, warp_context
 
 __all__ = ["POLL_SECONDS", "StatusMailbox", "status_mailbox"]
 
@@ -66,11 +64,11 @@ class StatusMailbox:
         if self.device.type != "cuda":
             self._values[:] = source.numpy()
             return
-        copy = _native_copy()
+        copy = native_entry("wp_memcpy_d2h")  # (context, dest, src, bytes, stream), what wp.copy ends in
         if copy is None:
             self._host.copy_(source, non_blocking=True)
             return
-        if not copy(_warp_context(self.device), ctypes.c_void_p(self.address), ctypes.c_void_p(source.data_ptr()),
+        if not copy(warp_context(self.device), ctypes.c_void_p(self.address), ctypes.c_void_p(source.data_ptr()),
                     4 * self.slots, ctypes.c_void_p(current_stream_handle(self.device))):
             raise RuntimeError("queueing the status copy to pinned host memory failed")
 
@@ -109,28 +107,3 @@ def status_mailbox(device: torch.device, slots: int = 2) -> StatusMailbox:
     if mailbox is None:
         mailbox = mailboxes[key] = StatusMailbox(slots, device)
     return mailbox
-
-
-@functools.lru_cache(maxsize=None)
-def _native_copy():
-    """Warp's native device-to-host copy (``wp_memcpy_d2h(context, dest, src, bytes, stream)``, what
-    ``wp.copy`` ends in), or None where this Warp version lays it out otherwise."""
-    init_warp()
-    try:
-        from warp._src.context import runtime  # noqa: PLC0415
-
-        return runtime.core.wp_memcpy_d2h
-    except Exception:  # noqa: BLE001 (any other layout: torch's asynchronous copy)
-        return None
-
-
-_CONTEXTS: dict[torch.device, ctypes.c_void_p] = {}
-
-
-def _warp_context(device: torch.device):
-    """Warp's CUDA context handle of ``device`` (looked up once)."""
-    context = _CONTEXTS.get(device)
-    if context is None:
-        init_warp()
-        context = _CONTEXTS[device] = wp.get_device(warp_device(device)).context
-    return context

@@ -34,6 +34,8 @@ __all__ = [
     "torch_stream_scope",
     "warp_stream_of",
     "current_stream_handle",
+    "native_entry",
+    "warp_context",
     "available_devices",
     "check_tensor",
     "radix_sort_pairs",
@@ -361,6 +363,25 @@ def _native_core():
     except Exception:  # noqa: BLE001 (any other layout: the public functions)
         pass
     return None
+
+
+@functools.lru_cache(maxsize=None)
+def native_entry(name: str):
+    """Warp's native function ``name`` (``warp._src.context.runtime.core.<name>``, what Warp's public functions
+    end in), looked up once; None where this Warp version lays its runtime out otherwise (callers then use the
+    public function)."""
+    init_warp()
+    try:
+        from warp._src.context import runtime  # noqa: PLC0415
+
+        return getattr(runtime.core, name, None)
+    except Exception:  # noqa: BLE001 (any other layout)
+        return None
+
+
+def warp_context(device: torch.device):
+    """Warp's CUDA context handle of torch ``device`` (the device looked up once)."""
+    return _warp_device_object(device).context
 
 
 _SORT_KEY_SUFFIX = {torch.float32: "float", torch.int32: "int"}
