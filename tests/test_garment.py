@@ -620,7 +620,8 @@ def test_the_sweep_tool_rolls_changed_cloth_out_and_puts_the_fitted_one_back(for
     tool = load_tool("garment_sweep")
     assert tool.parse_variant("damping=0.01, drag=0.2") == {"damping": 0.01, "drag": 0.2}
     for spec, message in (("damping=1.5", "fraction of its bound"), ("stiffness=-1", "positive"),
-                          ("wind=3", "key among"), ("flare=1.2,flare=1.3", "given twice"), ("mass=heavy", "number")):
+                          ("wind=3", "key among"), ("flare=1.2,flare=1.3", "given twice"), ("mass=heavy", "number"),
+                          ("strain=1.0", "above 1")):
         with pytest.raises(ValueError, match=message):
             tool.parse_variant(spec)
     avatar = copy.deepcopy(forced[0].avatar)
@@ -661,6 +662,19 @@ def test_the_sweep_tool_rolls_changed_cloth_out_and_puts_the_fitted_one_back(for
         assert float(raised.max()) > float(fitted_fraction.max())  # (the fitted springs were below the cap)
     with pytest.raises(ValueError, match="outside the cloth's range"), tool.changed_cloth(part, {"mass": 50.0}):
         pass
+    assert part.cloth.strain_limit == 0.0  # strain limiting: on for the block, longest edges within the limit
+    with tool.changed_cloth(part, {"strain": 1.02}):
+        limited, _ = part.rollout(bones, intervals)
+        assert part.cloth.strain_limit == 1.02 and part.cloth.strain_iterations == tool.STRAIN_ITERATIONS
+    pairs = part.cloth.pairs[:part.cloth.stretch_count]
+    rest_lengths = part.cloth.rest_lengths().detach()[:part.cloth.stretch_count]
+
+    def worst_strain(positions):
+        return float(((positions[:, pairs[:, 0]] - positions[:, pairs[:, 1]]).norm(dim=-1) / rest_lengths).max())
+
+    assert worst_strain(limited) < worst_strain(fitted) and worst_strain(limited) < 1.1
+    assert part.cloth.strain_limit == 0.0 and part.cloth.strain_iterations == 0
+    assert torch.equal(part.rollout(bones, intervals)[0], fitted)
     subject = SimpleNamespace(train=video, novel_view={"again": video})  # a second view: the same camera again
     rows = tool.sweep_rows(avatar, subject, [{"stiffness": 1.0}, {"flare": 1.5, "drag": 0.5}], stride=2,
                            band=(0.3, 0.9))
@@ -670,6 +684,21 @@ def test_the_sweep_tool_rolls_changed_cloth_out_and_puts_the_fitted_one_back(for
     assert all(0.0 < value <= 1.0 for row in rows for value in row["iou"].values())
     assert same["psnr"]["train"] == pytest.approx(rows[0]["psnr"]["train"], abs=1e-3)  # an unchanged cloth
     assert flared["psnr"]["train"] != pytest.approx(rows[0]["psnr"]["train"], abs=1e-3)
+    # the skinned row, and rows scored after re-learning the garment's appearance on the training frames: the
+    # training view gains, and the avatar's appearance and flags are put back
+    looks = {name: getattr(avatar.gaussians, name).detach().clone() for name in ("sh_dc", "opacity_logits")}
+    flags = [parameter.requires_grad for parameter in avatar.parameters()]
+    plain = tool.sweep_rows(avatar, subject, [], stride=2, band=(0.3, 0.9), skinned=True)
+    relearned = tool.sweep_rows(avatar, subject, [], stride=2, band=(0.3, 0.9), skinned=True, retexture_steps=30)
+    assert [row["variant"] for row in plain] == [{}, None] and plain[0]["psnr"] == rows[0]["psnr"]
+    assert plain[1]["psnr"]["train"] != pytest.approx(plain[0]["psnr"]["train"], abs=1e-3)
+    for before_row, after_row in zip(plain, relearned):
+        assert after_row["psnr"]["train"] > before_row["psnr"]["train"] + 0.05, (before_row, after_row)
+    for name, value in looks.items():
+        assert torch.equal(getattr(avatar.gaussians, name), value), name
+    assert [parameter.requires_grad for parameter in avatar.parameters()] == flags
+    with pytest.raises(ValueError, match="retexture_steps"):
+        tool.sweep_rows(avatar, subject, [], retexture_steps=-1)
     bare = copy.deepcopy(avatar)
     del bare.parts["garment"]
     with pytest.raises(ValueError, match="no simulated garment"):

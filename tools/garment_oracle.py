@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -48,8 +49,38 @@ __all__ = ["oracle_rows", "slab_of", "garment_tool_parser", "load_garment_tool_i
 
 MODES = ("rollout", "training view", "every view", "every view + appearance")
 
-# The garment Gaussians' parameters the appearance oracle fits, with Adam steps as in 3DGS's defaults.
+# The garment Gaussians' parameters the appearance fits learn, with Adam steps as in 3DGS's defaults.
 _APPEARANCE_STEPS = {"sh_dc": 2.5e-3, "sh_rest": 1.25e-4, "opacity_logits": 0.05, "log_scales": 5e-3}
+
+
+@contextmanager
+def garment_appearance(avatar: Avatar, garment, *, trainable: bool = True):
+    """For the ``with`` block: Adam parameter groups (``[{"params", "lr"}]``) of the garment Gaussians' colours
+    (SH), opacity logits and log scales, whose gradients reach the garment's Gaussians only; on exit their values
+    (every Gaussian's) and every parameter's ``requires_grad`` flag are put back. With ``trainable=False`` the
+    groups are empty (the values are still put back)."""
+    looks = {name: getattr(avatar.gaussians, name) for name in _APPEARANCE_STEPS}
+    member = torch.zeros(avatar.gaussians.means.shape[0], dtype=torch.bool, device=avatar.gaussians.means.device)
+    member[garment.gaussian_ids] = True
+    kept = {name: tensor.detach().clone() for name, tensor in looks.items()}
+    flags = {parameter: parameter.requires_grad for parameter in avatar.parameters()}
+    hooks, groups = [], []
+    try:
+        for name, tensor in looks.items():
+            if trainable:
+                tensor.requires_grad_(True)
+                shape = (-1,) + (1,) * (tensor.dim() - 1)
+                hooks.append(tensor.register_hook(lambda grad, keep=member.view(shape): grad * keep))
+                groups.append({"params": [tensor], "lr": _APPEARANCE_STEPS[name]})
+        yield groups
+    finally:
+        for hook in hooks:
+            hook.remove()
+        with torch.no_grad():
+            for name, tensor in looks.items():
+                tensor.copy_(kept[name])
+        for parameter, flag in flags.items():
+            parameter.requires_grad_(flag)
 
 
 def _views_of(subject: data.Subject, frame_id: int) -> list[tuple[str, data.VideoFolder, int]]:
@@ -101,72 +132,49 @@ def oracle_rows(avatar: Avatar, subject: data.Subject, frame_ids: list[int], *, 
     background = torch.as_tensor(subject.train.background, dtype=torch.float32, device=device)
     grid = avatar.field.grid_weights().detach()
     spacing = garment.hyper["voxel_size"]
-    looks = {name: getattr(avatar.gaussians, name) for name in _APPEARANCE_STEPS}
-    member = torch.zeros(avatar.gaussians.means.shape[0], dtype=torch.bool, device=device)
-    member[garment.gaussian_ids] = True
 
     def render(video, index, positions):
         bones = torch.as_tensor(video.bone_transforms[index], dtype=torch.float32, device=device)
         return avatar.render(video.cameras[index], bones, background=background, grid=grid,
                              inputs={garment.name: positions})[0]
 
-    def fitted(start, views, *, with_appearance=False):
+    def scored(positions, views):
+        with torch.no_grad():
+            return {name: _psnrs(render(video, index, positions), video, index, band) for name, video, index in views}
+
+    def fitted(start, views, fitted_views, *, with_appearance=False):
+        """The positions fitted to ``fitted_views`` from ``start``, and every view's scores with the appearance
+        fitted along (put back when the block ends)."""
         positions = start.clone().requires_grad_()
-        groups = [{"params": [positions], "lr": learning_rate * spacing}]
-        hooks = []
-        if with_appearance:
-            for name, tensor in looks.items():
-                tensor.requires_grad_(True)
-                shape = (-1,) + (1,) * (tensor.dim() - 1)
-                hooks.append(tensor.register_hook(lambda grad, keep=member.view(shape): grad * keep))
-                groups.append({"params": [tensor], "lr": _APPEARANCE_STEPS[name]})
         targets = [(video, index, torch.as_tensor(video.images[index], device=device).float() / 255.0)
-                   for _, video, index in views]
-        optimizer = torch.optim.Adam(groups)
-        try:
+                   for _, video, index in fitted_views]
+        with garment_appearance(avatar, garment, trainable=with_appearance) as looks:
+            optimizer = torch.optim.Adam([{"params": [positions], "lr": learning_rate * spacing}, *looks])
             for _ in range(steps):
                 for video, index, truth in targets:
                     loss = (render(video, index, positions) - truth).abs().mean()
                     optimizer.zero_grad()
                     loss.backward()
                     optimizer.step()
-        finally:
-            for hook in hooks:
-                hook.remove()
-            for tensor in looks.values():
-                tensor.requires_grad_(False)
-        return positions.detach()
+            return positions.detach(), scored(positions.detach(), views)
 
-    asked = {parameter: parameter.requires_grad for parameter in avatar.parameters()}
-    for parameter in asked:  # (the flags, and the appearance's values, are put back at the end)
-        parameter.requires_grad_(False)
-    kept = {name: tensor.detach().clone() for name, tensor in looks.items()}
     rows = []
-    try:
+    with garment_appearance(avatar, garment, trainable=False):  # the flags turned off here are put back at the end
+        for parameter in avatar.parameters():
+            parameter.requires_grad_(False)
         for frame_id in frame_ids:
             start = garment.frame_positions[_training_instant(subject, garment.frame_poses, frame_id)].detach()
             views = _views_of(subject, frame_id)
-            fits = [("rollout", lambda: start), ("training view", lambda: fitted(start, views[:1])),
-                    ("every view", lambda: fitted(start, views))]
+            fits = [("rollout", lambda: (start, scored(start, views))),
+                    ("training view", lambda: fitted(start, views, views[:1])),
+                    ("every view", lambda: fitted(start, views, views))]
             if appearance:
-                fits.append(("every view + appearance", lambda: fitted(start, views, with_appearance=True)))
+                fits.append(("every view + appearance", lambda: fitted(start, views, views, with_appearance=True)))
             for mode, fit in fits:
-                positions = fit()
-                row = {"frame": frame_id, "mode": mode, "psnr": {}, "band": {},
-                       "moved": float((positions - start).norm(dim=1).mean() / spacing)}
-                with torch.no_grad():
-                    for name, video, index in views:
-                        row["psnr"][name], row["band"][name] = _psnrs(render(video, index, positions), video, index,
-                                                                      band)
-                    for name, tensor in looks.items():  # the avatar's own appearance again
-                        tensor.copy_(kept[name])
-                rows.append(row)
-    finally:
-        with torch.no_grad():
-            for name, tensor in looks.items():
-                tensor.copy_(kept[name])
-        for parameter, flag in asked.items():
-            parameter.requires_grad_(flag)
+                positions, psnrs = fit()
+                rows.append({"frame": frame_id, "mode": mode, "psnr": {n: v[0] for n, v in psnrs.items()},
+                             "band": {n: v[1] for n, v in psnrs.items()},
+                             "moved": float((positions - start).norm(dim=1).mean() / spacing)})
     return rows
 
 

@@ -1,8 +1,8 @@
 """Do the simulated garment's global physics or its rest shape hold its novel views back? Roll the training motion
 out again under changed parameters and score every view of the training instants.
 
-    python tools/garment_sweep.py AVATAR SUBJECT [--variant SPEC ...] [--stride 3] [--scale 1.0]
-        [--height-band 0.28 0.76] [--device cpu] [--json PATH]
+    python tools/garment_sweep.py AVATAR SUBJECT [--variant SPEC ...] [--skinned] [--retexture STEPS]
+        [--stride 3] [--scale 1.0] [--height-band 0.28 0.76] [--device cpu] [--json PATH]
 
 ``AVATAR`` is a fit's ``avatar.pt`` (or its folder) with a garment (``--garment auto`` found one); ``SUBJECT`` the
 subject folder it was fitted on (``train/`` and ``novel_view/*`` of the same instants). The first row is the
@@ -14,7 +14,18 @@ colours and their places on the nodes). A SPEC is comma-separated ``key=value`` 
 * ``damping=F``, ``drag=F``: the edge damping and the air drag as fractions of their bounds, in (0, 1);
 * ``mass=S``: the cloth's mass scale (the fitted one is reported), within the model's range;
 * ``flare=F``: the rest shape's free nodes pushed away from the vertical axis through the attachment ring, by
-  ``F`` at the lowest node and in proportion to the drop below the ring above it (an A-line cut; 1 = as fitted).
+  ``F`` at the lowest node and in proportion to the drop below the ring above it (an A-line cut; 1 = as fitted);
+* ``strain=R``: strain limiting at ``R`` (> 1) times the rest lengths after every substep (the cloth's own
+  limit when it has one, else 8 Jacobi passes), which keeps the cloth from sagging under its own weight.
+
+``--skinned`` adds a row without any simulation: the rest shape posed by skinning alone, frame by frame.
+
+The appearance of the garment's Gaussians was learned on the fitted cloth, so a variant that moves the cloth is
+scored with a texture learned elsewhere. ``--retexture STEPS`` first re-learns, for every row, the garment
+Gaussians' colours, opacities and scales on the training frames alone (``STEPS`` Adam steps, a random training
+frame each, L1; the cloth frozen as that row rolls it out; the fitted values put back after): rows then compare
+what each cloth motion allows once the texture is learned where it puts the cloth, and the training view's score
+is a fair criterion (no held-out image is read).
 
 Each row gives, per view and averaged over that view's training instants (every ``--stride``-th), the slab's
 silhouette IoU (rendered alpha > 0.5 against the mask, within the ``--height-band`` slab as
@@ -36,7 +47,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_common import markdown_table  # noqa: E402
 from error_breakdown import masked_psnr  # noqa: E402
-from garment_oracle import garment_tool_parser, load_garment_tool_inputs, slab_of  # noqa: E402
+from garment_oracle import garment_appearance, garment_tool_parser, load_garment_tool_inputs, slab_of  # noqa: E402
 
 from warpavatar import data  # noqa: E402
 from warpavatar.evaluate import write_json_atomic  # noqa: E402
@@ -45,7 +56,10 @@ from warpavatar.model.parts import frame_intervals  # noqa: E402
 
 __all__ = ["parse_variant", "changed_cloth", "fitted_values", "sweep_rows"]
 
-KEYS = ("stiffness", "damping", "drag", "mass", "flare")
+KEYS = ("stiffness", "damping", "drag", "mass", "flare", "strain")
+
+STRAIN_ITERATIONS = 8
+"""Jacobi passes of strain limiting per substep that ``strain=R`` uses when the fitted cloth has none."""
 
 STIFFNESS_CAP = 0.999
 """The largest fraction of its stability bound that ``stiffness=F`` raises a spring to."""
@@ -71,6 +85,8 @@ def parse_variant(spec: str) -> dict[str, float]:
             raise ValueError(f"variant {spec!r}: {key}={text.strip()!r} is not a number") from None
         if key in ("damping", "drag") and not 0.0 < value < 1.0:
             raise ValueError(f"variant {spec!r}: {key} is a fraction of its bound in (0, 1), got {value}")
+        if key == "strain" and not (math.isfinite(value) and value > 1.0):
+            raise ValueError(f"variant {spec!r}: strain is a limit above 1 (times the rest length), got {value}")
         if key in ("stiffness", "mass", "flare") and not (math.isfinite(value) and value > 0.0):
             raise ValueError(f"variant {spec!r}: {key} must be a positive number, got {value}")
         variant[key] = value
@@ -92,7 +108,11 @@ def changed_cloth(part, variant: dict[str, float]):
     """
     cloth = part.cloth
     saved = {name: tensor.detach().clone() for name, tensor in [*cloth.named_parameters(), *cloth.named_buffers()]}
+    strain = (cloth.strain_limit, cloth.strain_iterations)
     try:
+        if "strain" in variant:
+            cloth.strain_limit = variant["strain"]
+            cloth.strain_iterations = cloth.strain_iterations or STRAIN_ITERATIONS
         with torch.no_grad():
             if "stiffness" in variant and variant["stiffness"] != 1.0:
                 fraction = torch.sigmoid(cloth.stiffness_logit)
@@ -128,6 +148,7 @@ def changed_cloth(part, variant: dict[str, float]):
         torch.autograd.graph.increment_version(list(cloth.parameters()))
         yield cloth
     finally:
+        cloth.strain_limit, cloth.strain_iterations = strain
         with torch.no_grad():
             for name, tensor in [*cloth.named_parameters(), *cloth.named_buffers()]:
                 tensor.copy_(saved[name])
@@ -144,9 +165,13 @@ def fitted_values(part) -> dict[str, float]:
 
 
 def sweep_rows(avatar: Avatar, subject, variants: list[dict[str, float]], *, stride: int = 3,
-               band: tuple[float, float] = (0.28, 0.76)) -> list[dict]:
-    """One row per variant (the fitted garment first, as ``{}``): ``{"variant", "iou": {view: mean},
-    "psnr": {view: mean}}`` over each view's training instants (every ``stride``-th frame of the view).
+               band: tuple[float, float] = (0.28, 0.76), skinned: bool = False, retexture_steps: int = 0,
+               seed: int = 0) -> list[dict]:
+    """One row per variant (the fitted garment first, as ``{}``; with ``skinned`` a last row, ``None``, of the
+    rest shape posed by skinning alone): ``{"variant", "iou": {view: mean}, "psnr": {view: mean}}`` over each
+    view's training instants (every ``stride``-th frame of the view). With ``retexture_steps`` > 0 each row is
+    scored after that many Adam steps re-learning the garment Gaussians' appearance on the training frames
+    (module docstring; random frames drawn with ``seed``); the avatar's appearance is put back after each row.
 
     Raises:
         ValueError: the avatar has no garment, or a variant's value is outside the model's range.
@@ -154,6 +179,8 @@ def sweep_rows(avatar: Avatar, subject, variants: list[dict[str, float]], *, str
     part = avatar.part("garment")
     if part is None or part.node_count == 0:
         raise ValueError("the avatar has no simulated garment (fit with --garment auto on a subject that has one)")
+    if retexture_steps < 0:
+        raise ValueError(f"retexture_steps must be >= 0, got {retexture_steps}")
     device = avatar.gaussians.means.device
     train = subject.train
     background = torch.as_tensor(train.background, dtype=torch.float32, device=device)
@@ -177,26 +204,62 @@ def sweep_rows(avatar: Avatar, subject, variants: list[dict[str, float]], *, str
                                video.images[index].astype(np.float64) / 255.0))
         if frames:
             targets[name] = frames
-    rows = []
-    for variant in [{}, *variants]:
-        with changed_cloth(part, variant), torch.no_grad():
-            positions, _ = part.rollout(bones, seconds)
-            row = {"variant": dict(variant), "iou": {}, "psnr": {}}
+
+    def render(camera, pose, positions):
+        return avatar.render(camera, pose, background=background, grid=grid, inputs={part.name: positions})
+
+    @contextmanager
+    def retextured(positions):
+        """Re-learn the garment's appearance on the training frames with the cloth at ``positions`` [T,M,3]."""
+        generator = torch.Generator().manual_seed(seed)
+        poses = [torch.as_tensor(pose, dtype=torch.float32, device=device) for pose in train.bone_transforms]
+        with garment_appearance(avatar, part) as looks:
+            optimizer = torch.optim.Adam(looks)
+            for _ in range(retexture_steps):
+                index = int(torch.randint(len(training_ids), (1,), generator=generator))
+                truth = torch.as_tensor(train.images[index], device=device).float() / 255.0
+                loss = (render(train.cameras[index], poses[index], positions[index])[0] - truth).abs().mean()
+                optimizer.zero_grad()
+                loss.backward()
+                optimizer.step()
+            yield
+
+    def scored(variant, positions):
+        row = {"variant": None if variant is None else dict(variant), "iou": {}, "psnr": {}}
+        with torch.no_grad():
             for name, frames in targets.items():
                 ious, psnrs = [], []
                 for camera, pose, instant, slab, mask, truth in frames:
-                    image, alpha, _ = avatar.render(camera, pose, background=background, grid=grid,
-                                                    inputs={part.name: positions[instant]})
+                    image, alpha, _ = render(camera, pose, positions[instant])
                     drawn, filmed = alpha.cpu().numpy() > 0.5, mask > 0.5
                     union = ((drawn | filmed) & slab).sum()
                     ious.append(float((drawn & filmed & slab).sum() / union) if union else 1.0)
                     psnrs.append(masked_psnr(image.clamp(0, 1).cpu().numpy().astype(np.float64), truth, mask * slab))
                 row["iou"][name], row["psnr"][name] = float(np.mean(ious)), float(np.mean(psnrs))
-        rows.append(row)
+        return row
+
+    rows = []
+    with garment_appearance(avatar, part, trainable=False):  # the flags turned off here are put back at the end
+        for parameter in avatar.parameters():
+            parameter.requires_grad_(False)
+        for variant in [{}, *variants, *([None] if skinned else [])]:
+            if variant is None:
+                with torch.no_grad():
+                    positions = torch.stack([part.skinned_rest(frame_bones) for frame_bones in bones])
+            else:
+                with changed_cloth(part, variant), torch.no_grad():
+                    positions, _ = part.rollout(bones, seconds)
+            if retexture_steps:
+                with retextured(positions):
+                    rows.append(scored(variant, positions))
+            else:
+                rows.append(scored(variant, positions))
     return rows
 
 
-def _label(variant: dict[str, float]) -> str:
+def _label(variant: dict[str, float] | None) -> str:
+    if variant is None:
+        return "skinned (no simulation)"
     return ", ".join(f"{key}={value:g}" for key, value in variant.items()) or "fitted"
 
 
@@ -206,11 +269,19 @@ def main(argv=None) -> int:
                         help="a change of the cloth as comma-separated key=value (repeatable, one row each): "
                              "stiffness=F (times the learned stiffness, capped below its bound), damping=F and "
                              "drag=F (fractions of their bounds, in (0, 1)), mass=S (the mass scale), flare=F (the "
-                             "rest shape widened into an A-line, F at the hem); e.g. 'damping=0.01,drag=0.01'")
+                             "rest shape widened into an A-line, F at the hem), strain=R (strain limiting at R > 1 "
+                             "times the rest lengths); e.g. 'damping=0.01,drag=0.01'")
+    parser.add_argument("--skinned", action="store_true",
+                        help="add a row of the rest shape posed by skinning alone (no simulation)")
+    parser.add_argument("--retexture", type=int, default=0, metavar="STEPS",
+                        help="re-learn the garment Gaussians' colours, opacities and scales on the training frames "
+                             "for STEPS Adam steps before scoring each row (0: score with the fitted appearance)")
     parser.add_argument("--stride", type=int, default=3, help="score every n-th frame of each view [frames]")
     args = parser.parse_args(argv)
     if args.stride < 1:
         parser.error(f"--stride must be >= 1, got {args.stride}")
+    if args.retexture < 0:
+        parser.error(f"--retexture must be >= 0, got {args.retexture}")
     try:
         variants = [parse_variant(spec) for spec in args.variant]
     except ValueError as error:
@@ -222,7 +293,8 @@ def main(argv=None) -> int:
             fitted = fitted_values(part)
             print("fitted: " + ", ".join(f"{key} {value:.3g}" for key, value in fitted.items())
                   + " (stiffness: mean fraction of its bound; damping, drag: fractions of theirs)")
-        rows = sweep_rows(avatar, subject, variants, stride=args.stride, band=tuple(args.height_band))
+        rows = sweep_rows(avatar, subject, variants, stride=args.stride, band=tuple(args.height_band),
+                          skinned=args.skinned, retexture_steps=args.retexture)
     except (data.VideoFolderError, ValueError, FileNotFoundError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
