@@ -12,6 +12,13 @@ explicit dynamics carries both on from substep to substep. Over 4 frames (32 sub
 random cloths (1 m across, speeds up to 7 m/s) the paths agree to 5e-7 m in position and 3e-5 m/s in velocity
 (6 seeds, CPU); the test allows ten times that in position, 5e-6 m, and 1e-3 m/s in velocity. A capsule radius
 interpolated 10 % off, or an edge damping that reads the wrong node, fails it.
+
+Strain limiting adds three Jacobi passes per substep whose moves are averaged over a node's violated edges, each
+weighted by a ramp 1 % of the limit wide: the ramp's slope carries the rounding on, and on CUDA the op-by-op
+passes sum with atomics, in an order that changes from run to run. Over 60 seeds, 3 runs each, on an H200
+(session 28) the paths differed by up to 1.5e-5 m and 9.2e-4 m/s (12 of 180 runs over the tolerances above; 1
+of 30 seeds on this CPU at 6.5e-6 m): strain-limited frames get 1e-4 m and 1e-2 m/s. A limit of 1.025 instead
+of 1.02, or two passes instead of three, moves the result by 0.03-0.2 m, far past them.
 """
 
 import warnings
@@ -24,6 +31,7 @@ from warpavatar.sim import Capsules, ClothModel, ClothState, cloth_graph
 FRAME = 1.0 / 30.0
 POSITION_TOLERANCE = 5e-6
 VELOCITY_TOLERANCE = 1e-3
+STRAIN_LIMITED_TOLERANCES = (1e-4, 1e-2)  # [m], [m/s]: see the module docstring
 
 
 def random_cloth(device, *, seed, node_count=120, attached_count=12, capsule_count=6, **model_options):
@@ -62,10 +70,10 @@ def roll(model, state, targets, before, after, *, fused, **options):
     return states
 
 
-def assert_close(fused, reference):
+def assert_close(fused, reference, *, tolerances=(POSITION_TOLERANCE, VELOCITY_TOLERANCE)):
     for a, b in zip(fused, reference):
-        assert (a.positions - b.positions).abs().max() <= POSITION_TOLERANCE
-        assert (a.velocities - b.velocities).abs().max() <= VELOCITY_TOLERANCE
+        assert (a.positions - b.positions).abs().max() <= tolerances[0]
+        assert (a.velocities - b.velocities).abs().max() <= tolerances[1]
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -97,7 +105,7 @@ def test_fused_strain_limited_frame_matches_op_by_op(device, seed):
         fused = roll(model, state, targets, before, after, fused=True)
         model.strain_iterations = 0  # the same cloth without the limit: the passes changed something
         unlimited = roll(model, state, targets, before, after, fused=False)
-    assert_close(fused, reference)
+    assert_close(fused, reference, tolerances=STRAIN_LIMITED_TOLERANCES)
     assert (unlimited[-1].positions - reference[-1].positions).abs().max() > 1e-3
 
 
