@@ -47,7 +47,8 @@ class FitConfig:
 
     iterations: int = _core(8000, "total optimizer steps (one training frame per step)", group="data and schedule",
                             product=True)
-    seed: int = _core(0, "random seed: the fit is deterministic for a given seed on a given device",
+    seed: int = _core(0, "random seed: on the CPU the fit is deterministic for a given seed; on CUDA the "
+                         "gradients' atomic sums make two fits of one seed differ slightly",
                       group="data and schedule", product=True)
     image_scale: float = _core(1.0, "resize training frames by this factor (K is scaled to match)",
                                group="data and schedule", product=True)
