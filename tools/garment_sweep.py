@@ -15,8 +15,9 @@ colours and their places on the nodes). A SPEC is comma-separated ``key=value`` 
 * ``mass=S``: the cloth's mass scale (the fitted one is reported), within the model's range;
 * ``flare=F``: the rest shape's free nodes pushed away from the vertical axis through the attachment ring, by
   ``F`` at the lowest node and in proportion to the drop below the ring above it (an A-line cut; 1 = as fitted);
-* ``strain=R``: strain limiting at ``R`` (> 1) times the rest lengths after every substep (the cloth's own
-  limit when it has one, else 8 Jacobi passes), which keeps the cloth from sagging under its own weight.
+* ``strain=R``: strain limiting at ``R`` (> 1) times the rest lengths after every substep (with the cloth's own
+  number of Jacobi passes when it was fitted with strain limiting, else 8), which keeps the cloth from sagging
+  under its own weight.
 
 ``--skinned`` adds a row without any simulation: the rest shape posed by skinning alone, frame by frame.
 
