@@ -55,10 +55,10 @@ _APPEARANCE_STEPS = {"sh_dc": 2.5e-3, "sh_rest": 1.25e-4, "opacity_logits": 0.05
 
 @contextmanager
 def garment_appearance(avatar: Avatar, garment, *, trainable: bool = True):
-    """For the ``with`` block: Adam parameter groups (``[{"params", "lr"}]``) of the garment Gaussians' colours
-    (SH), opacity logits and log scales, whose gradients reach the garment's Gaussians only; on exit their values
-    (every Gaussian's) and every parameter's ``requires_grad`` flag are put back. With ``trainable=False`` the
-    groups are empty (the values are still put back)."""
+    """For the ``with`` block: the avatar's parameters frozen, but for Adam parameter groups (``[{"params",
+    "lr"}]``) of the garment Gaussians' colours (SH), opacity logits and log scales, whose gradients reach the
+    garment's Gaussians only; on exit their values (every Gaussian's) and every parameter's ``requires_grad`` flag
+    are put back. With ``trainable=False`` the groups are empty: everything stays frozen."""
     looks = {name: getattr(avatar.gaussians, name) for name in _APPEARANCE_STEPS}
     member = torch.zeros(avatar.gaussians.means.shape[0], dtype=torch.bool, device=avatar.gaussians.means.device)
     member[garment.gaussian_ids] = True
@@ -66,6 +66,8 @@ def garment_appearance(avatar: Avatar, garment, *, trainable: bool = True):
     flags = {parameter: parameter.requires_grad for parameter in avatar.parameters()}
     hooks, groups = [], []
     try:
+        for parameter in flags:
+            parameter.requires_grad_(False)
         for name, tensor in looks.items():
             if trainable:
                 tensor.requires_grad_(True)
@@ -159,22 +161,19 @@ def oracle_rows(avatar: Avatar, subject: data.Subject, frame_ids: list[int], *, 
             return positions.detach(), scored(positions.detach(), views)
 
     rows = []
-    with garment_appearance(avatar, garment, trainable=False):  # the flags turned off here are put back at the end
-        for parameter in avatar.parameters():
-            parameter.requires_grad_(False)
-        for frame_id in frame_ids:
-            start = garment.frame_positions[_training_instant(subject, garment.frame_poses, frame_id)].detach()
-            views = _views_of(subject, frame_id)
-            fits = [("rollout", lambda: (start, scored(start, views))),
-                    ("training view", lambda: fitted(start, views, views[:1])),
-                    ("every view", lambda: fitted(start, views, views))]
-            if appearance:
-                fits.append(("every view + appearance", lambda: fitted(start, views, views, with_appearance=True)))
-            for mode, fit in fits:
-                positions, psnrs = fit()
-                rows.append({"frame": frame_id, "mode": mode, "psnr": {n: v[0] for n, v in psnrs.items()},
-                             "band": {n: v[1] for n, v in psnrs.items()},
-                             "moved": float((positions - start).norm(dim=1).mean() / spacing)})
+    for frame_id in frame_ids:
+        start = garment.frame_positions[_training_instant(subject, garment.frame_poses, frame_id)].detach()
+        views = _views_of(subject, frame_id)
+        fits = [("rollout", lambda: (start, scored(start, views))),
+                ("training view", lambda: fitted(start, views, views[:1])),
+                ("every view", lambda: fitted(start, views, views))]
+        if appearance:
+            fits.append(("every view + appearance", lambda: fitted(start, views, views, with_appearance=True)))
+        for mode, fit in fits:
+            positions, psnrs = fit()
+            rows.append({"frame": frame_id, "mode": mode, "psnr": {n: v[0] for n, v in psnrs.items()},
+                         "band": {n: v[1] for n, v in psnrs.items()},
+                         "moved": float((positions - start).norm(dim=1).mean() / spacing)})
     return rows
 
 

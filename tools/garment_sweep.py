@@ -186,8 +186,8 @@ def sweep_rows(avatar: Avatar, subject, variants: list[dict[str, float]], *, str
     train = subject.train
     background = torch.as_tensor(train.background, dtype=torch.float32, device=device)
     grid = avatar.field.grid_weights().detach()
-    bones = torch.stack([avatar.pose_bones(torch.as_tensor(pose, dtype=torch.float32, device=device))
-                         for pose in train.bone_transforms])
+    poses = [torch.as_tensor(pose, dtype=torch.float32, device=device) for pose in train.bone_transforms]
+    bones = torch.stack([avatar.pose_bones(pose) for pose in poses])
     seconds = frame_intervals(train.frame_ids, train.fps).tolist()
     training_ids = [int(i) for i in train.frame_ids]
     # what every variant is scored against, read once: (camera, pose, training instant, slab, mask, truth) of each
@@ -206,6 +206,9 @@ def sweep_rows(avatar: Avatar, subject, variants: list[dict[str, float]], *, str
         if frames:
             targets[name] = frames
 
+    # the training frames on the device, once, for re-learning (uint8: a quarter of the floats' memory)
+    images = torch.as_tensor(np.asarray(train.images), device=device) if retexture_steps else None
+
     def render(camera, pose, positions):
         return avatar.render(camera, pose, background=background, grid=grid, inputs={part.name: positions})
 
@@ -213,12 +216,11 @@ def sweep_rows(avatar: Avatar, subject, variants: list[dict[str, float]], *, str
     def retextured(positions):
         """Re-learn the garment's appearance on the training frames with the cloth at ``positions`` [T,M,3]."""
         generator = torch.Generator().manual_seed(seed)
-        poses = [torch.as_tensor(pose, dtype=torch.float32, device=device) for pose in train.bone_transforms]
         with garment_appearance(avatar, part) as looks:
             optimizer = torch.optim.Adam(looks)
             for _ in range(retexture_steps):
                 index = int(torch.randint(len(training_ids), (1,), generator=generator))
-                truth = torch.as_tensor(train.images[index], device=device).float() / 255.0
+                truth = images[index].float() / 255.0
                 loss = (render(train.cameras[index], poses[index], positions[index])[0] - truth).abs().mean()
                 optimizer.zero_grad()
                 loss.backward()
@@ -240,21 +242,18 @@ def sweep_rows(avatar: Avatar, subject, variants: list[dict[str, float]], *, str
         return row
 
     rows = []
-    with garment_appearance(avatar, part, trainable=False):  # the flags turned off here are put back at the end
-        for parameter in avatar.parameters():
-            parameter.requires_grad_(False)
-        for variant in [{}, *variants, *([None] if skinned else [])]:
-            if variant is None:
-                with torch.no_grad():
-                    positions = torch.stack([part.skinned_rest(frame_bones) for frame_bones in bones])
-            else:
-                with changed_cloth(part, variant), torch.no_grad():
-                    positions, _ = part.rollout(bones, seconds)
-            if retexture_steps:
-                with retextured(positions):
-                    rows.append(scored(variant, positions))
-            else:
+    for variant in [{}, *variants, *([None] if skinned else [])]:
+        if variant is None:
+            with torch.no_grad():
+                positions = torch.stack([part.skinned_rest(frame_bones) for frame_bones in bones])
+        else:
+            with changed_cloth(part, variant), torch.no_grad():
+                positions, _ = part.rollout(bones, seconds)
+        if retexture_steps:
+            with retextured(positions):
                 rows.append(scored(variant, positions))
+        else:
+            rows.append(scored(variant, positions))
     return rows
 
 

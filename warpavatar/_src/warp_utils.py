@@ -253,6 +253,9 @@ def warp_stream_of(stream: torch.cuda.Stream) -> wp.Stream:
     return wrapper
 
 
+_RAW_STREAM = getattr(torch._C, "_cuda_getCurrentRawStream", None)
+
+
 def current_stream_handle(device: torch.device) -> int:
     """The ``cudaStream_t`` of torch's current stream on CUDA ``device``, as an int (what
     ``torch.cuda.current_stream(device).cuda_stream`` gives, without making the stream object: a fifth of its
@@ -261,9 +264,6 @@ def current_stream_handle(device: torch.device) -> int:
     if _RAW_STREAM is not None:
         return _RAW_STREAM(index)
     return torch.cuda.current_stream(index).cuda_stream
-
-
-_RAW_STREAM = getattr(torch._C, "_cuda_getCurrentRawStream", None)
 
 
 class torch_stream_scope:
@@ -346,37 +346,39 @@ def check_tensor(name: str, tensor, shape: tuple, *, dtype_kind: str = "float", 
         raise ValueError(f"{name} is on {tensor.device} but the other inputs are on {device}")
 
 
-# Warp's native sort and scan entry points, called with the tensors' pointers: what ``wp.utils.radix_sort_pairs``
-# and ``wp.utils.array_scan`` end in, without building a ``wp.array`` for each operand (about 7 us of host time
-# each). Looked up once; where this Warp version lays them out otherwise, the public functions are used.
 @functools.lru_cache(maxsize=None)
-def _native_core():
+def _runtime_core():
+    """Warp's native library (``warp._src.context.runtime.core``), or None where this Warp lays it out otherwise."""
     init_warp()
     try:
         from warp._src.context import runtime  # noqa: PLC0415
-        core = runtime.core
-        names = ("wp_radix_sort_pairs_float_device", "wp_radix_sort_pairs_float_host",
-                 "wp_radix_sort_pairs_int_device", "wp_radix_sort_pairs_int_host",
-                 "wp_array_scan_int_device", "wp_array_scan_int_host")
-        if all(hasattr(core, name) for name in names):
-            return core
-    except Exception:  # noqa: BLE001 (any other layout: the public functions)
-        pass
-    return None
+
+        return runtime.core
+    except Exception:  # noqa: BLE001 (any other layout)
+        return None
 
 
 @functools.lru_cache(maxsize=None)
 def native_entry(name: str):
-    """Warp's native function ``name`` (``warp._src.context.runtime.core.<name>``, what Warp's public functions
-    end in), looked up once; None where this Warp version lays its runtime out otherwise (callers then use the
-    public function)."""
-    init_warp()
-    try:
-        from warp._src.context import runtime  # noqa: PLC0415
+    """Warp's native function ``name`` (what Warp's public functions end in), looked up once; None where this Warp
+    version lays its runtime out otherwise (callers then use the public function)."""
+    core = _runtime_core()
+    return None if core is None else getattr(core, name, None)
 
-        return getattr(runtime.core, name, None)
-    except Exception:  # noqa: BLE001 (any other layout)
-        return None
+
+# Warp's native sort and scan entry points, called with the tensors' pointers: what ``wp.utils.radix_sort_pairs``
+# and ``wp.utils.array_scan`` end in, without building a ``wp.array`` for each operand (about 7 us of host time
+# each). Where this Warp version lays them out otherwise, the public functions are used.
+_SORT_AND_SCAN_ENTRIES = ("wp_radix_sort_pairs_float_device", "wp_radix_sort_pairs_float_host",
+                          "wp_radix_sort_pairs_int_device", "wp_radix_sort_pairs_int_host",
+                          "wp_array_scan_int_device", "wp_array_scan_int_host")
+
+
+@functools.lru_cache(maxsize=None)
+def _native_core():
+    if all(native_entry(name) is not None for name in _SORT_AND_SCAN_ENTRIES):
+        return _runtime_core()
+    return None
 
 
 def warp_context(device: torch.device):
