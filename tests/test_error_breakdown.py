@@ -97,3 +97,42 @@ def test_breakdown_of_the_mean_fill_reference_on_the_demo(tool):
     assert -10 * math.log10(pooled) == pytest.approx(-10 * math.log10(error / count), abs=1e-6)
     assert 8.0 < -10 * math.log10(pooled) < 25.0
     assert all(math.isfinite(values[key]) for key in ("masked", "gain", "inner", "gain+inner"))
+
+
+def test_shifted_image_moves_the_pixels_and_fills_with_the_background(tool):
+    rng = np.random.default_rng(5)
+    image = rng.uniform(0.1, 0.9, size=(12, 17, 3))
+    fill = np.array([0.2, 0.4, 0.6])
+    for columns, rows in ((3, 0), (-2, 0), (0, 4), (0, -1), (2, -3)):
+        moved = tool.shifted_image(image, columns, rows, fill)
+        for row in range(12):
+            for column in range(17):
+                source = (row - rows, column - columns)
+                expected = image[source] if 0 <= source[0] < 12 and 0 <= source[1] < 17 else fill
+                assert np.array_equal(moved[row, column], expected)
+    assert np.array_equal(tool.shifted_image(image, 20, 0, fill), np.broadcast_to(fill, image.shape))
+
+
+def test_the_shift_reference_loses_with_every_pixel_moved(tool):
+    video = data.load_video_folder(data.demo_subject_path() / "train", scale=0.5)
+    truth = video.images[0].astype(np.float64) / 255.0
+    mask = video.masks[0].astype(np.float64) / 255.0
+    moved = tool.reference_images(truth, mask, "shift", shift_px=3, background=video.background)
+    assert len(moved) == 4 and all(m.shape == truth.shape for m in moved)
+    assert np.array_equal(moved[0][:, 3:], truth[:, :-3]) and np.array_equal(moved[3][:-3], truth[3:])
+    scores = [tool.breakdown(None, video, stride=5, band=(0.3, 0.8), reference="shift", shift_px=px)
+              for px in (1, 2, 4)]
+    for key in ("masked", "band", "outside"):
+        assert scores[0][key] > scores[1][key] > scores[2][key], key
+    # each frame's error is the mean of its four moves' errors
+    frames = range(0, video.frame_count, 5)
+    expected = []
+    for t in frames:
+        truth = video.images[t].astype(np.float64) / 255.0
+        mask = video.masks[t].astype(np.float64) / 255.0
+        errors = [10 ** (-tool.masked_psnr(m, truth, mask) / 10)
+                  for m in tool.reference_images(truth, mask, "shift", shift_px=2, background=video.background)]
+        expected.append(-10 * math.log10(np.mean(errors)))
+    assert scores[1]["masked"] == pytest.approx(np.mean(expected), abs=1e-9)
+    with pytest.raises(SystemExit):
+        tool.main(["--reference", "shift", "--shift-px", "0", str(data.demo_subject_path() / "train")])

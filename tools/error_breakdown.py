@@ -2,7 +2,7 @@
 
     python tools/error_breakdown.py AVATAR_DIR VIDEO_FOLDER [VIDEO_FOLDER ...] [--device cuda] [--stride N]
         [--height-band LOW HIGH]
-    python tools/error_breakdown.py --reference blur VIDEO_FOLDER [...] [--height-band LOW HIGH]
+    python tools/error_breakdown.py --reference blur|mean|shift VIDEO_FOLDER [...] [--height-band LOW HIGH]
 
 For every folder, the mean over frames of four masked PSNRs (dB):
 
@@ -22,7 +22,10 @@ measured (``needed, outside as is``; ``-`` when the outside alone already misses
 
 ``--reference blur`` or ``--reference mean`` scores the ground truth itself instead of an avatar: blurred by a
 Gaussian of ``--blur-sigma`` pixels (2), or its mask filled with the frame's mean colour inside it. These are
-the baselines a benchmark's data README quotes.
+the baselines a benchmark's data README quotes. ``--reference shift`` scores the ground truth moved by
+``--shift-px`` pixels (2), each frame's error the mean of four moves (right, left, down, up; what comes in from
+beyond the frame is the folder's background colour): how precisely a prediction must place the subject's texture
+and silhouette to reach a score (a moved image is an exact texture in a slightly wrong place).
 """
 
 from __future__ import annotations
@@ -35,7 +38,8 @@ import torch
 
 from warpavatar import data
 
-__all__ = ["breakdown", "height_band_mask", "masked_psnr", "reference_image", "band_needed"]
+__all__ = ["breakdown", "height_band_mask", "masked_psnr", "reference_image", "reference_images", "shifted_image",
+           "band_needed"]
 
 
 def masked_psnr(prediction: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
@@ -68,6 +72,34 @@ def height_band_mask(camera: data.Camera, root_position: np.ndarray, up: np.ndar
     return (height > low) & (height < high)
 
 
+SHIFT_DIRECTIONS = ((1, 0), (-1, 0), (0, 1), (0, -1))  # (columns, rows) of the four moves of ``shift``
+
+
+def shifted_image(image: np.ndarray, columns: int, rows: int, fill: np.ndarray) -> np.ndarray:
+    """``image`` [H,W,C] moved right by ``columns`` and down by ``rows`` pixels (negative: left, up); the pixels
+    that come in from beyond the frame take the colour ``fill`` [C]."""
+    height, width = image.shape[:2]
+    moved = np.empty_like(image)
+    moved[...] = np.asarray(fill, dtype=image.dtype)
+    source_rows = slice(max(0, -rows), min(height, height - rows))
+    source_columns = slice(max(0, -columns), min(width, width - columns))
+    target_rows = slice(max(0, rows), min(height, height + rows))
+    target_columns = slice(max(0, columns), min(width, width + columns))
+    if source_rows.start < source_rows.stop and source_columns.start < source_columns.stop:
+        moved[target_rows, target_columns] = image[source_rows, source_columns]
+    return moved
+
+
+def reference_images(truth: np.ndarray, mask: np.ndarray, kind: str, *, blur_sigma: float = 2.0,
+                     shift_px: int = 2, background=(0.0, 0.0, 0.0)) -> list[np.ndarray]:
+    """The baseline images of ``--reference kind`` for one frame: ``shift`` gives the four moved ground truths,
+    the others the one :func:`reference_image`."""
+    if kind == "shift":
+        fill = np.asarray(background, dtype=truth.dtype)
+        return [shifted_image(truth, shift_px * dx, shift_px * dy, fill) for dx, dy in SHIFT_DIRECTIONS]
+    return [reference_image(truth, mask, kind, blur_sigma=blur_sigma)]
+
+
 def reference_image(truth: np.ndarray, mask: np.ndarray, kind: str, *, blur_sigma: float = 2.0) -> np.ndarray:
     """A baseline built from the ground truth [H,W,3] in 0..1: ``blur`` (Gaussian blur of ``blur_sigma`` pixels)
     or ``mean`` (the mask [H,W] filled with the mean colour inside it, zero elsewhere)."""
@@ -94,8 +126,16 @@ def band_needed(band_share: float, target_db: float, *, outside_db: float = math
     return -10.0 * math.log10(budget / band_share)
 
 
+def _psnr_of_mean(predictions: list[np.ndarray], truth: np.ndarray, mask: np.ndarray) -> float:
+    """Masked PSNR [dB] of the mean squared error of several predictions (:func:`masked_psnr` for one)."""
+    if len(predictions) == 1:
+        return masked_psnr(predictions[0], truth, mask)
+    mse = np.mean([10.0 ** (-masked_psnr(prediction, truth, mask) / 10.0) for prediction in predictions])
+    return -10.0 * np.log10(max(float(mse), 1e-12))
+
+
 def breakdown(avatar, video, *, stride: int = 1, band: tuple[float, float] | None = None,
-              reference: str | None = None, blur_sigma: float = 2.0) -> dict:
+              reference: str | None = None, blur_sigma: float = 2.0, shift_px: int = 2) -> dict:
     """The mean masked PSNRs of the module docstring for ``avatar`` (or, with ``reference``, a ground-truth
     baseline) on ``video``; with ``band``, also the pooled ``band``, ``outside`` and ``band share`` values."""
     import cv2
@@ -112,24 +152,27 @@ def breakdown(avatar, video, *, stride: int = 1, band: tuple[float, float] | Non
         truth = video.images[t].astype(np.float64) / 255.0
         mask = video.masks[t].astype(np.float64) / 255.0
         if avatar is None:
-            prediction = reference_image(truth, mask, reference, blur_sigma=blur_sigma)
+            predictions = reference_images(truth, mask, reference, blur_sigma=blur_sigma, shift_px=shift_px,
+                                           background=video.background)
         else:
             with torch.no_grad():
                 bones = torch.as_tensor(video.bone_transforms[t], dtype=torch.float32, device=device)
                 image, _, _ = avatar.render(video.cameras[t], bones, background=background, grid=grid)
-            prediction = image.clamp(0, 1).cpu().numpy().astype(np.float64)
+            predictions = [image.clamp(0, 1).cpu().numpy().astype(np.float64)]
         weight = mask[..., None]
-        gain = (prediction * truth * weight).sum((0, 1)) / np.maximum((prediction**2 * weight).sum((0, 1)), 1e-12)
-        corrected = np.clip(prediction * gain, 0.0, 1.0)
+        corrected = []
+        for prediction in predictions:
+            gain = (prediction * truth * weight).sum((0, 1)) / np.maximum((prediction**2 * weight).sum((0, 1)), 1e-12)
+            corrected.append(np.clip(prediction * gain, 0.0, 1.0))
         inner = cv2.erode((mask > 0.5).astype(np.uint8), kernel).astype(np.float64)
-        rows["masked"].append(masked_psnr(prediction, truth, mask))
-        rows["gain"].append(masked_psnr(corrected, truth, mask))
-        rows["inner"].append(masked_psnr(prediction, truth, inner))
-        rows["gain+inner"].append(masked_psnr(corrected, truth, inner))
+        rows["masked"].append(_psnr_of_mean(predictions, truth, mask))
+        rows["gain"].append(_psnr_of_mean(corrected, truth, mask))
+        rows["inner"].append(_psnr_of_mean(predictions, truth, inner))
+        rows["gain+inner"].append(_psnr_of_mean(corrected, truth, inner))
         if band is not None:
             root = video.bone_transforms[t][0].astype(np.float64) @ np.append(video.skeleton.heads[0], 1.0)
             inside = height_band_mask(video.cameras[t], root[:3], video.skeleton.up, low=band[0], high=band[1])
-            error = ((prediction - truth) ** 2).sum(-1) * mask
+            error = np.mean([((prediction - truth) ** 2).sum(-1) for prediction in predictions], axis=0) * mask
             for name, region in (("band", inside), ("outside", ~inside)):
                 pooled[name][0] += float(error[region].sum())
                 pooled[name][1] += float(mask[region].sum()) * 3
@@ -153,12 +196,16 @@ def main(argv=None) -> int:
                              "heights at the root joint's depth, and the rest (see above)")
     parser.add_argument("--target", type=float, default=23.0,
                         help="masked PSNR [dB] the 'needed' columns are computed for (default 23)")
-    parser.add_argument("--reference", choices=("blur", "mean"), default=None,
-                        help="score a baseline made from the ground truth instead of an avatar")
-    parser.add_argument("--blur-sigma", type=float, default=2.0, help="blur of --reference blur [pixels]")
+    parser.add_argument("--reference", choices=("blur", "mean", "shift"), default=None,
+                        help="score a baseline made from the ground truth instead of an avatar (see above)")
+    parser.add_argument("--blur-sigma", type=float, default=2.0, help="blur of --reference blur [pixels] "
+                        "(default 2)")
+    parser.add_argument("--shift-px", type=int, default=2, help="move of --reference shift [pixels] (default 2)")
     args = parser.parse_args(argv)
     if args.stride < 1:
         parser.error("--stride must be at least 1")
+    if args.shift_px < 1:
+        parser.error("--shift-px must be at least 1")
     if args.height_band is not None and not args.height_band[0] < args.height_band[1]:
         parser.error("--height-band LOW HIGH needs LOW < HIGH")
     avatar = None
@@ -180,7 +227,7 @@ def main(argv=None) -> int:
             raise SystemExit(f"{folder}: has no masks/, so no masked PSNR can be measured")
         values = breakdown(avatar, video, stride=args.stride,
                            band=tuple(args.height_band) if args.height_band is not None else None,
-                           reference=args.reference, blur_sigma=args.blur_sigma)
+                           reference=args.reference, blur_sigma=args.blur_sigma, shift_px=args.shift_px)
         cells = [f"{values[k]:.2f}" for k in ("masked", "gain", "inner", "gain+inner")]
         if args.height_band is not None:
             needed = [band_needed(values["band share"], args.target),
