@@ -365,6 +365,40 @@ def test_the_part_round_trips_through_the_avatar_file_and_renders_the_same(force
         assert torch.isfinite(image).all() and torch.equal(image, loaded.render(camera, lone)[0])
 
 
+def test_a_displacement_before_skinning_rides_on_the_cloth(forced):
+    # another part (as --secondary-motion does) displaces Gaussians before skinning: the garment's keep it, turned
+    # with their node's frame, and their rotations stay the cloth's
+    from warpavatar.model.parts import AvatarPart
+
+    class Shove(AvatarPart):
+        name = "shove"
+
+        def __init__(self, offset):
+            super().__init__()
+            self.offset = offset
+
+        def deform_canonical(self, canonical, bones, frame):
+            return canonical.displaced(self.offset)
+
+    avatar = copy.deepcopy(forced[0].avatar)
+    ids = avatar.part("garment").gaussian_ids
+    count = avatar.gaussians.means.shape[0]
+    offset = 0.02 * torch.randn(count, 3, generator=torch.Generator().manual_seed(4))
+    pose = forced[0].frames.bone_transforms[3]  # a training instant: the cloth from the rollout's table
+    with torch.no_grad():
+        before = avatar.pose(pose)
+        avatar.add_part(Shove(offset))
+        after = avatar.pose(pose)
+    assert after["canonical_offsets"] is not None and before["canonical_offsets"] is None
+    moved = after["means"][ids] - before["means"][ids]
+    assert torch.allclose(moved.norm(dim=1), offset[ids].norm(dim=1), atol=1e-5)  # a rotation of the offset
+    assert (moved - offset[ids]).norm(dim=1).max() > 1e-4  # turned, not merely added
+    assert torch.equal(after["quats"][ids], before["quats"][ids])
+    others = torch.ones(count, dtype=torch.bool)
+    others[ids] = False
+    assert (after["means"][others] - before["means"][others]).norm(dim=1).min() > 0  # skinned with the offset
+
+
 def test_a_new_motion_starts_settled_and_the_attached_nodes_follow_the_body(forced, video):
     part = forced[0].avatar.part("garment")
     motion = _motion(video)

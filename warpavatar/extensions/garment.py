@@ -8,7 +8,8 @@ stretch and bend springs with learnable rest lengths, stiffness, damping, drag a
 are free particles under gravity, pushed out of the body's capsules (fitted once to the non-garment Gaussians,
 :func:`~warpavatar.sim.fit_body_capsules`). After skinning (:meth:`GarmentPart.deform_posed`), each garment
 Gaussian rides on its nearest node: centre ``x_node + R_node offset``, rotation ``q_node * q_canonical``, where
-``offset`` is its canonical centre minus the node's rest position and ``R_node`` the rotation of the node's
+``offset`` is its canonical centre minus the node's rest position (plus any displacement other parts gave it
+before skinning, such as ``--secondary-motion``'s per-frame one) and ``R_node`` the rotation of the node's
 neighbourhood from rest (:func:`~warpavatar.sim.node_rotations`, warm-started by the node's skinning rotation):
 appearance stays on the cloth, whatever the body does.
 
@@ -333,7 +334,9 @@ class GarmentPart(AvatarPart):
 
     # ------------------------------------------------------------------------------------------ posing
     def deform_posed(self, posed, frame):
-        """Replace the garment Gaussians' skinned centres and rotations by the cloth's (see the module docstring)."""
+        """Replace the garment Gaussians' skinned centres and rotations by the cloth's (see the module docstring).
+        A displacement other parts gave a garment Gaussian before skinning (``posed["canonical_offsets"]``, e.g.
+        ``--secondary-motion``'s per-frame one) is kept as part of its offset from its node, turned with the node."""
         ids = self.gaussian_ids
         if ids.numel() == 0:
             return posed
@@ -348,6 +351,9 @@ class GarmentPart(AvatarPart):
             self.bind(posed["canonical_means"])
         anchor = self.anchor
         offset = posed["canonical_means"].index_select(0, ids) - self.nodes.index_select(0, anchor)
+        displaced = posed.get("canonical_offsets")
+        if displaced is not None:  # what other parts added before skinning rides along, in the node's frame
+            offset = offset + displaced.index_select(0, ids)
         means, rotations = ride_on_nodes(positions, quats, anchor, offset,
                                          posed["canonical_quats"].index_select(0, ids))
         posed = type(posed)(posed)

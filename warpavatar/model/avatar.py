@@ -54,7 +54,8 @@ class PosedGaussians(dict):
     Keys: ``means`` [N,3], ``quats`` [N,4] (w,x,y,z), ``scales`` [N,3], ``opacities`` [N],
     ``colors`` [N,(d+1)^2,3] SH coefficients, ``sh_degree`` (int), ``weights`` [N,J+E] skinning weights,
     ``canonical_quats`` [N,4] and ``canonical_means`` [N,3]: the rest-pose orientations and centres as the
-    parts reshaped them, before any displacement; ``bone_transforms`` [J+E,4,4]: the skinning transforms used
+    parts reshaped them, before any displacement; ``canonical_offsets`` [N,3] or None: the displacement the parts
+    added to those centres before skinning (secondary motion); ``bone_transforms`` [J+E,4,4]: the skinning transforms used
     (the skeleton's, then those the parts appended, :meth:`Avatar.pose_bones`); ``frame``: the
     :class:`~warpavatar.model.parts.PoseFrame` they were posed for.
     """
@@ -221,6 +222,7 @@ class Avatar(torch.nn.Module):
         posed = PosedGaussians(means=means, quats=quats, scales=canonical.scales, opacities=opacities,
                                colors=colors, sh_degree=degree, weights=weights,
                                canonical_quats=canonical.quats, canonical_means=canonical.means,
+                               canonical_offsets=canonical.offset,
                                bone_transforms=bones, frame=frame)
         for part in self.parts.values():
             posed = part.deform_posed(posed, frame)
