@@ -214,7 +214,11 @@ def sweep_rows(avatar: Avatar, subject, variants: list[dict[str, float]], *, str
 
     @contextmanager
     def retextured(positions):
-        """Re-learn the garment's appearance on the training frames with the cloth at ``positions`` [T,M,3]."""
+        """Re-learn the garment's appearance on the training frames with the cloth at ``positions`` [T,M,3] (with
+        ``retexture_steps`` > 0; else the appearance stays as fitted)."""
+        if not retexture_steps:
+            yield
+            return
         generator = torch.Generator().manual_seed(seed)
         with garment_appearance(avatar, part) as looks:
             optimizer = torch.optim.Adam(looks)
@@ -249,10 +253,7 @@ def sweep_rows(avatar: Avatar, subject, variants: list[dict[str, float]], *, str
         else:
             with changed_cloth(part, variant), torch.no_grad():
                 positions, _ = part.rollout(bones, seconds)
-        if retexture_steps:
-            with retextured(positions):
-                rows.append(scored(variant, positions))
-        else:
+        with retextured(positions):
             rows.append(scored(variant, positions))
     return rows
 

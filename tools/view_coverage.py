@@ -121,7 +121,7 @@ def coverage_rows(avatar: Avatar, subject: data.Subject, *, band: tuple[float, f
                     raise ValueError(f"{video.root}: frame {frame_id} is not one of the training frames")
                 instant = training_ids[frame_id]
                 bones = torch.as_tensor(video.bone_transforms[index], dtype=torch.float32, device=device)
-                if instant not in training_views:
+                if instant not in training_views:  # (a novel view's pose is its training instant's)
                     _, training_surface = _render_surface(avatar, train.cameras[instant], bones, instant, grid,
                                                           background)
                     if train.masks is not None:
@@ -142,22 +142,23 @@ def coverage_rows(avatar: Avatar, subject: data.Subject, *, band: tuple[float, f
                 uncovered += int((region & ~covered).sum())
                 frames += 1
             total = pooled["seen"][1] + pooled["unseen"][1]
-
-            def psnr(error_sum: float, count: int) -> float:
-                return -10.0 * math.log10(max(error_sum / count, 1e-12)) if count else math.nan
-
             rows.append({"view": name, "frames": frames, "pixels": total,
                          "seen share": pooled["seen"][1] / max(total, 1),
                          "uncovered share": uncovered / max(total, 1),
-                         "psnr": psnr(pooled["seen"][0] + pooled["unseen"][0], total),
-                         "psnr seen": psnr(*pooled["seen"]), "psnr unseen": psnr(*pooled["unseen"])})
+                         "psnr": _pooled_psnr(pooled["seen"][0] + pooled["unseen"][0], total),
+                         "psnr seen": _pooled_psnr(*pooled["seen"]), "psnr unseen": _pooled_psnr(*pooled["unseen"])})
     return rows
+
+
+def _pooled_psnr(error_sum: float, count: int) -> float:
+    """PSNR [dB] of a squared error summed over ``count`` pixels (NaN for none)."""
+    return -10.0 * math.log10(max(error_sum / count, 1e-12)) if count else math.nan
 
 
 def _needed(row: dict, target: float, *, seen_db: float = math.inf) -> float:
     """PSNR [dB] the unseen pixels must reach for the region to reach ``target`` with the seen ones at ``seen_db``
-    (NaN: no seen pixel, which then costs nothing)."""
-    return band_needed(1.0 - row["seen share"], target, outside_db=seen_db)
+    (NaN, where no pixel is seen, counts as perfect: those pixels cost nothing)."""
+    return band_needed(1.0 - row["seen share"], target, outside_db=math.inf if math.isnan(seen_db) else seen_db)
 
 
 def main(argv=None) -> int:
@@ -187,8 +188,7 @@ def main(argv=None) -> int:
               "uncovered share": f"{row['uncovered share']:.2f}", "region dB": cell(row["psnr"]),
               "seen dB": cell(row["psnr seen"]), "unseen dB": cell(row["psnr unseen"]),
               "needed, seen perfect": cell(_needed(row, args.target)),
-              "needed, seen as is": cell(_needed(row, args.target, seen_db=row["psnr seen"]
-                                                 if row["seen share"] > 0 else math.inf))}
+              "needed, seen as is": cell(_needed(row, args.target, seen_db=row["psnr seen"]))}
              for row in rows]
     print(markdown_table(table))
     if args.json:

@@ -55,8 +55,8 @@ class PosedGaussians(dict):
     ``colors`` [N,(d+1)^2,3] SH coefficients, ``sh_degree`` (int), ``weights`` [N,J+E] skinning weights,
     ``canonical_quats`` [N,4] and ``canonical_means`` [N,3]: the rest-pose orientations and centres as the
     parts reshaped them, before any displacement; ``canonical_offsets`` [N,3] or None: the displacement the parts
-    added to those centres before skinning (secondary motion); ``bone_transforms`` [J+E,4,4]: the skinning transforms used
-    (the skeleton's, then those the parts appended, :meth:`Avatar.pose_bones`); ``frame``: the
+    added to those centres before skinning (secondary motion); ``bone_transforms`` [J+E,4,4]: the skinning
+    transforms used (the skeleton's, then those the parts appended, :meth:`Avatar.pose_bones`); ``frame``: the
     :class:`~warpavatar.model.parts.PoseFrame` they were posed for.
     """
 
