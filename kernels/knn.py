@@ -1,4 +1,4 @@
-"""Warp kernels of the exact k-nearest-neighbour graph (the Gaussian graph of SMAD, paper 000, Sec. 3.1).
+"""Warp kernels of the exact k-nearest-neighbour graph (the Gaussian graph of SMAD, Sec. 3.1).
 
 Two kernels, both specialized at compile time for the neighbour count ``k`` (one small Warp module per ``k``,
 built on first use), so that the sorted candidate list of each query lives in registers:

@@ -1,4 +1,4 @@
-"""Warp kernels of the mass-spring-damper step of SMAD (paper 000, Eq. 2-4) and its regularizers (Eq. 11).
+"""Warp kernels of the mass-spring-damper step of SMAD (Eq. 2-4) and its regularizers (Eq. 11).
 
 Step (per node ``i``, directed edges ``e = (i, j)``: receiver ``i = edges[e, 0]``, sender ``j = edges[e, 1]``)::
 

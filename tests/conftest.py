@@ -57,7 +57,9 @@ def small_avatar(skeleton, *, seed: int, per_bone: int, cells: int, distill_step
 
 
 def load_tool(name: str):
-    """The script ``tools/<name>.py`` as a module (the tools are scripts, not part of the package)."""
+    """The script ``tools/<name>.py`` as a fresh module (the tools are scripts, not part of the package; the
+    siblings they import resolve through ``tools/`` on pytest's ``pythonpath``). ``research/`` is a package:
+    tests import it as ``research.<name>``."""
     path = Path(__file__).resolve().parents[1] / "tools" / f"{name}.py"
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)

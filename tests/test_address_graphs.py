@@ -1,4 +1,4 @@
-"""Work replayed from CUDA graphs keyed by the addresses it touches (``warpavatar._src.address_graphs``), and the
+"""Work replayed from CUDA graphs keyed by the addresses it touches (``warpavatar._src.graphs.address_graphs``), and the
 rasterizer's speculative passes replayed that way.
 
 On CUDA a key seen twice is captured and later calls of it replay the graph; on CPU every call runs eagerly. The
@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from warpavatar import ops
-from warpavatar._src import address_graphs
 from warpavatar._src import splat as splat_bridge
-from warpavatar._src.address_graphs import AddressKeyedGraphs
+from warpavatar._src.graphs import address_graphs
+from warpavatar._src.graphs.address_graphs import AddressKeyedGraphs
 
 from test_splat import DIFFERENTIABLE, make_scene, random_cotangents, render_and_grad
 from test_splat_speculative import _assert_same_pass

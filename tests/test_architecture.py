@@ -94,7 +94,7 @@ def test_sim_builds_on_the_kernel_level_only():
     # warpavatar/sim/ is physics the avatar's parts use: it may import the ops, their kernels and bridges, the
     # shared geometry and itself (and the bare package, whose face imports nothing), never the model, the extensions, the fit or anything above them.
     allowed = ("warpavatar.ops", "warpavatar.geometry", "warpavatar.kernels", "warpavatar._src", "warpavatar.sim")
-    assert "warpavatar.sim.cloth" in GRAPH
+    assert "warpavatar.sim.mass_spring_cloth" in GRAPH
     offenders = sorted(f"{module} -> {target}" for module, targets in GRAPH.items()
                        if module.startswith("warpavatar.sim")
                        for target in targets if target != "warpavatar" and not target.startswith(allowed))
@@ -107,3 +107,44 @@ def test_the_trainer_reaches_extensions_only_through_the_registry():
                        for target in targets if target.startswith("warpavatar.extensions.")
                        and target not in ("warpavatar.extensions.base", "warpavatar.extensions.registry"))
     assert not offenders, offenders
+
+
+# a kernel family's three files share its name on purpose (docs/architecture.md): the kernels, their autograd
+# bridge and their plain-torch reference
+KERNEL_FAMILY_FOLDERS = (ROOT / "kernels", PACKAGE / "_src", PACKAGE / "_torch_impl")
+
+
+def test_a_file_name_is_shared_only_by_a_kernel_family():
+    places: dict[str, list[Path]] = {}
+    for path in [*PACKAGE.rglob("*.py"), *(ROOT / "kernels").glob("*.py")]:
+        if path.name not in ("__init__.py", "__main__.py") and "data/demo" not in path.as_posix():
+            places.setdefault(path.name, []).append(path)
+    shared = sorted(f"{name}: {', '.join(sorted(p.relative_to(ROOT).as_posix() for p in paths))}"
+                    for name, paths in places.items()
+                    if len(paths) > 1 and not all(p.parent in KERNEL_FAMILY_FOLDERS for p in paths))
+    assert not shared, shared
+
+
+@pytest.mark.parametrize("old, new", [("warpavatar.fit.skinning", "warpavatar.fit.skinning_field_stage"),
+                                      ("warpavatar.fit.frames", "warpavatar.fit.training_frames"),
+                                      ("warpavatar.sim.cloth", "warpavatar.sim.mass_spring_cloth"),
+                                      ("warpavatar.sim.frames", "warpavatar.sim.node_frames")])
+def test_renamed_modules_left_their_old_names(old, new):
+    assert old not in GRAPH and new in GRAPH
+
+
+def test_only_load_training_video_reads_a_folder_at_a_configs_image_scale():
+    # the fit's image_scale is applied in one place (warpavatar.fit.training_frames.load_training_video): no other
+    # code reads a video folder or subject with `scale=<something>.image_scale`
+    offenders = []
+    for folder in (PACKAGE, ROOT / "kernels", ROOT / "tools", ROOT / "research"):
+        for path in folder.rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+                if not isinstance(node, ast.Call):
+                    continue
+                name = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", "")
+                if name in ("load_video_folder", "load_subject") and any(
+                        keyword.arg == "scale" and isinstance(keyword.value, ast.Attribute)
+                        and keyword.value.attr == "image_scale" for keyword in node.keywords):
+                    offenders.append(f"{path.relative_to(ROOT).as_posix()}:{node.lineno}")
+    assert [place.partition(":")[0] for place in offenders] == ["warpavatar/fit/training_frames.py"], offenders

@@ -220,11 +220,12 @@ def test_fit_refuses_a_non_empty_output_folder(folder, tmp_path, capsys):
 def test_fit_overwrite_deletes_only_an_earlier_fits_outputs(tmp_path):
     output = tmp_path / "out"
     (output / "previews").mkdir(parents=True)
-    for name in ("avatar.pt", "checkpoint.pt", "checkpoint.pt.tmp", "train_log.jsonl", "previews/000001.png",
-                 "holiday.jpg"):
+    for name in ("avatar.pt", "checkpoint.pt", "checkpoint.pt.tmp-41-0123456789ab", "train_log.jsonl",
+                 "previews/000001.png", "holiday.jpg", "checkpoint.pt.tmp"):
         (output / name).write_bytes(b"old")
     fit.remove_fit_outputs(output)
-    assert sorted(path.name for path in output.iterdir()) == ["holiday.jpg"]
+    # the temporary file an interrupted fit left goes; a file that merely looks like an old temporary name stays
+    assert sorted(path.name for path in output.iterdir()) == ["checkpoint.pt.tmp", "holiday.jpg"]
     fit.check_output_folder(output, resume=False, overwrite=True)  # allowed with --overwrite
 
 
@@ -397,7 +398,7 @@ def _log_steps(output):
 
 
 def _checkpoint_step(output):
-    return int(torch.load(output / "checkpoint.pt", map_location="cpu", weights_only=False)["step"])
+    return int(torch.load(output / "checkpoint.pt", map_location="cpu", weights_only=True)["step"])
 
 
 def test_ctrl_c_during_a_fit_writes_a_checkpoint_and_says_how_to_resume(folder, tmp_path, capsys):
@@ -497,15 +498,14 @@ def test_kill_9_during_a_usd_export_leaves_no_file_at_the_final_name(avatar_dir,
     output = tmp_path / "long.usdc"
     process = _start(["-m", "warpavatar.cli.animate", str(avatar_dir), "--motion", str(motion), "-o", str(output),
                       "--device", "cpu"], tmp_path)
-    temporary = tmp_path / "long.tmp.usdc"
-
     def exporting():  # the temporary file exists and frames are being written
-        return temporary.is_file() and temporary.stat().st_size > 0 and time.sleep(0.5) is None
+        found = list(tmp_path.glob("long.tmp-*.usdc"))
+        return len(found) == 1 and found[0].stat().st_size > 0 and time.sleep(0.5) is None
 
     _kill_when(process, exporting)
     assert not output.exists()
-    # the next export of that name goes through, replacing what the killed one left
+    # the next export of that name goes through, removing the temporary file the killed one left
     from warpavatar.cli import animate
     assert animate.main([str(avatar_dir), "--motion", str(DEMO / "train"), "-o", str(output), "--frames", "0:3",
                          "--no-progress", "--device", "cpu"]) == 0
-    assert output.is_file() and not temporary.exists()
+    assert output.is_file() and not list(tmp_path.glob("long.tmp*"))

@@ -12,7 +12,7 @@ from warpavatar._torch_impl import cloth as reference_cloth
 from warpavatar._torch_impl import collision as reference_collision
 from warpavatar._torch_impl import springs as reference_springs
 from warpavatar.sim import Capsules, ClothGraph, ClothModel, ClothState, cloth_graph
-from warpavatar.sim.cloth import REST_LENGTH_RANGE
+from warpavatar.sim.mass_spring_cloth import REST_LENGTH_RANGE
 
 G = 9.81
 

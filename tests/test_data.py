@@ -489,7 +489,7 @@ def test_staged_folder_commits_whole_or_not_at_all(tmp_path):
 
     destination = tmp_path / "out"
     with staged_folder(destination) as staging:
-        assert staging == tmp_path / "out.tmp" and not destination.exists()
+        assert staging.parent == tmp_path and staging.name.startswith("out.tmp-") and not destination.exists()
         (staging / "a.txt").write_text("first")
     assert (destination / "a.txt").read_text() == "first" and not staging.exists()
     # a failure half-way leaves the previous folder as it was and no temporary folder
@@ -499,13 +499,20 @@ def test_staged_folder_commits_whole_or_not_at_all(tmp_path):
             raise RuntimeError("half-way")
     assert (destination / "a.txt").read_text() == "first"
     assert sorted(path.name for path in tmp_path.iterdir()) == ["out"]
-    with pytest.raises(FileExistsError, match="out already exists"):
+    with pytest.raises(FileExistsError, match="out: already exists"):
         with staged_folder(destination):
             pass
     with staged_folder(destination, overwrite=True) as staging:
         (staging / "b.txt").write_text("replaced")
-    assert sorted(path.name for path in destination.iterdir()) == ["b.txt"]
+    assert sorted(path.name for path in destination.iterdir()) == [".warpavatar-output", "b.txt"]
     assert sorted(path.name for path in tmp_path.iterdir()) == ["out"]
+    # a folder it did not write is never replaced, even with overwrite
+    (tmp_path / "photos").mkdir()
+    (tmp_path / "photos" / "holiday.jpg").write_bytes(b"mine")
+    with pytest.raises(FileExistsError, match="photos: the folder exists and holds files warpavatar did not write"):
+        with staged_folder(tmp_path / "photos", overwrite=True):
+            pass
+    assert [path.name for path in (tmp_path / "photos").iterdir()] == ["holiday.jpg"]
 
 
 def test_the_prepared_skeleton_round_trips_through_skeleton_json(tmp_path):

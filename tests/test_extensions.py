@@ -212,7 +212,7 @@ def test_avatar_files_of_format_1_still_load_and_render_the_same(name):
     """Files written by warpavatar before the extension protocol (one key per optional part), with their renders
     from that version (tests/data/legacy_avatar/README.md)."""
     avatar = Avatar.load(LEGACY / f"{name}_v1.pt")
-    expected = torch.load(LEGACY / "renders_v1.pt")[name]
+    expected = torch.load(LEGACY / "renders_v1.pt", weights_only=True)[name]
     video = data.load_video_folder(data.demo_subject_path() / "train", max_frames=6, scale=0.25)
     bones = torch.as_tensor(video.bone_transforms, dtype=torch.float32)
     with torch.no_grad():
@@ -229,7 +229,7 @@ def test_unreadable_avatar_files_are_clear_errors(tmp_path):
     torch.save({"format": "warpavatar-avatar/9"}, tmp_path / "future.pt")
     with pytest.raises(ValueError, match="format 'warpavatar-avatar/9'"):
         Avatar.load(tmp_path / "future.pt")
-    state = torch.load(LEGACY / "parts_v1.pt", weights_only=False)
+    state = torch.load(LEGACY / "parts_v1.pt", weights_only=True)
     state["pose_correction"] = None
     torch.save(state, tmp_path / "damaged.pt")  # grown joints without the pose correction is fine ...
     Avatar.load(tmp_path / "damaged.pt")
@@ -237,7 +237,7 @@ def test_unreadable_avatar_files_are_clear_errors(tmp_path):
     torch.save(state, tmp_path / "broken.pt")  # ... a missing skinning field is not
     with pytest.raises(ValueError, match="broken.pt: a damaged or incomplete avatar file"):
         Avatar.load(tmp_path / "broken.pt")
-    upgraded = torch.load(LEGACY / "parts_v1.pt", weights_only=False)
+    upgraded = torch.load(LEGACY / "parts_v1.pt", weights_only=True)
     upgraded = Avatar.load(LEGACY / "parts_v1.pt").state_for_file()
     upgraded["parts"]["lighting"]["type"] = "warpavatar.nonesuch:Light"
     torch.save(upgraded, tmp_path / "plugin.pt")

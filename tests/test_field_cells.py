@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from warpavatar.fit.presets import preset
-from warpavatar.fit.skinning import SkinningStage
+from warpavatar.fit.skinning_field_stage import SkinningStage
 from warpavatar.model.skinning_field import VoxelSkinningField
 
 

@@ -12,7 +12,7 @@ from warpavatar.model import Avatar
 from warpavatar.fit import preset
 from warpavatar.extensions.dynamics import SecondaryDynamics
 from warpavatar.evaluate import evaluate_avatar
-from warpavatar.fit import Trainer
+from warpavatar.fit import Trainer, load_training_video
 
 
 def _tiny_config(**overrides):
@@ -29,7 +29,21 @@ def _tiny_config(**overrides):
 
 @pytest.fixture(scope="module")
 def demo_video():
-    return data.load_video_folder(data.demo_subject_path() / "train", scale=0.5)
+    return load_training_video(data.demo_subject_path() / "train", _tiny_config())
+
+
+def test_load_training_video_reads_the_folder_at_the_configs_image_scale(demo_video):
+    folder = data.demo_subject_path() / "train"
+    full = data.load_video_folder(folder)
+    assert (full.width, full.height, demo_video.width, demo_video.height) == (128, 128, 64, 64)
+    assert demo_video.images.shape == (full.frame_count, 64, 64, 3)
+    resized = data.load_video_folder(folder, scale=0.5)  # the same resize of the same frames, bit for bit
+    np.testing.assert_array_equal(demo_video.images, resized.images)
+    np.testing.assert_array_equal(demo_video.masks, resized.masks)
+    np.testing.assert_array_equal(demo_video.cameras[0].K, resized.cameras[0].K)
+    unscaled = load_training_video(folder, _tiny_config(image_scale=1.0))
+    np.testing.assert_array_equal(unscaled.images, full.images)
+    np.testing.assert_array_equal(unscaled.cameras[0].K, full.cameras[0].K)
 
 
 def _mean_train_psnr(trainer):
@@ -218,7 +232,7 @@ def test_resume_refuses_a_checkpoint_of_an_earlier_format_clearly(demo_video, tm
     config = _tiny_config(iterations=20, checkpoint_every=1000, secondary_motion=False)
     Trainer(demo_video, config, tmp_path / "run").fit(progress=False, stop_at=10)
     path = tmp_path / "run" / "checkpoint.pt"
-    state = torch.load(path, weights_only=False)
+    state = torch.load(path, weights_only=True)
     legacy = {key: value for key, value in state.items() if key not in ("format", "extensions", "skinning")}
     legacy.update(field=state["skinning"]["field"], pose_correction=None, secondary_motion=None)
     torch.save(legacy, path)

@@ -221,3 +221,167 @@ def test_random_corruptions_read_or_raise_a_clear_error(valid_folder, tmp_path):
             failures.append(f"case {case} ({'; '.join(done)}): {type(error).__name__}: {error}"[:400])
     assert not failures, f"{len(failures)} corruptions escaped as other errors:\n" + "\n".join(failures[:20])
     assert raised > CASES // 2 and still_read > 0 and skipped < CASES // 10, (raised, still_read, skipped)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The other files the avatar commands read: a render's --camera cameras.json and --motion sources (a poses .npz, a
+# video folder's poses, a BVH). The same corruptions (and some of a BVH's text) must give either a successful
+# load or a one-line ValueError whose message names the file; nothing else may escape.
+
+SOURCE_CASES = 150
+
+_BVH_WORDS = ("nan", "inf", "-inf", "1e300", "-1e300", "1e-300", "0", "-1", "3.5", "99999999999", "abc", "{", "}",
+              "JOINT", "ROOT", "End", "Site", "OFFSET", "CHANNELS", "Xrotation", "Frames:", "Frame", "Time:", "MOTION")
+
+_BVH_TEXT = """HIERARCHY
+ROOT Hips
+{
+  OFFSET 0 10 0
+  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation
+  JOINT Abdomen
+  {
+    OFFSET 0 3 0
+    CHANNELS 3 Zrotation Xrotation Yrotation
+    End Site
+    {
+      OFFSET 0 4 0
+    }
+  }
+  JOINT FootL
+  {
+    OFFSET 1 -9 0
+    CHANNELS 3 Zrotation Xrotation Yrotation
+    End Site
+    {
+      OFFSET 0 -1 1
+    }
+  }
+}
+MOTION
+Frames: 3
+Frame Time: 0.0333333
+0 10 0 0 0 0 0 0 0 0 0 0
+0 10.5 0 10 0 0 5 0 0 0 20 0
+1 10 0 0 30 0 0 -5 0 10 0 0
+"""
+
+
+def _edit_bvh_text(folder, rng):
+    path = folder / "motion.bvh"
+    lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    row = int(rng.integers(len(lines))) if lines else 0
+    action = int(rng.integers(4))
+    if action == 0 and lines:
+        words = lines[row].split() or [""]
+        words[int(rng.integers(len(words)))] = _pick(rng, _BVH_WORDS)
+        lines[row] = " ".join(words)
+    elif action == 1 and lines:
+        del lines[row]
+    elif action == 2 and lines:
+        lines.insert(row, lines[row])
+    else:
+        lines.insert(row, " ".join(_pick(rng, _BVH_WORDS) for _ in range(int(rng.integers(1, 6)))))
+    path.write_text("\n".join(lines) + "\n")
+    return f"motion.bvh line {row} change {action}"
+
+
+def _with_fps(folder, rng):
+    """A poses .npz with an 'fps' array (a motion file may carry one) of a random kind."""
+    path = folder / "poses.npz"
+    arrays = _npz_arrays(path)
+    arrays["fps"] = np.asarray(_pick(rng, [30.0, 0.0, -1.0, 1e300, np.nan, 1000.0, 1001.0, 24, "30", [30.0, 25.0]]))
+    np.savez(path, **arrays)
+    return f"poses.npz fps {arrays['fps']!r}"
+
+
+_FILE_CORRUPTIONS = (_truncate, _random_bytes, _replace_with_noise)
+
+
+def _source_cases(original: Path, corruptions, read, tmp_path, seed):
+    """Corrupt copies of the folder ``original`` ``SOURCE_CASES`` times; ``read(folder)`` each. Returns the
+    failures, and how many cases read and how many raised."""
+    rng = np.random.default_rng(seed)
+    originals = {path.relative_to(original): path.read_bytes() for path in _files(original)}
+    folder = tmp_path / original.name
+    failures, raised, still_read = [], 0, 0
+    for case in range(SOURCE_CASES):
+        if folder.exists():
+            shutil.rmtree(folder)
+        for relative, raw in originals.items():
+            (folder / relative).parent.mkdir(parents=True, exist_ok=True)
+            (folder / relative).write_bytes(raw)
+        done = []
+        try:
+            for corruption in [_pick(rng, corruptions) for _ in range(int(rng.integers(1, 3)))]:
+                done.append(corruption(folder, rng))
+        except Exception:  # noqa: BLE001 - the second corruption found nothing it can change after the first
+            continue
+        try:
+            read(folder)
+            still_read += 1
+        except ValueError as error:
+            raised += 1
+            message = str(error)
+            if "\n" in message or str(folder) not in message:
+                failures.append(f"case {case} ({'; '.join(done)}): unclear message {message!r}")
+        except Exception as error:  # noqa: BLE001 - anything else is what this test is looking for
+            failures.append(f"case {case} ({'; '.join(done)}): {type(error).__name__}: {error}"[:400])
+    return failures, raised, still_read
+
+
+@pytest.fixture(scope="module")
+def skeleton(valid_folder):
+    return data.load_video_folder(valid_folder, max_frames=1).skeleton
+
+
+@pytest.mark.parametrize("per_frame", [False, True], ids=["fixed", "per-frame"])
+def test_corrupt_render_cameras_read_or_raise_a_clear_error(valid_folder, tmp_path, per_frame):
+    from warpavatar.io.animation import read_cameras_json
+
+    original = tmp_path / "render_camera"
+    original.mkdir()
+    document = json.loads((valid_folder / "cameras.json").read_text())
+    if per_frame:
+        document["frames"] = [{"K": document["K"], "world_to_camera": document["world_to_camera"]}] * 3
+    (original / "cameras.json").write_text(json.dumps(document))
+    read_cameras_json(original / "cameras.json", 3)  # the uncorrupted file reads
+    failures, raised, still_read = _source_cases(
+        original, _FILE_CORRUPTIONS + (_edit_json_value,) * 3,
+        lambda folder: read_cameras_json(folder / "cameras.json", 3), tmp_path / "cases", SEED + per_frame)
+    assert not failures, f"{len(failures)} corruptions escaped:\n" + "\n".join(failures[:20])
+    assert raised > SOURCE_CASES // 3 and still_read > 0, (raised, still_read)
+
+
+@pytest.mark.parametrize("source", ["npz", "folder"])
+def test_corrupt_motion_files_load_or_raise_a_clear_error(valid_folder, skeleton, tmp_path, source):
+    from warpavatar.io.motion import load_motion
+
+    original = tmp_path / "motion"
+    original.mkdir()
+    names = ("poses.npz",) if source == "npz" else ("poses.npz", "meta.json", "skeleton.json")
+    for name in names:
+        shutil.copy(valid_folder / name, original / name)
+    target = (lambda folder: folder / "poses.npz") if source == "npz" else (lambda folder: folder)
+    load_motion(target(original), skeleton)
+    corruptions = _FILE_CORRUPTIONS + (_edit_npz_array,) * 3 + (_with_fps,)
+    if source == "folder":
+        corruptions += (_edit_json_value,) * 2
+    failures, raised, still_read = _source_cases(original, corruptions,
+                                                 lambda folder: load_motion(target(folder), skeleton),
+                                                 tmp_path / "cases", SEED + len(names))
+    assert not failures, f"{len(failures)} corruptions escaped:\n" + "\n".join(failures[:20])
+    assert raised > SOURCE_CASES // 3 and still_read > 0, (raised, still_read)
+
+
+def test_corrupt_bvh_files_load_or_raise_a_clear_error(skeleton, tmp_path):
+    from warpavatar.io.motion import load_motion
+
+    original = tmp_path / "bvh"
+    original.mkdir()
+    (original / "motion.bvh").write_text(_BVH_TEXT)
+    assert load_motion(original / "motion.bvh", skeleton).frame_count == 3
+    failures, raised, still_read = _source_cases(
+        original, _FILE_CORRUPTIONS + (_edit_bvh_text,) * 6,
+        lambda folder: load_motion(folder / "motion.bvh", skeleton), tmp_path / "cases", SEED + 7)
+    assert not failures, f"{len(failures)} corruptions escaped:\n" + "\n".join(failures[:20])
+    assert raised > SOURCE_CASES // 3 and still_read > 0, (raised, still_read)

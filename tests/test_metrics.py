@@ -1,5 +1,6 @@
-"""Tests of warpavatar.metrics: PSNR, SSIM (against an independent scipy reference and scikit-image), the
-differentiable SSIM map (gradients against finite differences), masks, bad input and LPIPS's offline fallback."""
+"""Tests of warpavatar.metrics: PSNR, SSIM (against an independent scipy reference, scikit-image and the
+implementation before evaluation's SSIM was made cheap), the differentiable SSIM map (gradients against finite
+differences), masks, frames smaller than the window, bad input and LPIPS's offline fallback."""
 
 import math
 import warnings
@@ -7,10 +8,11 @@ import warnings
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 from scipy import ndimage
 
 from warpavatar import metrics
-from warpavatar.metrics import lpips, psnr, ssim, ssim_map
+from warpavatar.metrics import image_scores, lpips, psnr, ssim, ssim_map
 
 
 def _random_pair(seed, height=24, width=20, channels=3, noise=0.1):
@@ -185,14 +187,120 @@ def test_bad_inputs():
         ssim_map(torch.rand(12, 12, 3), torch.rand(12, 12, 3, dtype=torch.float64))
 
 
-def test_lpips_returns_none_without_local_weights(monkeypatch, tmp_path):
+def test_lpips_returns_none_without_local_weights_and_says_why_without_warning(monkeypatch, tmp_path):
     monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path))  # an empty hub cache
+    metrics._lpips_setup.cache_clear()
     metrics._lpips_network.cache_clear()
     pred, target = _random_pair(0, height=32, width=32)
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             assert lpips(pred, target) is None
-        assert any("never downloaded" in str(warning.message) for warning in caught)
+            reason = metrics.lpips_unavailable_reason()
+        assert caught == []  # the caller reports the reason: nothing goes through warnings (no source path)
+        assert reason.endswith("; weights are never downloaded") and "\n" not in reason
+        assert "metrics.py" not in reason
     finally:
+        metrics._lpips_setup.cache_clear()
         metrics._lpips_network.cache_clear()
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Evaluation's SSIM against the implementation it replaced
+
+
+def _previous_ssim_map(pred, target, *, padding="valid", window_size=11, sigma=1.5, data_range=1.0):
+    """The SSIM map as it was computed before (two grouped conv2d calls on every device), kept as the reference;
+    the input checks are left out."""
+    channels_last = pred.dim() == 3
+    if channels_last:
+        x = pred.permute(2, 0, 1).unsqueeze(0)
+        y = target.permute(2, 0, 1).unsqueeze(0)
+    else:
+        x, y = pred, target
+    channels = x.shape[1]
+    radius = window_size // 2
+    if padding == "valid" and (x.shape[2] < window_size or x.shape[3] < window_size):
+        raise ValueError(f"ssim_map: images of {x.shape[2]}x{x.shape[3]} pixels are smaller than the "
+                         f"{window_size}-pixel window; use padding='reflect' or 'zeros'")
+    stacked = torch.cat([x, y, x * x, y * y, x * y], dim=1)
+    if padding == "reflect":
+        stacked = F.pad(stacked, (radius, radius, radius, radius), mode="reflect")
+    elif padding == "zeros":
+        stacked = F.pad(stacked, (radius, radius, radius, radius))
+    groups = 5 * channels
+    offsets = torch.arange(window_size, dtype=torch.float64, device=x.device) - (window_size - 1) / 2.0
+    taps = torch.exp(-0.5 * (offsets / sigma) ** 2)
+    taps = (taps / taps.sum()).to(x.dtype)
+    vertical = taps.view(1, 1, window_size, 1).repeat(groups, 1, 1, 1)
+    horizontal = taps.view(1, 1, 1, window_size).repeat(groups, 1, 1, 1)
+    filtered = F.conv2d(F.conv2d(stacked, vertical, groups=groups), horizontal, groups=groups)
+    mean_x, mean_y, mean_xx, mean_yy, mean_xy = filtered.split(channels, dim=1)
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    mean_x_mean_y = mean_x * mean_y
+    mean_x_sq, mean_y_sq = mean_x * mean_x, mean_y * mean_y
+    values = ((2.0 * mean_x_mean_y + c1) * (2.0 * (mean_xy - mean_x_mean_y) + c2)) / (
+        (mean_x_sq + mean_y_sq + c1) * ((mean_xx - mean_x_sq) + (mean_yy - mean_y_sq) + c2))
+    return values[0].permute(1, 2, 0) if channels_last else values
+
+
+def _previous_ssim(pred, target, *, mask=None):
+    """:func:`ssim` as it was: the checked images' valid map, its mean over the cropped mask."""
+    pred, target = metrics._check_image_pair(pred, target)
+    values = _previous_ssim_map(pred, target)
+    if mask is None:
+        return float(values.mean())
+    selected = metrics._check_mask(mask, pred.shape[0], pred.shape[1], pred.device)[5:-5, 5:-5]
+    return float(values[selected].mean())
+
+
+@pytest.mark.parametrize("height, width", [(11, 11), (11, 40), (23, 12), (64, 48), (131, 97)])
+def test_ssim_equals_the_previous_implementation(device, height, width):
+    generator = torch.Generator().manual_seed(height * 1000 + width)
+    target = torch.rand(height, width, 3, generator=generator)
+    pred = (target + 0.2 * torch.randn(height, width, 3, generator=generator)).clamp(0, 1)
+    mask = torch.zeros(height, width)
+    mask[height // 4:, : max(6, width * 3 // 4)] = 1.0
+    pred, target, mask = pred.to(device), target.to(device), mask.to(device)
+    expected_full = _previous_ssim(pred, target)
+    expected_masked = _previous_ssim(pred, target, mask=mask)
+    assert ssim(pred, target) == pytest.approx(expected_full, abs=1e-6)
+    assert ssim(pred, target, mask=mask) == pytest.approx(expected_masked, abs=1e-6)
+    scores = image_scores(pred, target, mask=mask)
+    assert scores["ssim"] == pytest.approx(expected_full, abs=1e-6)
+    assert scores["ssim_masked"] == pytest.approx(expected_masked, abs=1e-6)
+    assert scores["psnr"] == psnr(pred, target) and scores["psnr_masked"] == psnr(pred, target, mask=mask)
+    if pred.device.type == "cpu":  # float64 on the CPU: the same sums, far below the tolerance
+        assert abs(ssim(pred, target) - expected_full) < 1e-12
+    assert image_scores(pred, target) == {**scores, "psnr_masked": None, "ssim_masked": None}
+
+
+@pytest.mark.parametrize("padding", ["valid", "reflect", "zeros"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_ssim_map_without_gradients_on_cpu_equals_the_convolution(padding, dtype):
+    # Without gradients the CPU filters by shifted multiply-adds; with them, by the convolution of before.
+    generator = torch.Generator().manual_seed(7)
+    pred = torch.rand(2, 3, 17, 29, generator=generator, dtype=dtype)
+    target = torch.rand(2, 3, 17, 29, generator=generator, dtype=dtype)
+    with torch.no_grad():
+        fast = ssim_map(pred, target, padding=padding)
+    with torch.enable_grad():
+        convolved = ssim_map(pred.clone().requires_grad_(True), target, padding=padding)
+    reference = _previous_ssim_map(pred, target, padding=padding)
+    tolerance = 1e-12 if dtype == torch.float64 else 1e-5
+    torch.testing.assert_close(fast, reference, atol=tolerance, rtol=0)
+    torch.testing.assert_close(convolved.detach(), reference, atol=0, rtol=0)  # the training path is unchanged
+
+
+@pytest.mark.parametrize("height, width", [(1, 1), (5, 5), (10, 30), (30, 10)])
+def test_ssim_of_a_frame_smaller_than_its_window_is_one_line_naming_the_size(height, width):
+    pred, target = _random_pair(0, height=height, width=width)
+    message = f"ssim: the frame is {width}x{height} pixels, smaller than SSIM's 11x11-pixel window"
+    for call in (lambda: ssim(pred, target), lambda: ssim(pred, target, mask=np.ones((height, width))),
+                 lambda: image_scores(pred, target)):
+        with pytest.raises(ValueError) as caught:
+            call()
+        assert str(caught.value).startswith(message) and "\n" not in str(caught.value)
+        assert "padding" not in str(caught.value)  # ssim has no padding option to suggest
+    # PSNR of such a frame stays defined.
+    assert math.isfinite(psnr(pred, target))

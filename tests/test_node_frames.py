@@ -1,4 +1,5 @@
-"""Tests of :mod:`warpavatar.sim.frames`: node rotations from neighbourhood deformation, Gaussians riding on nodes."""
+"""Tests of :mod:`warpavatar.sim.node_frames`: node rotations from neighbourhood deformation, Gaussians riding on
+nodes."""
 
 import math
 

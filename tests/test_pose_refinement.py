@@ -10,6 +10,7 @@ import torch
 from conftest import load_tool
 from scipy.spatial.transform import Rotation
 
+from research.perturb_poses import perturb_folder
 from warpavatar import data
 from warpavatar.extensions.pose_refinement import PoseRefinement
 from warpavatar.geometry import skeleton_levels
@@ -229,89 +230,6 @@ def test_corrected_transforms_move_every_root_of_a_forest():
     assert torch.allclose(corrected, _reference(pose, heads, parents, rotation, translation), atol=1e-10)
 
 
-# --- the pose-noise tool -------------------------------------------------------------------------------------------
-
-def _perturb_tool():
-    return load_tool("perturb_poses")
-
-
-def _local_angles_deg(poses, reference, parents):
-    """Angle [deg] of each joint's local rotation (relative to its parent) of ``poses`` against ``reference``."""
-    def local(p):
-        rotations = p[..., :3, :3]
-        out = rotations.copy()
-        for joint, parent in enumerate(parents):
-            if parent >= 0:
-                out[:, joint] = np.swapaxes(rotations[:, parent], -1, -2) @ rotations[:, joint]
-        return out
-    relative = np.swapaxes(local(reference), -1, -2) @ local(poses)
-    cosine = np.clip((np.trace(relative, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
-    return np.degrees(np.arccos(cosine))
-
-
-def test_pose_noise_tool_is_exact_in_size_reproducible_and_shared_by_views(tmp_path):
-    tool = _perturb_tool()
-    subject = data.demo_subject_path()
-    assert tool.main([str(subject), "-o", str(tmp_path / "noisy"), "--rotation-deg", "4", "--translation-m",
-                      "0.03", "--seed", "7"]) == 0
-    clean, noisy = data.load_subject(subject), data.load_subject(tmp_path / "noisy")
-    parents = clean.train.skeleton.parents
-    angles = _local_angles_deg(noisy.train.bone_transforms, clean.train.bone_transforms, parents)
-    # every joint turned by the requested angle (to 0.1 degree: the stored rotations are float32 and not exactly
-    # orthonormal, which the local angles measured here feel a little in the deepest chains)
-    assert np.allclose(angles, 4.0, atol=0.1) and abs(np.median(angles) - 4.0) < 0.005
-    roots = [j for j, p in enumerate(parents) if p < 0]
-    offsets = noisy.train.bone_transforms[:, roots[0], :3, 3] - clean.train.bone_transforms[:, roots[0], :3, 3]
-    rotated_heads = clean.train.bone_transforms[:, roots[0], :3, :3] @ clean.train.skeleton.heads[roots[0]]
-    moved = noisy.train.bone_transforms[:, roots[0], :3, :3] @ clean.train.skeleton.heads[roots[0]]
-    pivot_offsets = offsets + moved - rotated_heads
-    assert np.allclose(np.linalg.norm(pivot_offsets, axis=-1), 0.03, atol=1e-4)
-    assert json.loads((tmp_path / "noisy" / "train" / "meta.json").read_text())["poses"] == data.ESTIMATED_POSES
-    # a novel view of the same instants got the same noise; novel poses are copied untouched
-    view = next(iter(noisy.novel_view))
-    train_ids = clean.train.frame_ids.tolist()
-    shared = [(row, train_ids.index(i)) for row, i in enumerate(noisy.novel_view[view].frame_ids.tolist())
-              if i in train_ids]
-    assert shared
-    view_rows, train_rows = map(list, zip(*shared))
-    assert np.allclose(noisy.novel_view[view].bone_transforms[view_rows], noisy.train.bone_transforms[train_rows],
-                       atol=1e-5)
-    motion = next(iter(noisy.novel_pose))
-    assert np.array_equal(noisy.novel_pose[motion].bone_transforms, clean.novel_pose[motion].bone_transforms)
-    # the same seed gives the same noise, another seed another
-    tool.perturb_folder(subject / "train", tmp_path / "again", rotation_deg=4.0, translation=0.03, seed=7)
-    tool.perturb_folder(subject / "train", tmp_path / "other", rotation_deg=4.0, translation=0.03, seed=8)
-    again, other = (data.load_video_folder(tmp_path / name) for name in ("again", "other"))
-    assert np.array_equal(again.bone_transforms, noisy.train.bone_transforms)
-    assert not np.allclose(other.bone_transforms, noisy.train.bone_transforms, atol=1e-3)
-    with pytest.raises(SystemExit):  # a negative size is refused by the argument parser
-        tool.main([str(subject), "-o", str(tmp_path / "bad"), "--rotation-deg", "-1"])
-    assert not (tmp_path / "bad").exists()
-
-
-@pytest.mark.parametrize("confine", ["image-plane", "depth"])
-def test_perturbation_confined_to_the_image_plane_or_to_depth(tmp_path, confine):
-    tool, errors = _perturb_tool(), load_tool("pose_error")
-    source = data.demo_subject_path() / "train"
-    tool.perturb_folder(source, tmp_path / "noisy", rotation_deg=5.0, translation=0.03, seed=3, confine=confine)
-    clean, noisy = data.load_video_folder(source), data.load_video_folder(tmp_path / "noisy")
-    assert json.loads((tmp_path / "noisy" / "meta.json").read_text())["perturbation"]["confine"] == confine
-    measured = errors.pose_errors(clean.bone_transforms, noisy.bone_transforms, clean.skeleton.heads,
-                                  clean.skeleton.parents, clean.cameras)
-    assert np.allclose(measured["rotation_deg"], 5.0, atol=0.02)  # every joint turned by the full angle
-    root = int(np.flatnonzero(np.asarray(clean.skeleton.parents) < 0)[0])
-    if confine == "image-plane":  # nothing moves along the camera axis, everything across it
-        assert measured["along_axis"].max() < 1e-5 and measured["across"].mean() > 0.02
-        assert np.allclose(measured["across"][:, root], 0.03, atol=1e-5)
-    else:  # the root moves along the axis only; the limbs swing towards or away from the camera
-        assert np.allclose(measured["along_axis"][:, root], 0.03, atol=1e-5)
-        assert measured["across"][:, root].max() < 1e-5
-        assert measured["along_axis"].mean() > measured["across"].mean()
-    with pytest.raises(ValueError, match="does not combine with --smooth-frames"):
-        tool.perturb_folder(source, tmp_path / "smooth", rotation_deg=5.0, translation=0.03, smooth_frames=4.0,
-                            confine=confine)
-
-
 # --- options, meta.json ----------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("values, match", [
@@ -384,8 +302,8 @@ def noisy_fit(tmp_path_factory):
     """A fit of the demo subject from poses perturbed by 5 degrees per joint and 3 cm at the root (auto mode: the
     perturbed folder says its poses are estimated), with the exact poses of its training frames."""
     root = tmp_path_factory.mktemp("noisy_fit")
-    _perturb_tool().perturb_folder(data.demo_subject_path() / "train", root / "train", rotation_deg=5.0,
-                                   translation=0.03, seed=0)
+    perturb_folder(data.demo_subject_path() / "train", root / "train", rotation_deg=5.0,
+                   translation=0.03, seed=0)
     video = data.load_video_folder(root / "train", scale=0.5)
     trainer = Trainer(video, _fit_config(), root / "fit")
     trainer.fit(progress=False)
@@ -443,8 +361,8 @@ def test_joints_the_images_barely_see_stay_nearer_their_prior_target(noisy_fit):
 
 
 def test_refinement_is_deterministic_and_resumes_exactly(tmp_path):
-    _perturb_tool().perturb_folder(data.demo_subject_path() / "train", tmp_path / "train", rotation_deg=5.0,
-                                   translation=0.03, seed=1)
+    perturb_folder(data.demo_subject_path() / "train", tmp_path / "train", rotation_deg=5.0,
+                   translation=0.03, seed=1)
     video = data.load_video_folder(tmp_path / "train", scale=0.5)
     config = _fit_config(iterations=60, max_train_frames=8, refine_poses_from=20, densify_from=20,
                          densify_every=20, densify_until=50, gaussian_only_steps=30, field_warmup_steps=10)
@@ -531,8 +449,8 @@ def test_evaluation_reports_metrics_with_and_without_test_time_refinement(noisy_
 
 
 def test_poses_stay_fixed_after_the_last_refining_step(tmp_path):
-    _perturb_tool().perturb_folder(data.demo_subject_path() / "train", tmp_path / "train", rotation_deg=5.0,
-                                   translation=0.03, seed=2)
+    perturb_folder(data.demo_subject_path() / "train", tmp_path / "train", rotation_deg=5.0,
+                   translation=0.03, seed=2)
     video = data.load_video_folder(tmp_path / "train", scale=0.5)
     config = _fit_config(iterations=50, max_train_frames=6, refine_poses_from=10, refine_poses_until=30,
                          densify_from=20, densify_every=20, densify_until=40, gaussian_only_steps=20,

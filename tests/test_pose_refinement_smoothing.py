@@ -7,8 +7,8 @@ import math
 
 import pytest
 import torch
-from conftest import load_tool
 
+from research.perturb_poses import perturb_folder
 from warpavatar import data
 from warpavatar.fit import Trainer, preset
 from warpavatar.model.kinematics import (ancestor_jumps, axis_angle_from_matrix, axis_angle_to_matrix,
@@ -168,8 +168,7 @@ def test_cli_rejects_a_negative_window_in_one_line(capsys):
 def test_the_fit_starts_at_the_smoothed_target(tmp_path):
     """On the demo subject perturbed per frame, the corrections start at the target (their mean over the training
     frames removed, the fit's gauge), which is closer to the exact poses than the given ones; the prior is zero."""
-    load_tool("perturb_poses").perturb_folder(data.demo_subject_path() / "train", tmp_path / "train",
-                                              rotation_deg=5.0, translation=0.03, seed=0)
+    perturb_folder(data.demo_subject_path() / "train", tmp_path / "train", rotation_deg=5.0, translation=0.03, seed=0)
     video = data.load_video_folder(tmp_path / "train", scale=0.5)
     exact = data.load_video_folder(data.demo_subject_path() / "train", scale=0.5)
     small = dict(iterations=1, image_scale=0.5, max_train_frames=25, init_points_per_bone=30,

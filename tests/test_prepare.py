@@ -666,7 +666,7 @@ def _landmark_reprojection_px(folder: Path) -> np.ndarray:
 
 @needs_mediapipe
 def test_prepare_monocular_clip(tmp_path, capsys):
-    from warpavatar.prepare.cli import main
+    from warpavatar.cli.prepare import main
 
     output = tmp_path / "mono"
     status = main([str(CLIP / "cam01.mp4"), "-o", str(output), "--quiet", "--max-size", "400", "--frames", "5",
@@ -694,7 +694,7 @@ def test_prepare_monocular_clip(tmp_path, capsys):
 
 @needs_mediapipe
 def test_prepare_calibrated_clip(tmp_path, capsys):
-    from warpavatar.prepare.cli import main
+    from warpavatar.cli.prepare import main
 
     output = tmp_path / "multi"
     status = main([str(CLIP / "cam01.mp4"), str(CLIP / "cam02.mp4"), "--calibration", str(CLIP / "Calib.qca.txt"),
@@ -725,7 +725,7 @@ def test_prepare_calibrated_clip(tmp_path, capsys):
 
 
 def test_prepare_argument_errors(tmp_path, capsys):
-    from warpavatar.prepare.cli import main
+    from warpavatar.cli.prepare import main
 
     assert main([str(CLIP / "cam01.mp4"), str(CLIP / "cam02.mp4"), "-o", str(tmp_path / "x"), "--quiet"]) == 1
     assert "need --calibration" in capsys.readouterr().err

@@ -10,7 +10,7 @@ import torch
 
 from warpavatar import ops
 from warpavatar._src import splat as splat_bridge
-from warpavatar._src import address_graphs, splat_replay
+from warpavatar._src.graphs import address_graphs, splat_replay
 
 from test_splat import DIFFERENTIABLE, make_scene, random_cotangents, render, render_and_grad
 from test_splat_speculative import _assert_same_pass, assert_bad_value_raises

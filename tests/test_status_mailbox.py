@@ -1,4 +1,4 @@
-"""Status values the host reads as soon as the device has written them (``warpavatar._src.status_mailbox``).
+"""Status values the host reads as soon as the device has written them (``warpavatar._src.graphs.status_mailbox``).
 
 The rasterizer's speculative passes read their pair count and input flags through a mailbox, posted after the
 front half of the pass, so the host goes on while the compositing runs. On CUDA the post is an asynchronous copy to
@@ -9,9 +9,9 @@ once.
 import pytest
 import torch
 
-from warpavatar._src import status_mailbox as mailboxes
-from warpavatar._src.address_graphs import AddressKeyedGraphs
-from warpavatar._src.status_mailbox import StatusMailbox, status_mailbox
+from warpavatar._src.graphs import status_mailbox as mailboxes
+from warpavatar._src.graphs.address_graphs import AddressKeyedGraphs
+from warpavatar._src.graphs.status_mailbox import StatusMailbox, status_mailbox
 
 
 def _is_cuda(device) -> bool:

@@ -2,6 +2,8 @@
 temporary-file behaviour."""
 
 import os
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -160,8 +162,11 @@ def test_skeleton_animation_matches_bone_transforms(tmp_path):
 def test_temporary_file_and_abort(tmp_path):
     static, frames = random_animation(4, count=10, frames=3)
     path = tmp_path / "out.usdc"
-    temporary = tmp_path / "out.tmp.usdc"
     writer = GaussianUsdWriter(path, gaussian_count=10, sh_degree=2, flush_every=1, **static)
+    temporary = Path(writer.temporary_path)
+    # a name of its own beside the output, the crate suffix last
+    assert temporary.parent == tmp_path
+    assert re.fullmatch(rf"out\.tmp-{os.getpid()}-[0-9a-f]{{12}}\.usdc", temporary.name)
     sizes = []
     for t, frame in enumerate(frames):
         writer.write_frame(t, **frame)
@@ -169,7 +174,7 @@ def test_temporary_file_and_abort(tmp_path):
         assert not path.exists()
     assert sizes[0] < sizes[1] < sizes[2]  # saved after every frame
     assert writer.close() == str(path)
-    assert path.exists() and not temporary.exists()
+    assert sorted(os.listdir(tmp_path)) == ["out.usdc"]
     with pytest.raises(RuntimeError, match="closed"):
         writer.write_frame(5, **frames[0])
 
@@ -177,25 +182,31 @@ def test_temporary_file_and_abort(tmp_path):
     with pytest.raises(KeyError, match="boom"):
         with GaussianUsdWriter(path, gaussian_count=10, sh_degree=2, **static) as writer:
             writer.write_frame(0, **frames[0])
-            assert temporary.exists()
+            assert Path(writer.temporary_path).exists()
             raise KeyError("boom")
-    assert not temporary.exists() and path.read_bytes() == original
+    assert sorted(os.listdir(tmp_path)) == ["out.usdc"] and path.read_bytes() == original
     # An invalid frame inside the block aborts the same way.
     with pytest.raises(ValueError, match="positions"):
         with GaussianUsdWriter(path, gaussian_count=10, sh_degree=2, **static) as writer:
             writer.write_frame(0, **frames[0])
             writer.write_frame(1, **{**frames[1], "positions": frames[1]["positions"][:5]})
-    assert not temporary.exists() and path.read_bytes() == original
+    assert sorted(os.listdir(tmp_path)) == ["out.usdc"] and path.read_bytes() == original
     with pytest.raises(ValueError, match="no frame"):
         with GaussianUsdWriter(path, gaussian_count=10, sh_degree=2, **static):
             pass
-    assert not temporary.exists() and path.read_bytes() == original
+    assert sorted(os.listdir(tmp_path)) == ["out.usdc"] and path.read_bytes() == original
     # A writer dropped without close() removes its temporary file too.
     writer = GaussianUsdWriter(path, gaussian_count=10, sh_degree=2, **static)
     writer.write_frame(0, **frames[0])
-    assert temporary.exists()
+    assert Path(writer.temporary_path).exists()
     del writer
-    assert not temporary.exists() and path.read_bytes() == original
+    assert sorted(os.listdir(tmp_path)) == ["out.usdc"] and path.read_bytes() == original
+    # Two writers of one name (and of .usd beside .usdc) never share a temporary file.
+    first = GaussianUsdWriter(path, gaussian_count=10, sh_degree=2, **static)
+    second = GaussianUsdWriter(tmp_path / "out.usd", gaussian_count=10, sh_degree=2, **static)
+    assert first.temporary_path != second.temporary_path
+    first.abort()
+    second.abort()
 
 
 def test_empty_gaussians(tmp_path):

@@ -1,7 +1,9 @@
-"""warpavatar-view: the camera conversion, the skeleton's segments, the command's errors, and the page in a real
-browser (Debian's Chromium, headless, driven by Selenium through chromedriver)."""
+"""warpavatar-view: the camera conversion, the skeleton's segments, the command's errors, what it accepts from a
+browser (the websocket's origin, the render size), and the page in a real browser (Debian's Chromium, headless,
+driven by Selenium through chromedriver; skipped where either is missing, unless CI is set)."""
 
 import math
+import os
 import shutil
 import sys
 import tempfile
@@ -20,7 +22,8 @@ from warpavatar.fit.outputs import TRAINING_MOTION_NAME, write_training_motion
 from warpavatar.geometry import quat_from_matrix
 from warpavatar.io.animation import orbit_cameras
 from warpavatar.io.motion import load_motion
-from warpavatar.io.viewer import opencv_camera, skeleton_segments
+from warpavatar.io.viewer import (MAX_RENDER_PIXELS, MAX_RENDER_SIDE, opencv_camera, origin_refusal, render_size,
+                                  skeleton_segments)
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")
@@ -87,7 +90,9 @@ def test_help_explains_the_options(capsys):
         view.main(["--help"])
     text = " ".join(capsys.readouterr().out.split())
     for expected in ("--port", "default 8080", "--host", "default 127.0.0.1", "--image-size", "pixels",
-                     "training_poses.npz", "--device", "--skeleton", "--play", "pip install"):
+                     "training_poses.npz", "--device", "--skeleton", "--play", "pip install",
+                     "Only the viewer's own page may connect", "Renders are capped at 4096 pixels a side and "
+                     "8,388,608 pixels in all (64 bytes a pixel within 512 MiB"):
         assert expected in text, expected
 
 
@@ -104,6 +109,108 @@ def test_view_bad_input_is_a_clear_error(avatar_dir, tmp_path, capsys):
     assert "no avatar file" in capsys.readouterr().err
     assert view.main([str(avatar_dir), "--image-size", "0", "--device", "cpu"]) == 2
     assert "--image-size" in capsys.readouterr().err
+
+
+def test_render_size_is_capped_a_side_and_in_pixels_keeping_the_aspect():
+    assert (MAX_RENDER_SIDE, MAX_RENDER_PIXELS) == (4096, 8_388_608)
+    assert render_size(1000, 500, rows=256) == (512, 256)  # the slider's rows at the canvas's aspect
+    assert render_size(1000, 100, rows=256) == (1000, 100)  # never more rows than the canvas
+    assert render_size(3840, 2160, rows=2160) == (3840, 2160)  # 4K UHD fits
+    assert render_size(10**6, 2000, rows=2000) == (4096, 8)  # a side capped, the aspect kept
+    assert render_size(4096, 4096, rows=4096) == (2896, 2896)  # capped by the pixels: 2896**2 <= 2**23
+    assert render_size(10**9, 10**9, rows=10**9) == (2896, 2896)
+    for bad in (0, -5, float("nan"), float("inf"), "text", None):
+        assert render_size(bad, bad, rows=bad) == (1, 1)
+    width, height = render_size(2**31, 3, rows=2**31)
+    assert width <= MAX_RENDER_SIDE and height >= 1 and width * height <= MAX_RENDER_PIXELS
+
+
+@pytest.mark.parametrize("origin,host,listen,refusal", [
+    ("http://127.0.0.1:8080", "127.0.0.1:8080", "127.0.0.1", None),
+    ("http://localhost:8080", "localhost:8080", "127.0.0.1", None),
+    ("http://[::1]:8080", "[::1]:8080", "::1", None),
+    ("http://localhost", "localhost", "127.0.0.1", None),  # port 80, named by neither header
+    ("http://192.168.1.5:8080", "192.168.1.5:8080", "0.0.0.0", None),  # --host 0.0.0.0, reached by its address
+    ("http://workstation:8080", "workstation:8080", "workstation", None),  # the --host name itself
+    ("https://evil.example", "127.0.0.1:8080", "127.0.0.1", "Origin 'https://evil.example' is another site than the "
+                                                            "viewer (127.0.0.1:8080)"),
+    ("http://127.0.0.1:8081", "127.0.0.1:8080", "127.0.0.1", "Origin 'http://127.0.0.1:8081' is another site than "
+                                                             "the viewer (127.0.0.1:8080)"),
+    ("http://localhost:8080", "127.0.0.1:8080", "127.0.0.1", "Origin 'http://localhost:8080' is another site than "
+                                                             "the viewer (127.0.0.1:8080)"),
+    ("http://rebound.example:8080", "rebound.example:8080", "127.0.0.1",
+     "Origin 'http://rebound.example:8080' names this machine by 'rebound.example', which a web page could point "
+     "elsewhere; open the viewer at localhost, an IP address or the --host name"),
+    (None, "127.0.0.1:8080", "127.0.0.1", "no Origin header (only the viewer's own page may connect)"),
+    ("null", "127.0.0.1:8080", "127.0.0.1", "Origin 'null' is not a web page's origin"),
+    ("file://", "127.0.0.1:8080", "127.0.0.1", "Origin 'file://' is not a web page's origin"),
+    ("http://127.0.0.1:8080", None, "127.0.0.1", "no usable Host header (got None)"),
+])
+def test_origin_refusal_accepts_only_the_viewers_own_page(origin, host, listen, refusal):
+    assert origin_refusal(origin, host, listen_host=listen) == refusal
+
+
+@pytest.fixture
+def live_viewer(avatar_dir):
+    pytest.importorskip("viser")
+    viewer = view.build_viewer(view.build_parser().parse_args([str(avatar_dir), "--port", "0", "--device", "cpu",
+                                                               "--no-progress", "--image-size", "64"]))
+    yield viewer
+    viewer.stop()
+
+
+def _websocket(viewer, origin):
+    """A websocket to the viewer as viser's page opens it, with the given Origin header (None: none)."""
+    import viser
+    from websockets.sync.client import connect
+
+    return connect(f"ws://127.0.0.1:{viewer.server.get_port()}", subprotocols=[f"viser-v{viser.__version__}"],
+                   open_timeout=10, **({} if origin is None else {"origin": origin}))
+
+
+def _first_message(websocket):
+    """The first message the server sends, or the close code it sends instead."""
+    from websockets.exceptions import ConnectionClosed
+
+    try:
+        return websocket.recv(timeout=10)
+    except ConnectionClosed as closed:
+        return closed.rcvd.code if closed.rcvd is not None else None
+
+
+def test_the_viewer_refuses_websockets_from_other_pages(live_viewer, capsys):
+    port = live_viewer.server.get_port()
+    for origin in ("http://evil.example", f"http://127.0.0.1:{port + 1}", None):
+        with _websocket(live_viewer, origin) as websocket:
+            assert _first_message(websocket) == 1008, origin  # closed before anything was sent
+    assert live_viewer.refused_connections == 3
+    assert capsys.readouterr().err.splitlines() == [
+        "warpavatar-view: refused a connection: Origin 'http://evil.example' is another site than the viewer "
+        f"(127.0.0.1:{port})",
+        f"warpavatar-view: refused a connection: Origin 'http://127.0.0.1:{port + 1}' is another site than the viewer "
+        f"(127.0.0.1:{port})",
+        "warpavatar-view: refused a connection: no Origin header (only the viewer's own page may connect)"]
+    with _websocket(live_viewer, f"http://127.0.0.1:{port}") as websocket:  # the viewer's own page
+        assert isinstance(_first_message(websocket), bytes)
+    assert live_viewer.refused_connections == 3
+
+
+def test_the_viewer_caps_the_render_size_a_browser_asks_for(live_viewer):
+    import msgspec
+    from viser import _messages
+
+    port = live_viewer.server.get_port()
+    with _websocket(live_viewer, f"http://127.0.0.1:{port}") as websocket:
+        for width, height in ((10**7, 4000), (64, 64)):
+            count = live_viewer.render_count
+            camera = _messages.ViewerCameraMessage(
+                wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.0, 0.0, -3.0), fov=0.7, near=0.01, far=100.0,
+                image_height=height, image_width=width, look_at=(0.0, 0.0, 0.0), up_direction=(0.0, -1.0, 0.0))
+            websocket.send(msgspec.msgpack.encode(camera.as_serializable_dict()))
+            _wait(lambda: live_viewer.render_count > count, "a render")
+            # at most the resolution slider's 64 rows, then capped to 4096 a side keeping the canvas's aspect
+            assert live_viewer.last_image.shape == ((1, 4096, 3) if width > height else (64, 64, 3))
+    assert live_viewer.last_error is None
 
 
 def test_view_plays_the_given_motion_or_the_rest_pose(avatar_dir, tmp_path, capsys):
@@ -189,10 +296,18 @@ def _settled_screen(driver, viewer):
         time.sleep(0.2)
 
 
-@pytest.mark.skipif(CHROMIUM is None, reason="no chromium executable (Debian: apt-get install chromium "
-                                             "chromium-driver)")
+def _require_browser():
+    """Skip where Chromium or chromedriver is missing, except under CI (the variable CI set), where it fails."""
+    missing = [name for name, found in (("chromium", CHROMIUM), ("chromedriver", CHROMEDRIVER)) if found is None]
+    if missing:
+        message = f"no {' and no '.join(missing)} executable (Debian: apt-get install chromium chromium-driver)"
+        if os.environ.get("CI"):
+            pytest.fail(f"{message}; CI is set, so the browser test must run")
+        pytest.skip(message)
+
+
 def test_the_page_shows_the_avatar_and_follows_camera_and_timeline(avatar_dir, tmp_path):
-    assert CHROMEDRIVER is not None, "chromium exists but chromedriver does not: apt-get install chromium-driver"
+    _require_browser()
     from selenium.webdriver.common.action_chains import ActionChains
 
     args = view.build_parser().parse_args([str(avatar_dir), "--port", "0", "--device", "cpu", "--image-size",

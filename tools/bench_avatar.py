@@ -44,17 +44,15 @@ import traceback
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_common import interleaved_rounds, time_function, value_range
+from bench_splat import _count_warp_calls, _gsplat, _measure, _pair_count, _ratio
 
-from bench_common import interleaved_rounds, time_function, value_range  # noqa: E402
-from bench_splat import _count_warp_calls, _gsplat, _measure, _pair_count, _ratio  # noqa: E402
-
-from warpavatar import data  # noqa: E402
-from warpavatar._src import splat as splat_bridge  # noqa: E402
-from warpavatar.fit import Trainer, preset  # noqa: E402
-from warpavatar.fit.config import FitConfig  # noqa: E402
-from warpavatar.model import Avatar  # noqa: E402
-from warpavatar.model.playback import Player  # noqa: E402
+from warpavatar import data
+from warpavatar._src import splat as splat_bridge
+from warpavatar.fit import Trainer, load_training_video, preset
+from warpavatar.fit.config import FitConfig
+from warpavatar.model import Avatar
+from warpavatar.model.playback import Player
 
 __all__ = ["run", "count_step_work"]
 
@@ -150,14 +148,14 @@ def count_step_work(step, *, device: str, steps: int = 4) -> dict:
 def _load(avatar_path, video_path, device: str, quick: bool, garment: bool = False):
     video_path = video_path or data.demo_subject_path() / "train"
     if avatar_path:
-        state = torch.load(avatar_path, map_location="cpu", weights_only=False)
+        state = torch.load(avatar_path, map_location="cpu", weights_only=True)
         config = FitConfig.from_dict(state["config"]) if state.get("config") else preset("default")
         fitted = Avatar.from_state(state, device=device)
     else:
         config, fitted = preset("quick" if quick else "default", **(QUICK_CONFIG if quick else {})), None
     if quick and fitted is not None:  # a fitted avatar's config on small frames (as many: frame codes)
         config = dataclasses.replace(config, image_scale=min(config.image_scale, 0.25))
-    video = data.load_video_folder(video_path, scale=config.image_scale)
+    video = load_training_video(video_path, config)
     if garment and fitted is None:
         config = preset("quick" if quick else "default", **{**(QUICK_CONFIG if quick else {}), **GARMENT_CONFIG,
                                                             **(GARMENT_QUICK_CONFIG if quick else {})},

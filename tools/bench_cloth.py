@@ -30,17 +30,13 @@ torch used.
 from __future__ import annotations
 
 import math
-import os
-import sys
 
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_common import time_function
 
-from bench_common import time_function  # noqa: E402
-
-from warpavatar import ops  # noqa: E402
-from warpavatar.sim import Capsules, ClothModel, ClothState, cloth_graph  # noqa: E402
+from warpavatar import ops
+from warpavatar.sim import Capsules, ClothModel, ClothState, cloth_graph
 
 __all__ = ["run", "make_garment"]
 

@@ -16,15 +16,12 @@ from __future__ import annotations
 import argparse
 import datetime
 import importlib
-import os
 import platform
 import sys
 
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
-from bench_common import markdown_table  # noqa: E402
+from bench_common import markdown_table
 
 MODES = ("splat", "knn", "springs", "skinning", "shading", "usd", "dynamics", "cloth", "avatar")
 

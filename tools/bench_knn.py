@@ -18,18 +18,14 @@ k = 16, under 20 ms.
 from __future__ import annotations
 
 import math
-import os
-import sys
 import time
 
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_common import peak_memory_scope, time_function
 
-from bench_common import peak_memory_scope, time_function  # noqa: E402
-
-from warpavatar import ops  # noqa: E402
+from warpavatar import ops
 
 __all__ = ["run"]
 

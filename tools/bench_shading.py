@@ -10,17 +10,13 @@ torch operators each dispatches (forward + backward, counted with ``bench_avatar
 
 from __future__ import annotations
 
-import os
-import sys
 
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_common import time_function
 
-from bench_common import time_function  # noqa: E402
-
-from warpavatar import _torch_impl as reference  # noqa: E402
-from warpavatar import ops  # noqa: E402
+from warpavatar import _torch_impl as reference
+from warpavatar import ops
 
 __all__ = ["run", "make_gaussians"]
 

@@ -16,8 +16,8 @@ rounds.
 sort calls (each a few CUB kernels; a forward makes one scan and two sorts, by depth and by tile). ``pairs`` is the number of (Gaussian, tile) pairs sorted and walked by the
 compositing (ours: the sum of the projection's tile counts; gsplat: the length of its ``isect_ids``).
 ``replayed calls`` counts our timed calls served by a CUDA graph: by default one keyed by the addresses of the
-call's buffers (``warpavatar/_src/address_graphs.py``: nothing held between calls); with ``--replay owned`` one
-holding its own buffers (``warpavatar/_src/splat_replay.py``), and then ``graph MiB`` is what its graphs hold
+call's buffers (``warpavatar/_src/graphs/address_graphs.py``: nothing held between calls); with ``--replay owned`` one
+holding its own buffers (``warpavatar/_src/graphs/splat_replay.py``), and then ``graph MiB`` is what its graphs hold
 between calls (``ReplayCache.held_bytes``: fixed inputs and outputs, and the pass's sort buffers in the capture's
 pool). Those exist before the measured call, so ``peak MiB`` is above them; ``peak ratio`` counts them in: (peak +
 graph MiB) / gsplat's peak.
@@ -26,18 +26,15 @@ graph MiB) / gsplat's peak.
 from __future__ import annotations
 
 import contextlib
-import os
 import sys
 
 import torch
 import warp as wp
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_common import interleaved_rounds, peak_memory_scope, time_function, value_range
 
-from bench_common import interleaved_rounds, peak_memory_scope, time_function, value_range  # noqa: E402
-
-from warpavatar._src import splat as splat_bridge  # noqa: E402
-from warpavatar.ops import rasterize_gaussians  # noqa: E402
+from warpavatar._src import splat as splat_bridge
+from warpavatar.ops import rasterize_gaussians
 
 __all__ = ["run", "make_scene"]
 

@@ -27,17 +27,13 @@ written). Byte models (E edges, M nodes, float32, int32 ids):
 
 from __future__ import annotations
 
-import os
-import sys
 
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_common import time_function
 
-from bench_common import time_function  # noqa: E402
-
-from warpavatar import _torch_impl as reference  # noqa: E402
-from warpavatar import ops  # noqa: E402
+from warpavatar import _torch_impl as reference
+from warpavatar import ops
 
 __all__ = ["run", "make_system"]
 

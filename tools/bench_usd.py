@@ -146,7 +146,6 @@ def main(argv=None) -> int:
     parser.add_argument("--frames", type=int, default=None, help="frame count (default 300, quick 20)")
     parser.add_argument("--quick", action="store_true", help="small sizes: checks that the benchmark runs")
     args = parser.parse_args(argv)
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     from bench_common import markdown_table
 
     rows = run("cpu", args.quick, gaussian_count=args.gaussians, frame_count=args.frames)

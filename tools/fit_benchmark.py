@@ -21,7 +21,7 @@ import torch
 
 from warpavatar import data
 from warpavatar.evaluate import evaluate_avatar, write_json_atomic
-from warpavatar.fit import Trainer
+from warpavatar.fit import Trainer, load_training_video
 from warpavatar.fit.arguments import add_config_arguments, config_from_arguments
 
 
@@ -43,14 +43,14 @@ def main(argv=None) -> int:
     config = config_from_arguments(args, args.preset)
     label = args.label or args.subject.name
 
-    subject = data.load_subject(args.subject, scale=config.image_scale)
+    video = load_training_video(args.subject / "train", config)
     start = time.time()
-    trainer = Trainer(subject.train, config, args.output, device=args.device)
+    trainer = Trainer(video, config, args.output, device=args.device)
     trainer.fit(progress=False)
     if args.device.startswith("cuda"):
         torch.cuda.synchronize()
     fit_minutes = (time.time() - start) / 60
-    full_scale = data.load_subject(args.subject) if config.image_scale != 1.0 else subject
+    full_scale = data.load_subject(args.subject)
     rows = []
     held_out = [("train", "", full_scale.train)]  # the fit itself, for comparison with the held-out folders
     for kind, folders in (("novel_view", full_scale.novel_view), ("novel_pose", full_scale.novel_pose)):
@@ -61,7 +61,7 @@ def main(argv=None) -> int:
         row = {"run": label, "folder": f"{kind}/{name}".rstrip("/"), "psnr_masked": result["psnr_masked"],
                "psnr": result["psnr"], "ssim_masked": result["ssim_masked"], "ssim": result["ssim"],
                "fit_min": fit_minutes, "gaussians": trainer.gaussians.count,
-               "render_ms": 1000 * result["seconds_per_frame"]}
+               "render_ms": 1000 * result["render_seconds_per_frame"]}
         if args.eval_refine_poses:  # the fit's own frames are not refined again: "-"
             refined = result.get("refined", {})
             row.update(refined_psnr_masked=refined.get("psnr_masked", "-"),

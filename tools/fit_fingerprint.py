@@ -20,7 +20,7 @@ from tempfile import TemporaryDirectory
 import torch
 
 from warpavatar import data
-from warpavatar.fit import Trainer, preset
+from warpavatar.fit import Trainer, load_training_video, preset
 
 BASE = dict(iterations=60, image_scale=0.5, max_train_frames=12, init_points_per_bone=30,
             init_carve_candidates=20000, init_carve_points=1500, sh_degree=1, sh_increase_every=20, grid_cells=16,
@@ -77,11 +77,11 @@ def main(argv=None) -> int:
     parser.add_argument("--compare", type=Path, default=None, help="a fingerprint file to compare with")
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu, where fits are deterministic)")
     args = parser.parse_args(argv)
-    video = data.load_video_folder(data.demo_subject_path() / "train", scale=0.5)
+    video = load_training_video(data.demo_subject_path() / "train", preset("quick", **BASE))
     result = {name: fingerprint(name, video, device=args.device) for name in args.cases}
     torch.save(result, args.output)
     if args.compare is not None:
-        before = torch.load(args.compare, weights_only=False)
+        before = torch.load(args.compare, weights_only=True)
         for name, values in result.items():
             print(f"{name}: " + (largest_difference(before[name], values) if name in before else "not in the other"))
     return 0

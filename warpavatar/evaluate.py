@@ -7,11 +7,18 @@ the subjects cover a small part of the frame, so full-frame PSNR is dominated by
 With test-time pose refinement (``refine_steps``, the protocol of the PeopleSnapshot papers for estimated
 poses) each frame's pose is also optimized against its ground truth with the avatar frozen
 (:func:`refine_frame_pose`), and the metrics are reported both ways.
+
+One rule for the resolution of every score a command reports (``warpavatar-fit --demo``, ``warpavatar-fit-many
+--eval``, and ``warpavatar-eval`` by default): the fit's training resolution, each held-out folder read with the
+fit's ``image_scale`` as the fit read its training folder (:func:`evaluate_held_out`). Each result names its
+resolution (``"resolution": "64x64"``), and :func:`score_line` prints it with the scores.
+
+Timing: each result gives the render time and the metric time per frame apart (``render_seconds_per_frame``,
+``metric_seconds_per_frame``; ``refine_seconds_per_frame`` with refinement).
 """
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from pathlib import Path
@@ -21,18 +28,12 @@ import torch
 import tqdm
 
 from warpavatar import metrics, ops
+from warpavatar.io.images import write_image
+from warpavatar.io.output_files import write_json_atomic
 from warpavatar.optim import Adam
 
-__all__ = ["evaluate_avatar", "evaluate_held_out", "refine_frame_pose", "write_json_atomic"]
-
-
-def write_json_atomic(path: str | os.PathLike, value) -> Path:
-    """Write ``value`` as JSON to ``path`` through a temporary file and a rename."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(value, indent=2))
-    os.replace(tmp, path)
-    return path
+__all__ = ["evaluate_avatar", "evaluate_held_out", "refine_frame_pose", "score_line", "held_out_resolution",
+           "write_json_atomic"]
 
 
 def refine_frame_pose(avatar, camera, bone_transforms: torch.Tensor, image: torch.Tensor, *,
@@ -90,14 +91,20 @@ def refine_frame_pose(avatar, camera, bone_transforms: torch.Tensor, image: torc
 
 
 @torch.no_grad()
-def evaluate_held_out(avatar, subject, *, progress: bool = True) -> dict[str, dict]:
-    """Measure ``avatar`` on every held-out folder of a :class:`~warpavatar.data.Subject`.
+def evaluate_held_out(avatar, subject_root: str | os.PathLike, *, image_scale: float,
+                      progress: bool = True) -> dict[str, dict]:
+    """Measure ``avatar`` on every held-out folder of the subject folder ``subject_root`` at the fit's training
+    resolution: every folder is read with ``image_scale`` (the fit's ``FitConfig.image_scale``), as the fit read
+    its training folder. ``warpavatar-fit --demo`` and ``warpavatar-fit-many --eval`` report these scores.
 
     Returns:
         ``{"novel_view/<name>" or "novel_pose/<name>": the means of :func:`evaluate_avatar` (without the
         per-frame list)}``, novel views first, each kind in name order; empty for a subject without held-out
         folders.
     """
+    from warpavatar import data
+
+    subject = data.load_subject(subject_root, scale=image_scale)
     results = {}
     for kind, folders in (("novel_view", subject.novel_view), ("novel_pose", subject.novel_pose)):
         for name in folders:
@@ -114,22 +121,32 @@ def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = N
     Args:
         avatar: a fitted :class:`~warpavatar.model.Avatar` (its device is used).
         video: a :class:`~warpavatar.data.VideoFolder` of the same skeleton.
-        save_renders: folder for side-by-side images (render | ground truth | error x4), or None.
+        save_renders: folder for side-by-side images (render | ground truth | error x4), or None; each image is
+            written through a temporary name and checked (``warpavatar-eval`` passes a staged folder).
         progress: show a progress bar.
         refine_steps: test-time pose refinement steps per frame (0: none); the images saved are then the
             refined renders.
 
     Returns:
         dict with mean ``psnr``, ``ssim``, ``psnr_masked``, ``ssim_masked`` (and ``lpips`` when weights exist
-        locally, else None), ``frame_count``, ``seconds_per_frame``, and ``frames``: one dict per frame; with
+        locally, else None, with ``lpips_unavailable`` saying why), ``frame_count``, ``resolution`` (the frames'
+        ``"<width>x<height>"``), ``render_seconds_per_frame`` (the render alone, synchronized on CUDA),
+        ``metric_seconds_per_frame`` (PSNR, SSIM, LPIPS and their inputs), ``refine_seconds_per_frame`` (with
+        ``refine_steps``: the refinement and the refined render), and ``frames``: one dict per frame; with
         ``refine_steps`` also ``refined``: the same means after test-time refinement (and ``refined_*`` per
         frame).
-    """
-    import cv2
 
+    Raises:
+        ValueError: a skeleton other than the avatar's, or frames smaller than SSIM's window (named with their
+            size).
+    """
     if video.skeleton.joint_count != avatar.joint_count:
         raise ValueError(f"{video.root}: its skeleton has {video.skeleton.joint_count} joints but the avatar's has "
                          f"{avatar.joint_count}")
+    window = metrics.SSIM_WINDOW_SIZE
+    if video.width < window or video.height < window:
+        raise ValueError(f"{video.root}: its frames are {video.width}x{video.height} pixels at this scale, smaller "
+                         f"than SSIM's {window}x{window}-pixel window; evaluate at a larger image scale")
     device = avatar.gaussians.means.device
     background = torch.as_tensor(video.background, dtype=torch.float32, device=device)
     grid = avatar.field.grid_weights()
@@ -140,27 +157,28 @@ def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = N
         save_renders = Path(save_renders)
         save_renders.mkdir(parents=True, exist_ok=True)
     frames = []
-    render_seconds = 0.0
-    lpips_available = True
+    seconds = {"render": 0.0, "metric": 0.0, "refine": 0.0}
+    lpips_unavailable = metrics.lpips_unavailable_reason()
     for t in tqdm.trange(video.frame_count, disable=not progress, desc=f"eval {Path(video.root).name}"):
         bones = torch.as_tensor(video.bone_transforms[t], dtype=torch.float32, device=device)
         start = time.perf_counter()
         image, _, _ = avatar.render(video.cameras[t], bones, background=background, grid=grid)
         if device.type == "cuda":
             torch.cuda.synchronize(device)
-        render_seconds += time.perf_counter() - start
+        seconds["render"] += time.perf_counter() - start
+        start = time.perf_counter()
         # metrics run where the render is (on a GPU, CPU-side SSIM of every frame would dominate the time)
         pred = image.clamp(0, 1)
         gt = torch.as_tensor(video.images[t], device=device).float() / 255.0
         mask = None
         if video.masks is not None:
             mask = torch.as_tensor(video.masks[t], device=device).float() / 255.0
-        record = {"frame_id": int(video.frame_ids[t]), **_frame_metrics(pred, gt, mask)}
-        if lpips_available:
-            value = metrics.lpips(pred, gt)
-            lpips_available = value is not None
-            record["lpips"] = value
+        record = {"frame_id": int(video.frame_ids[t]), **metrics.image_scores(pred, gt, mask=mask)}
+        if lpips_unavailable is None:
+            record["lpips"] = metrics.lpips(pred, gt)
+        seconds["metric"] += time.perf_counter() - start
         if refine_steps:
+            start = time.perf_counter()
             target = gt
             if mask is not None and not video.declares_background:  # real footage: the subject cut out, as a fit
                 target = gt * mask[..., None] + background * (1.0 - mask[..., None])  # compares (not the room)
@@ -169,27 +187,40 @@ def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = N
             refined, _, _ = avatar.render(video.cameras[t], bones, background=background, grid=grid,
                                           skeleton_pose=pose)
             pred = refined.clamp(0, 1)
-            record.update({f"refined_{key}": value for key, value in _frame_metrics(pred, gt, mask).items()})
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            seconds["refine"] += time.perf_counter() - start
+            start = time.perf_counter()
+            record.update({f"refined_{key}": value
+                           for key, value in metrics.image_scores(pred, gt, mask=mask).items()})
+            seconds["metric"] += time.perf_counter() - start
         frames.append(record)
         if save_renders is not None:
             error = ((pred - gt).abs() * 4).clamp(0, 1)
             row = torch.cat([pred, gt, error], dim=1).cpu().numpy()
-            cv2.imwrite(str(save_renders / f"{record['frame_id']:06d}.png"),
-                        cv2.cvtColor((row * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
+            write_image(save_renders / f"{record['frame_id']:06d}.png", (row * 255).round().astype(np.uint8),
+                        fsync=False)
 
     def mean(key):
         values = [f[key] for f in frames if f.get(key) is not None]
         return float(np.mean(values)) if values else None
 
+    count = max(1, len(frames))
     result = {
         "folder": str(video.root),
         "frame_count": len(frames),
+        "resolution": f"{video.width}x{video.height}",
         **{key: mean(key) for key in _METRICS},
-        "lpips": mean("lpips") if lpips_available else None,
-        "seconds_per_frame": render_seconds / max(1, len(frames)),
+        "lpips": mean("lpips") if lpips_unavailable is None else None,
+        "render_seconds_per_frame": seconds["render"] / count,
+        "metric_seconds_per_frame": seconds["metric"] / count,
         "gaussians": avatar.gaussians.count,
         "frames": frames,
     }
+    if lpips_unavailable is not None:
+        result["lpips_unavailable"] = lpips_unavailable
+    if refine_steps:
+        result["refine_seconds_per_frame"] = seconds["refine"] / count
     if refine_steps:
         result["refined"] = {"steps": refine_steps, **{key: mean(f"refined_{key}") for key in _METRICS}}
     return result
@@ -198,8 +229,25 @@ def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = N
 _METRICS = ("psnr", "ssim", "psnr_masked", "ssim_masked")
 
 
-def _frame_metrics(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None) -> dict:
-    """PSNR and SSIM of one frame, over the full frame and inside the mask (None without one)."""
-    return {"psnr": metrics.psnr(pred, gt), "ssim": metrics.ssim(pred, gt),
-            "psnr_masked": metrics.psnr(pred, gt, mask=mask) if mask is not None else None,
-            "ssim_masked": metrics.ssim(pred, gt, mask=mask) if mask is not None else None}
+def score_line(label: str, result: dict) -> str:
+    """One folder's scores as every command prints them, the resolution they were computed at included:
+    ``"<label>: masked PSNR 22.08 dB, masked SSIM 0.9512, PSNR 30.10 dB, SSIM 0.9801 at 64x64"`` (the masked
+    scores only with a mask, LPIPS when computed). ``result``: :func:`evaluate_avatar`'s (or its ``refined``
+    means, with the resolution of the result they belong to)."""
+    parts = []
+    if result.get("psnr_masked") is not None:
+        parts += [f"masked PSNR {result['psnr_masked']:.2f} dB", f"masked SSIM {result['ssim_masked']:.4f}"]
+    parts += [f"PSNR {result['psnr']:.2f} dB", f"SSIM {result['ssim']:.4f}"]
+    if result.get("lpips") is not None:
+        parts.append(f"LPIPS {result['lpips']:.4f}")
+    return f"{label}: {', '.join(parts)} at {result['resolution']}"
+
+
+def held_out_resolution(results: dict[str, dict]) -> str:
+    """The resolution label of :func:`evaluate_held_out`'s results: ``"64x64"`` when every folder shares it, else
+    each folder's (``"novel_view/cam 64x64, novel_pose/walk 48x64"``); empty without results (or for results
+    written before they named their resolution)."""
+    resolutions = {label: result["resolution"] for label, result in results.items() if result.get("resolution")}
+    if len(set(resolutions.values())) <= 1:
+        return next(iter(resolutions.values()), "")
+    return ", ".join(f"{label} {resolution}" for label, resolution in resolutions.items())

@@ -1,14 +1,19 @@
 """Image metrics: PSNR, SSIM (value and differentiable map) and, when its weights are on disk, LPIPS.
 
 Images are float RGB in [0, 1]. :func:`psnr` and :func:`ssim` take ``[H, W, C]`` numpy arrays or torch
-tensors and return Python floats (evaluation); :func:`ssim_map` is plain torch, differentiable and batched,
-for training losses (``1 - ssim_map(pred, target).mean()``). A mask restricts a metric to the pixels where
-``mask > 0.5`` (so 0/1 floats, booleans and 0/255 ``uint8`` masks all work).
+tensors and return Python floats (evaluation); :func:`image_scores` gives both, over the full frame and inside
+a mask, from one SSIM map (what an evaluation reports per frame); :func:`ssim_map` is plain torch,
+differentiable and batched, for training losses (``1 - ssim_map(pred, target).mean()``). A mask restricts a
+metric to the pixels where ``mask > 0.5`` (so 0/1 floats, booleans and 0/255 ``uint8`` masks all work).
 
 SSIM follows Wang et al. 2004: an 11-tap Gaussian window with sigma 1.5, ``C1 = (0.01 L)^2`` and
 ``C2 = (0.03 L)^2`` with the data range ``L = 1``, computed per channel and averaged over the pixels whose
 window lies inside the image (as ``skimage.metrics.structural_similarity(..., gaussian_weights=True,
-sigma=1.5, use_sample_covariance=False, data_range=1)`` does).
+sigma=1.5, use_sample_covariance=False, data_range=1)`` does). A frame smaller than the window has no
+such pixel: :func:`ssim` refuses it, naming its size.
+
+LPIPS runs only from weights already on disk; without them :func:`lpips` returns None and
+:func:`lpips_unavailable_reason` says why, for the caller to report (nothing is printed here).
 """
 
 from __future__ import annotations
@@ -17,14 +22,14 @@ import functools
 import importlib.util
 import math
 import os
-import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["psnr", "ssim", "ssim_map", "lpips", "image_loss_terms", "SSIM_WINDOW_SIZE", "SSIM_SIGMA"]
+__all__ = ["psnr", "ssim", "image_scores", "ssim_map", "lpips", "lpips_unavailable_reason", "image_loss_terms",
+           "SSIM_WINDOW_SIZE", "SSIM_SIGMA"]
 
 SSIM_WINDOW_SIZE = 11
 """Taps of SSIM's Gaussian window (per axis)."""
@@ -98,9 +103,14 @@ def psnr(pred, target, *, mask=None) -> float:
         ValueError: shape mismatch, non-finite values, or a mask that selects no pixel.
     """
     pred, target = _check_image_pair(pred, target)
+    selected = None if mask is None else _check_mask(mask, pred.shape[0], pred.shape[1], pred.device)
+    return _psnr_of_checked(pred, target, selected)
+
+
+def _psnr_of_checked(pred: torch.Tensor, target: torch.Tensor, selected: torch.Tensor | None) -> float:
+    """:func:`psnr` of checked images, over the pixels of the bool mask ``selected`` [H, W] (None: all)."""
     squared_error = (pred - target).square()
-    if mask is not None:
-        selected = _check_mask(mask, pred.shape[0], pred.shape[1], pred.device)
+    if selected is not None:
         if not bool(selected.any()):
             raise ValueError("psnr: the mask selects no pixel")
         squared_error = squared_error[selected]
@@ -125,12 +135,45 @@ def _gaussian_window(window_size: int, sigma: float, groups: int, device: torch.
     return vertical, horizontal
 
 
+@functools.lru_cache(maxsize=32)
+def _gaussian_taps(window_size: int, sigma: float) -> tuple[float, ...]:
+    """The ``window_size`` weights of a normalized 1D Gaussian of standard deviation ``sigma`` [pixels] (those of
+    :func:`_gaussian_window` on the CPU, as Python floats)."""
+    offsets = torch.arange(window_size, dtype=torch.float64) - (window_size - 1) / 2.0
+    taps = torch.exp(-0.5 * (offsets / sigma) ** 2)
+    return tuple(float(tap) for tap in taps / taps.sum())
+
+
+def _filter_valid(stacked: torch.Tensor, window_size: int, sigma: float) -> torch.Tensor:
+    """Every channel of ``stacked`` [B, N, H, W] filtered by the separable Gaussian window, valid pixels only:
+    [B, N, H - K + 1, W - K + 1].
+
+    Two grouped ``conv2d`` calls, except on the CPU without gradients (evaluation), where ``K`` shifted
+    multiply-adds per axis do the same sums in the same order of taps: float64 grouped convolutions on the CPU
+    take a slow path, 2-3 times slower than these memory-bound passes.
+    """
+    if stacked.device.type != "cpu" or (torch.is_grad_enabled() and stacked.requires_grad):
+        groups = stacked.shape[1]
+        vertical, horizontal = _gaussian_window(window_size, sigma, groups, stacked.device, stacked.dtype)
+        return F.conv2d(F.conv2d(stacked, vertical, groups=groups), horizontal, groups=groups)
+    taps = _gaussian_taps(window_size, sigma)
+    height, width = stacked.shape[2] - window_size + 1, stacked.shape[3] - window_size + 1
+    rows = stacked[:, :, 0:height] * taps[0]
+    for offset in range(1, window_size):
+        rows.add_(stacked[:, :, offset:offset + height], alpha=taps[offset])
+    filtered = rows[..., 0:width] * taps[0]
+    for offset in range(1, window_size):
+        filtered.add_(rows[..., offset:offset + width], alpha=taps[offset])
+    return filtered
+
+
 def ssim_map(pred: torch.Tensor, target: torch.Tensor, *, padding: str = "valid", window_size: int = SSIM_WINDOW_SIZE,
              sigma: float = SSIM_SIGMA, data_range: float = 1.0) -> torch.Tensor:
     """Per-pixel, per-channel SSIM of two images (differentiable; gradients flow to both inputs).
 
-    The five local statistics (means, variances, covariance) of all channels are filtered together by one
-    grouped separable Gaussian convolution (two ``conv2d`` calls), so the cost is a handful of kernels on GPU.
+    The five local statistics (means, variances, covariance) of all channels and images are filtered together
+    by one separable Gaussian filter (two grouped ``conv2d`` calls; without gradients on the CPU, shifted
+    multiply-adds, see :func:`_filter_valid`), so the cost is a handful of kernels on GPU.
 
     Args:
         pred: ``[H, W, C]`` (channels last, as the video folder's images) or ``[B, C, H, W]`` (channels
@@ -187,9 +230,7 @@ def ssim_map(pred: torch.Tensor, target: torch.Tensor, *, padding: str = "valid"
         stacked = F.pad(stacked, (radius, radius, radius, radius), mode="reflect")
     elif padding == "zeros":
         stacked = F.pad(stacked, (radius, radius, radius, radius))
-    groups = 5 * channels
-    vertical, horizontal = _gaussian_window(window_size, float(sigma), groups, x.device, x.dtype)
-    filtered = F.conv2d(F.conv2d(stacked, vertical, groups=groups), horizontal, groups=groups)
+    filtered = _filter_valid(stacked, window_size, float(sigma))
     mean_x, mean_y, mean_xx, mean_yy, mean_xy = filtered.split(channels, dim=1)
 
     c1 = (_SSIM_K1 * data_range) ** 2
@@ -236,18 +277,59 @@ def ssim(pred, target, *, mask=None) -> float:
 
     Raises:
         TypeError: non-floating images or non-array inputs.
-        ValueError: shape mismatch, images smaller than the window, non-finite values, or a mask that
-            selects no valid pixel.
+        ValueError: shape mismatch, a frame smaller than the window (the message gives its size), non-finite
+            values, or a mask that selects no valid pixel.
     """
     pred, target = _check_image_pair(pred, target)
-    values = ssim_map(pred, target, padding="valid")
+    values = _valid_ssim_map(pred, target)
     if mask is None:
         return float(values.mean())
-    selected = _check_mask(mask, pred.shape[0], pred.shape[1], pred.device)
+    return _masked_ssim(values, _check_mask(mask, pred.shape[0], pred.shape[1], pred.device))
+
+
+def image_scores(pred, target, *, mask=None) -> dict[str, float | None]:
+    """PSNR and SSIM of one frame over the full frame and, with ``mask``, inside it: the values of :func:`psnr`
+    and :func:`ssim`, with the inputs checked once and one SSIM map for both SSIM means.
+
+    Args:
+        pred, target: images as for :func:`ssim` ([H, W, C], H, W >= 11).
+        mask: optional [H, W] (or [H, W, 1]), as for :func:`psnr` and :func:`ssim`.
+
+    Returns:
+        ``{"psnr": dB, "ssim": value, "psnr_masked": dB or None, "ssim_masked": value or None}`` (None without
+        a mask).
+
+    Raises:
+        TypeError, ValueError: as :func:`psnr` and :func:`ssim`.
+    """
+    pred, target = _check_image_pair(pred, target)
+    values = _valid_ssim_map(pred, target)
+    scores = {"psnr": _psnr_of_checked(pred, target, None), "ssim": float(values.mean()), "psnr_masked": None,
+              "ssim_masked": None}
+    if mask is not None:
+        selected = _check_mask(mask, pred.shape[0], pred.shape[1], pred.device)
+        scores["psnr_masked"] = _psnr_of_checked(pred, target, selected)
+        scores["ssim_masked"] = _masked_ssim(values, selected)
+    return scores
+
+
+def _valid_ssim_map(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """The valid SSIM map of two checked [H, W, C] images; a frame smaller than the window is refused."""
+    height, width = pred.shape[0], pred.shape[1]
+    if height < SSIM_WINDOW_SIZE or width < SSIM_WINDOW_SIZE:
+        raise ValueError(f"ssim: the frame is {width}x{height} pixels, smaller than SSIM's {SSIM_WINDOW_SIZE}x"
+                         f"{SSIM_WINDOW_SIZE}-pixel window (SSIM needs frames of at least {SSIM_WINDOW_SIZE}x"
+                         f"{SSIM_WINDOW_SIZE})")
+    return ssim_map(pred, target, padding="valid")
+
+
+def _masked_ssim(values: torch.Tensor, selected: torch.Tensor) -> float:
+    """Mean of the valid SSIM map ``values`` [H', W', C] over the pixels of the bool mask ``selected`` [H, W]
+    (cropped like the map)."""
     radius = SSIM_WINDOW_SIZE // 2
     selected = selected[radius:selected.shape[0] - radius, radius:selected.shape[1] - radius]
     if not bool(selected.any()):
-        raise ValueError("ssim: the mask selects no pixel at least 5 pixels from the border")
+        raise ValueError(f"ssim: the mask selects no pixel at least {radius} pixels from the border")
     return float(values[selected].mean())
 
 
@@ -267,9 +349,15 @@ def _alexnet_checkpoint() -> Path | None:
     return path if path.is_file() else None
 
 
+def lpips_unavailable_reason() -> str | None:
+    """Why :func:`lpips` cannot run here, as one line (e.g. "the 'lpips' package is not installed"), or None
+    when its package and both weight files are on disk."""
+    return _lpips_setup()[1]
+
+
 @functools.lru_cache(maxsize=None)
-def _lpips_network(device: str):
-    """The ``lpips`` package's AlexNet LPIPS with local weights, or None (with a warning) if any is missing."""
+def _lpips_setup() -> tuple[Path | None, str | None]:
+    """(torchvision's AlexNet checkpoint, None) when LPIPS can run, else (None, the reasons as one line)."""
     reasons = []
     if importlib.util.find_spec("lpips") is None:
         reasons.append("the 'lpips' package is not installed")
@@ -282,9 +370,17 @@ def _lpips_network(device: str):
         spec = importlib.util.find_spec("lpips")
         linear_weights = Path(spec.origin).parent / "weights" / "v0.1" / "alex.pth"
         if not linear_weights.is_file():
-            reasons.append(f"the lpips package has no bundled weights at {linear_weights}")
+            reasons.append("the lpips package has no bundled weights (weights/v0.1/alex.pth)")
     if reasons:
-        warnings.warn(f"lpips: not computed ({'; '.join(reasons)}); weights are never downloaded", stacklevel=3)
+        return None, "; ".join(reasons) + "; weights are never downloaded"
+    return checkpoint, None
+
+
+@functools.lru_cache(maxsize=None)
+def _lpips_network(device: str):
+    """The ``lpips`` package's AlexNet LPIPS with local weights, or None if any is missing."""
+    checkpoint, reason = _lpips_setup()
+    if reason is not None:
         return None
     import lpips as lpips_package
 
@@ -304,7 +400,8 @@ def lpips(pred, target) -> float | None:
     """LPIPS (AlexNet, v0.1) of two [H, W, 3] images in [0, 1]; lower is more similar.
 
     Only runs when the ``lpips`` package (with its bundled linear weights) and torchvision's AlexNet
-    weights in torch hub's cache are already present; otherwise it warns once and returns None.
+    weights in torch hub's cache are already present; otherwise it returns None, quietly
+    (:func:`lpips_unavailable_reason` says why).
     """
     pred, target = _check_image_pair(pred, target)
     if pred.shape[-1] != 3:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from warpavatar._src.cuda_graph import capture_or_fall_back
+from warpavatar._src.graphs.capture import capture_or_fall_back
 from warpavatar._src.warp_utils import check_tensor, to_warp, torch_stream_scope
 from warpavatar.kernels.cloth_frame import record_cloth_substep, record_strain_limit
 

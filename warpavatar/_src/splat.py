@@ -19,14 +19,14 @@ has run (an upper bound would cost far more memory, as any Gaussian may cover th
   :data:`SPECULATIVE_HISTORY` such calls (more where their counts rise), every buffer is allocated first, and
   the whole pass is queued without waiting; the pair count and the non-finite-input flag are copied into pinned
   host memory as soon as the prefix sum has them and read there once the whole pass is queued
-  (:mod:`warpavatar._src.status_mailbox`: the host waits for the front half of the pass, not for the
+  (:mod:`warpavatar._src.graphs.status_mailbox`: the host waits for the front half of the pass, not for the
   compositing), and only then are the pairs' ids copied out of the sort's double buffer (queued behind the
   compositing). When the pairs did not fit, the tile binning and compositing run again with exact buffers, so
   the result is always exact. The host thus queues every kernel while the GPU works, instead of waiting for the
   projection half-way, and does its work after the read (the ids' copy, autograd's) while the GPU composites.
   Where a call's buffers come back at the addresses of a recent call's (torch's caching allocator hands out the
   same blocks to the same sequence of allocations: a render loop, a training step), its launches are replayed
-  from a CUDA graph keyed by those addresses (:mod:`warpavatar._src.address_graphs`): one graph launch instead
+  from a CUDA graph keyed by those addresses (:mod:`warpavatar._src.graphs.address_graphs`): one graph launch instead
   of some twenty launches from Python, and no memory held between calls.
 * **Exact** (CPU, and the first call of a size on CUDA): the pair count is read after the depth sort and its
   prefix sum, and the buffers get exactly that size.
@@ -35,12 +35,12 @@ has run (an upper bound would cost far more memory, as any Gaussian may cover th
   captured in a CUDA graph; the pair count and the input flags stay on the device (``info["status"]``) for
   the caller to check when it reads other values anyway (:func:`rasterizer_status`).
 
-* **Replayed with its own buffers** (CUDA, opt-in: :func:`rasterizer_replays`, :mod:`warpavatar._src.splat_replay`):
-  once a few consecutive speculative calls of one shape (image size, Gaussian count, SH layout) have fitted their
-  guess, that shape's fixed-capacity pass is captured into a CUDA graph with its own inputs, outputs and sort
-  buffers, and later calls replay it: their inputs copied in by one concatenation, the graph replayed, its
-  outputs copied out (three copies) and the status read. It serves a call wherever its tensors are, but the
-  graph holds about as much memory again as the pass between calls. A pass that outgrew the graph is passed
+* **Replayed with its own buffers** (CUDA, opt-in: :func:`rasterizer_replays`,
+  :mod:`warpavatar._src.graphs.splat_replay`): once a few consecutive speculative calls of one shape (image size,
+  Gaussian count, SH layout) have fitted their guess, that shape's fixed-capacity pass is captured into a CUDA graph
+  with its own inputs, outputs and sort buffers, and later calls replay it: their inputs copied in by one concatenation,
+  the graph replayed, its outputs copied out (three copies) and the status read. It serves a call wherever its tensors
+  are, but the graph holds about as much memory again as the pass between calls. A pass that outgrew the graph is passed
   again with exact buffers.
 
 In every mode non-finite inputs raise a ``ValueError`` (fixed mode: when the caller checks the status).
@@ -66,10 +66,10 @@ from typing import NamedTuple
 import torch
 import warp as wp
 
-from warpavatar._src import address_graphs, splat_replay
-from warpavatar._src.address_graphs import AddressKeyedGraphs
-from warpavatar._src.splat_replay import ReplayCache
-from warpavatar._src.status_mailbox import status_mailbox
+from warpavatar._src.graphs import address_graphs, splat_replay
+from warpavatar._src.graphs.address_graphs import AddressKeyedGraphs
+from warpavatar._src.graphs.splat_replay import ReplayCache
+from warpavatar._src.graphs.status_mailbox import status_mailbox
 from warpavatar._src.warp_utils import (check_tensor, inclusive_scan, radix_sort_pairs, torch_stream_scope,
                                         warp_descriptor, write_only_descriptor)
 from warpavatar.kernels import splat as splat_kernels
@@ -318,7 +318,7 @@ def run_pass(means, quats, scales, opacities, coefficients, background, K, world
         pixel_state: False when no backward will run: ``final_transmittance`` and ``last_index`` are then not
             written (their buffers hold garbage).
         graphs: in the speculative mode, where the pass's launches are replayed from when its buffers' addresses
-            repeat (:mod:`warpavatar._src.address_graphs`); None: launched one by one.
+            repeat (:mod:`warpavatar._src.graphs.address_graphs`); None: launched one by one.
 
     Returns:
         ``(buffers, pair_count)``: the buffers with ``status`` and ``sorted_ids`` set, and the pair count where
@@ -427,11 +427,11 @@ def run_pass(means, quats, scales, opacities, coefficients, background, K, world
 
 _REPLAYS = ReplayCache(run_pass=run_pass, buffer_type=PassBuffers, tile_grid=_tile_grid,
                        raise_on_bad_inputs=_raise_on_bad_inputs)
-"""The graphs of recently repeated call shapes (:mod:`warpavatar._src.splat_replay`)."""
+"""The graphs of recently repeated call shapes (:mod:`warpavatar._src.graphs.splat_replay`)."""
 
 _PASS_GRAPHS = AddressKeyedGraphs()
 """The speculative passes' launches, replayed where their buffers' addresses repeat
-(:mod:`warpavatar._src.address_graphs`)."""
+(:mod:`warpavatar._src.graphs.address_graphs`)."""
 
 
 class SavedPass(NamedTuple):
@@ -737,11 +737,11 @@ def rasterizer_replays(*, mode: str = "address", after: int = 3, max_bytes: int 
 
     * ``"address"`` (the default): a call whose buffers have the addresses of a recent call's (as torch's
       caching allocator gives them to a loop that allocates the same way every time) replays that call's
-      launches from a CUDA graph (:mod:`warpavatar._src.address_graphs`); nothing is held between calls but
+      launches from a CUDA graph (:mod:`warpavatar._src.graphs.address_graphs`); nothing is held between calls but
       the graphs' sort scratch space, and calls whose buffers move run eagerly.
     * ``"owned"``: a shape called ``after`` times in a row (each fitting its guessed capacity) is captured with
       its own inputs, outputs and sort buffers and replayed whatever the call's addresses
-      (:mod:`warpavatar._src.splat_replay`): the fewest host steps, but the graph holds about as much memory
+      (:mod:`warpavatar._src.graphs.splat_replay`): the fewest host steps, but the graph holds about as much memory
       again as the pass between calls (21 MiB for an 89k-Gaussian avatar at 384x384; 93 / 244 / 432 MiB at
       100k / 500k / 1M Gaussians at 1080p), and no shape that would hold over ``max_bytes`` is captured.
     * ``"off"``: every launch from Python.

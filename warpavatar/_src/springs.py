@@ -152,7 +152,7 @@ def spring_step(
     force: torch.Tensor,
     dt: float,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """One semi-implicit Euler step of the mass-spring-damper system of SMAD (paper 000, Eq. 2-4).
+    """One semi-implicit Euler step of the mass-spring-damper system of SMAD (Eq. 2-4).
 
     For every node ``i``, with directed edges ``e = (i, j)`` where ``i = edges[e, 0]`` *receives* the spring
     force and ``j = edges[e, 1]`` sends it (the sender feels nothing from this edge; add ``(j, i)`` for the
@@ -253,7 +253,7 @@ class _IsometryLoss(torch.autograd.Function):
 
 
 def isometry_loss(x: torch.Tensor, edges: torch.Tensor, rest_offset: torch.Tensor) -> torch.Tensor:
-    """Isometry regularizer of SMAD (paper 000, Eq. 11), as a mean over edges.
+    """Isometry regularizer of SMAD (Eq. 11), as a mean over edges.
 
     Computes ``mean over valid edges e = (i, j) of (|x_i - x_j| - |rest_offset_e|)^2``, i.e. Eq. 11's sum
     divided by the number of valid edges (edges with both ids in ``[0, M)``; others, such as ``-1`` padding,
@@ -300,7 +300,7 @@ class _DampingLoss(torch.autograd.Function):
 
 
 def damping_loss(velocity: torch.Tensor) -> torch.Tensor:
-    """Damping regularizer of SMAD (paper 000, Eq. 11), as a mean over velocity vectors.
+    """Damping regularizer of SMAD (Eq. 11), as a mean over velocity vectors.
 
     Computes ``mean over all velocity vectors of |v|^2``: Eq. 11 sums ``|v_i(t)|^2`` over nodes ``i`` and
     frames ``t``; this divides that sum by the number of vectors (nodes x frames). Empty input gives 0.

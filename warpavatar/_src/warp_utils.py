@@ -10,13 +10,18 @@ Rules every bridge follows:
     * Warp's sort and scan get the tensors' pointers (:func:`radix_sort_pairs`, :func:`inclusive_scan`);
     * kernels run on the device of their inputs and, on CUDA, on torch's current stream
       (:func:`torch_stream_scope`), so they order correctly with the surrounding torch work;
-    * Warp is initialized lazily and quietly the first time an op runs.
+    * Warp is initialized lazily and quietly the first time an op runs; on a machine without the NVIDIA driver
+      (CPU only) it is initialized when this module is imported, with the native library's "Could not find or
+      load the NVIDIA CUDA driver" line discarded (:func:`init_warp`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import functools
+import os
+import sys
 
 import torch
 import warp as wp
@@ -45,8 +50,53 @@ __all__ = [
 
 @functools.lru_cache(maxsize=None)
 def init_warp() -> None:
-    """Initialize Warp once, without its start-up banner."""
-    wp.init()
+    """Initialize Warp once, without its start-up banner and, where the NVIDIA driver cannot be loaded, without
+    the warning its native library prints about it (a CPU-only machine is a supported one)."""
+    if _CUDA_DRIVER_LOADABLE:
+        wp.init()
+        return
+    with _native_stderr_discarded():
+        wp.init()
+
+
+def _cuda_driver_loadable() -> bool:
+    """Whether this process can load the NVIDIA driver library, as Warp's native start-up looks for it."""
+    names = ("nvcuda.dll",) if sys.platform == "win32" else ("libcuda.so", "libcuda.so.1")
+    for name in names:
+        try:
+            ctypes.CDLL(name)
+        except OSError:
+            continue
+        return True
+    return False
+
+
+@contextlib.contextmanager
+def _native_stderr_discarded():
+    """While active, whatever native code writes to file descriptor 2 is discarded (Python's own ``sys.stderr``
+    is flushed first); without a usable descriptor 2 it does nothing."""
+    if sys.stderr is not None:
+        sys.stderr.flush()
+    try:
+        saved = os.dup(2)
+    except OSError:
+        yield
+        return
+    discard = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(discard, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(discard)
+
+
+# Warp's native start-up prints the driver warning from whichever call initializes it first (wp.get_device,
+# wp.launch, ...), so on a machine without the driver it is initialized here, once and quietly (about 50 ms).
+_CUDA_DRIVER_LOADABLE = _cuda_driver_loadable()
+if not _CUDA_DRIVER_LOADABLE:
+    init_warp()
 
 
 def warp_device(device: torch.device | str) -> str:

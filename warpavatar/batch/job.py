@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Callable
 
 from warpavatar.batch.subjects import DONE_NAME, BatchSubject
+from warpavatar.io.output_files import OutputBusyError, mark_output_folder, output_lock
 
 __all__ = ["fit_subject", "INPUT_ERRORS", "TEST_KILL_MARKER"]
 
@@ -43,19 +44,27 @@ def fit_subject(subject: BatchSubject, output: str | os.PathLike, *, config, dev
         kill_at_step: test hook: on the first attempt only, kill this process with SIGKILL once the fit has
             done this many steps (as a lost node would), leaving the checkpoints written before.
 
+    A stop signal during the fit (SIGINT, which ``ray.cancel`` sends, SIGTERM or SIGHUP) makes it stop after
+    the step under way and write its checkpoint; the result is then ``"interrupted"``, with no done marker, and
+    the next attempt continues from there.
+
     Returns:
-        The result: ``subject``, ``status`` (``"done"`` or ``"failed"``), ``error`` (the one-line message of a
-        failed subject, else None), ``output``, ``fit_seconds`` (this attempt), ``resume_step``, ``steps``,
-        ``gaussians``, ``device``, ``preset`` and ``eval`` (``{"novel_view/<name>": metrics}``, empty without
-        ``evaluate`` or held-out folders). The done marker holds a done result and the fit's ``config``.
+        The result: ``subject``, ``status`` (``"done"``, ``"failed"`` or ``"interrupted"``), ``error`` (the
+        one-line message of a failed subject, else None), ``output``, ``fit_seconds`` (this attempt),
+        ``resume_step``, ``steps``, ``gaussians``, ``device``, ``preset`` and ``eval``
+        (``{"novel_view/<name>": metrics}``, empty without ``evaluate`` or held-out folders). The done marker
+        holds a done result and the fit's ``config``.
     """
     output = Path(output)
     result = {"subject": subject.name, "status": "failed", "error": None, "output": str(output),
               "fit_seconds": None, "resume_step": 0, "steps": None, "gaussians": None, "device": device,
               "preset": preset_name, "eval": {}}
     try:
-        _fit(subject, output, config=config, device=device, evaluate=evaluate, report=report,
-             kill_at_step=kill_at_step, result=result)
+        with output_lock(output):  # one writer per subject: another run of the batch may be fitting it
+            _fit(subject, output, config=config, device=device, evaluate=evaluate, report=report,
+                 kill_at_step=kill_at_step, result=result)
+    except OutputBusyError as error:  # a result, not an error to retry
+        result["error"] = str(error)
     except INPUT_ERRORS as error:
         result["error"] = str(error).splitlines()[0] if str(error) else type(error).__name__
     return result
@@ -65,9 +74,9 @@ def _fit(subject: BatchSubject, output: Path, *, config, device: str, evaluate: 
          result: dict) -> None:
     import torch
 
-    from warpavatar import data
+    from warpavatar.signals import stop_on_signals
     from warpavatar.evaluate import evaluate_held_out, write_json_atomic
-    from warpavatar.fit import Trainer
+    from warpavatar.fit import Trainer, load_training_video
     from warpavatar.fit.checkpoint import CHECKPOINT_NAME, read_checkpoint
 
     checkpoint = output / CHECKPOINT_NAME
@@ -77,17 +86,22 @@ def _fit(subject: BatchSubject, output: Path, *, config, device: str, evaluate: 
         report("started", {"resume_step": result["resume_step"]})
     if not subject.path.is_dir():
         raise FileNotFoundError(f"{subject.path}: no such subject folder")
-    output.mkdir(parents=True, exist_ok=True)
-    video = data.load_video_folder(subject.training_folder, scale=config.image_scale)
+    mark_output_folder(output, "fit")
+    video = load_training_video(subject.training_folder, config)
     start = time.time()
     trainer = Trainer(video, config, output, device=device)
     if kill_at_step is not None and not (output / TEST_KILL_MARKER).exists():
         _kill_after(trainer, kill_at_step, output / TEST_KILL_MARKER)
-    trainer.fit(resume=True, progress=False)
+    # Ray runs a task on its worker's main thread; the worker ignores SIGINT, which ray.cancel sends
+    with stop_on_signals(trainer.request_stop, even_ignored=True) as stop:
+        trainer.fit(resume=True, progress=False)
     result.update(fit_seconds=round(time.time() - start, 2), steps=trainer.step, gaussians=trainer.gaussians.count)
+    if stop.signal_number is not None and trainer.stopped_early:
+        result["status"] = "interrupted"
+        return
     if evaluate and subject.subject_root is not None:
-        held_out = data.load_subject(subject.subject_root, scale=config.image_scale)
-        result["eval"] = evaluate_held_out(trainer.avatar, held_out, progress=False)
+        result["eval"] = evaluate_held_out(trainer.avatar, subject.subject_root, image_scale=config.image_scale,
+                                           progress=False)
         write_json_atomic(output / "eval.json", result["eval"])
     result["status"] = "done"
     write_json_atomic(output / DONE_NAME, {**result, "config": config.to_dict()})

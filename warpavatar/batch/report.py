@@ -13,8 +13,9 @@ __all__ = ["SUMMARY_NAME", "one_line_result", "summary_lines", "write_summary"]
 #: the summary files in the output root: ``<SUMMARY_NAME>.json`` and ``<SUMMARY_NAME>.csv``
 SUMMARY_NAME = "fit-many-summary"
 
-#: the metrics of each held-out folder that the CSV has a column for (``<folder> <metric>``)
-_METRICS = ("psnr_masked", "ssim_masked", "psnr", "ssim", "lpips")
+#: the metrics of each held-out folder that the CSV has a column for (``<folder> <metric>``), and the resolution
+#: they were computed at
+_METRICS = ("psnr_masked", "ssim_masked", "psnr", "ssim", "lpips", "resolution")
 
 
 def _mean_masked_psnr(result: dict, kind: str) -> float | None:
@@ -28,14 +29,23 @@ def _minutes(seconds) -> str:
 
 
 def one_line_result(result: dict) -> str:
-    """The progress line of a subject whose task ended, done (time, Gaussians, held-out masked PSNR) or failed
-    (its error), or that an earlier run finished (skipped)."""
+    """The progress line of a subject whose task ended, done (time, Gaussians, held-out masked PSNR), failed (its
+    error) or interrupted (the step its checkpoint holds), or that an earlier run finished (skipped)."""
     if result["status"] == "failed":
         return f"{result['subject']}: failed: {result['error']}"
     if result["status"] == "skipped":
         return f"{result['subject']}: skipped, finished by an earlier run (--force fits it again)"
-    held_out = ", ".join(f"{label} {metrics['psnr_masked']:.2f} dB" for label, metrics in result["eval"].items()
-                         if metrics.get("psnr_masked") is not None)
+    if result["status"] == "interrupted":
+        if result.get("steps") is None:
+            return f"{result['subject']}: stopped before its training steps (an earlier checkpoint stays)"
+        return f"{result['subject']}: stopped at step {result['steps']}, its checkpoint written"
+    from warpavatar.evaluate import held_out_resolution
+
+    masked = {label: metrics for label, metrics in result["eval"].items() if metrics.get("psnr_masked") is not None}
+    held_out = ", ".join(f"{label} {metrics['psnr_masked']:.2f} dB" for label, metrics in masked.items())
+    resolution = held_out_resolution(masked)  # the fit's training resolution
+    if held_out and resolution:
+        held_out += f" at {resolution}"
     retried = f" after {result['attempts']} attempts" if result.get("attempts", 1) > 1 else ""
     return (f"{result['subject']}: done in {_minutes(result['wall_seconds'])} min{retried}, "
             f"{result['gaussians']} Gaussians" + (f"; masked PSNR {held_out}" if held_out else ""))
@@ -43,15 +53,19 @@ def one_line_result(result: dict) -> str:
 
 def summary_lines(results: list[dict]) -> list[str]:
     """The summary table: subject, status, attempts, minutes (the fit of the last attempt), Gaussians, mean
-    masked PSNR on novel views and on novel poses (when evaluated), and the error of a failed subject."""
-    header = ("subject", "status", "attempts", "fit min", "Gaussians", "novel view dB", "novel pose dB", "error")
+    masked PSNR on novel views and on novel poses (when evaluated) and the resolution it was computed at, and
+    the error of a failed subject."""
+    from warpavatar.evaluate import held_out_resolution
+
+    header = ("subject", "status", "attempts", "fit min", "Gaussians", "novel view dB", "novel pose dB", "at",
+              "error")
     rows = []
     for result in results:
         view, pose = (_mean_masked_psnr(result, kind) for kind in ("novel_view", "novel_pose"))
         rows.append((result["subject"], result["status"], str(result.get("attempts", "")),
                      _minutes(result.get("fit_seconds")), str(result.get("gaussians") or ""),
                      "" if view is None else f"{view:.2f}", "" if pose is None else f"{pose:.2f}",
-                     result.get("error") or ""))
+                     held_out_resolution(result.get("eval") or {}), result.get("error") or ""))
     widths = [max(len(row[column]) for row in (header, *rows)) for column in range(len(header))]
     lines = ["  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip() for row in (header, *rows)]
     lines.insert(1, "  ".join("-" * width for width in widths))
@@ -78,12 +92,9 @@ def _csv_text(results: list[dict]) -> str:
 def write_summary(out_root: str | os.PathLike, results: list[dict]) -> tuple[Path, Path]:
     """Write the results as ``out_root/fit-many-summary.json`` (everything, per subject) and ``.csv`` (one row
     per subject, one column per held-out folder and metric), each through a temporary file and a rename."""
-    from warpavatar.evaluate import write_json_atomic
+    from warpavatar.io.output_files import write_json_atomic, write_text_atomic
 
     out_root = Path(out_root)
     json_path = write_json_atomic(out_root / f"{SUMMARY_NAME}.json", {"subjects": results})
-    csv_path = out_root / f"{SUMMARY_NAME}.csv"
-    tmp = csv_path.with_name(csv_path.name + ".tmp")
-    tmp.write_text(_csv_text(results), encoding="utf-8")
-    os.replace(tmp, csv_path)
+    csv_path = write_text_atomic(out_root / f"{SUMMARY_NAME}.csv", _csv_text(results))
     return json_path, csv_path

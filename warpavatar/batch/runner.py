@@ -17,7 +17,7 @@ from warpavatar.batch.report import one_line_result
 from warpavatar.batch.subjects import DONE_NAME, BatchSubject, finished_result
 
 __all__ = ["run_batch", "connect_ray", "cluster_gpu_count", "import_ray", "RAY_INSTALL_HINT",
-           "INFRASTRUCTURE_ERRORS"]
+           "INFRASTRUCTURE_ERRORS", "STOP_GRACE_SECONDS"]
 
 RAY_INSTALL_HINT = ('warpavatar-fit-many needs Ray, an optional dependency: pip install -e ".[cluster]" '
                     '(or pip install "ray>=2.9")')
@@ -33,6 +33,10 @@ def _infrastructure_errors() -> tuple[type[BaseException], ...]:
 
 #: exceptions of a task that Ray retries (the subject's own input errors are results, never raised)
 INFRASTRUCTURE_ERRORS = _infrastructure_errors()
+
+STOP_GRACE_SECONDS = 300.0
+"""How long an interrupted batch waits for its running fits to finish their step and write their checkpoints
+before it kills them."""
 
 
 def import_ray():
@@ -118,7 +122,8 @@ def _earlier_results(subjects: list[BatchSubject], out_root: Path, *, config, fo
 def run_batch(subjects: list[BatchSubject], out_root: str | os.PathLike, *, config, device: str, preset_name: str,
               gpus_per_fit: float, cpus_per_fit: float, max_retries: int = 3, evaluate: bool = False,
               force: bool = False, progress: bool = True, test_kill: dict[str, int] | None = None,
-              write: Callable[[str], None] | None = None) -> list[dict]:
+              write: Callable[[str], None] | None = None, stop_requested: Callable[[], bool] | None = None
+              ) -> list[dict]:
     """Fit every subject in its own Ray task on the connected cluster (see :func:`connect_ray`).
 
     Subjects finished by an earlier run (their done marker) are skipped unless ``force``, which fits them again
@@ -142,12 +147,19 @@ def run_batch(subjects: list[BatchSubject], out_root: str | os.PathLike, *, conf
         test_kill: test hook: ``{subject name: step}``, the first attempt of that subject's task kills its
             worker with SIGKILL after that step.
         write: where the progress lines go (default: printed above the bar).
+        stop_requested: asked while the batch runs; true stops it (see above).
 
     Returns:
         One result per subject, in the order given: :func:`~warpavatar.batch.job.fit_subject`'s, with
         ``status`` ``"skipped"`` for a subject an earlier run finished with the same options, and ``attempts``
         (how many times its task started) and ``wall_seconds`` (from its first start to its end, as the driver
-        saw them).
+        saw them); ``"interrupted"`` for a subject stopped before its end.
+
+    Stopping: once ``stop_requested()`` is true (it is asked twice a second), every running fit is asked to stop
+    after its step under way and write its checkpoint, and queued ones are cancelled; the batch waits for them
+    (at most :data:`STOP_GRACE_SECONDS`, then kills them) and returns, those subjects ``"interrupted"``. A
+    KeyboardInterrupt (Ctrl-C where no handler records it) stops them the same way and is raised again; a second
+    one kills them at once.
     """
     import tqdm
 
@@ -187,25 +199,56 @@ def run_batch(subjects: list[BatchSubject], out_root: str | os.PathLike, *, conf
                 resume = f", resuming from step {values['resume_step']}" if values["resume_step"] else ""
                 write(f"{name}: started on {values['host']}{again}{resume}")
 
+    def collect(ready) -> None:
+        for reference in ready:
+            subject = pending.pop(reference)
+            try:
+                result = ray.get(reference)
+            except ray.exceptions.TaskCancelledError:
+                result = {"subject": subject.name, "status": "interrupted", "error": None, "steps": None,
+                          "output": str(subject.output(out_root)), "eval": {}}
+            except ray.exceptions.RayError as error:
+                result = {"subject": subject.name, "status": "failed", "error": _task_error(error),
+                          "output": str(subject.output(out_root)), "eval": {}}
+            start = first_start.get(subject.name, time.time())
+            result.update(attempts=attempts[subject.name], wall_seconds=round(time.time() - start, 2))
+            results[subject.name] = result
+            write(one_line_result(result))
+            bar.update(1)
+
+    def stop_tasks() -> None:
+        # ray.cancel without force delivers SIGINT to each running task: its fit (fit_subject) stops after the
+        # step under way and writes its checkpoint; a queued task never starts
+        write(f"stopping {len(pending)} fits after their step under way (each writes its checkpoint)")
+        for reference in pending:
+            ray.cancel(reference, force=False)
+        deadline = time.time() + STOP_GRACE_SECONDS
+        while pending and time.time() < deadline:
+            ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=0.5)
+            drain_events()
+            collect(ready)
+
+    stopping = False
     try:
-        while pending:
+        while pending and not (stop_requested is not None and stop_requested()):
             ready, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)
             drain_events()
-            for reference in ready:
-                subject = pending.pop(reference)
-                try:
-                    result = ray.get(reference)
-                except ray.exceptions.RayError as error:
-                    result = {"subject": subject.name, "status": "failed", "error": _task_error(error),
-                              "output": str(subject.output(out_root)), "eval": {}}
-                start = first_start.get(subject.name, time.time())
-                result.update(attempts=attempts[subject.name], wall_seconds=round(time.time() - start, 2))
-                results[subject.name] = result
-                write(one_line_result(result))
-                bar.update(1)
+            collect(ready)
+        if pending:
+            stopping = True
+            stop_tasks()
+    except KeyboardInterrupt:
+        if not stopping:  # while the fits stop, a (second) interruption kills them instead: finally below
+            stopping = True
+            stop_tasks()
+        raise
     finally:
         bar.close()
         for reference in pending:
             ray.cancel(reference, force=True)
         ray.kill(events.actor)
+    for subject in to_fit:  # killed after STOP_GRACE_SECONDS: their last checkpoint stays
+        results.setdefault(subject.name, {"subject": subject.name, "status": "interrupted", "error": None,
+                                          "steps": None, "output": str(subject.output(out_root)), "eval": {},
+                                          "attempts": attempts[subject.name], "wall_seconds": None})
     return [results[subject.name] for subject in subjects]

@@ -8,7 +8,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["BatchSubject", "read_subjects", "finished_result", "DONE_NAME"]
+__all__ = ["BatchSubject", "read_subjects", "read_subject_list", "finished_result", "DONE_NAME"]
 
 #: the done marker in a subject's output folder: written atomically after its ``avatar.pt``; holds the result
 DONE_NAME = "fit-many.json"
@@ -43,26 +43,55 @@ class BatchSubject:
         return Path(out_root) / self.name
 
 
+def read_subject_list(path: str | os.PathLike) -> list[Path]:
+    """The folders a subject list names: a UTF-8 text file, one existing folder a line (blank lines and lines
+    starting with ``#`` are skipped; a relative path is relative to the list file's folder).
+
+    Raises:
+        ValueError: the file cannot be read, or a line that is not UTF-8 text or names no folder (a binary or a
+            JSON file given as a list); the message names the file and the first bad line.
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as error:
+        raise ValueError(f"{path}: the subject list cannot be read ({error.strerror or error})") from None
+    folders = []
+    for number, raw in enumerate(data.splitlines(), start=1):
+        try:
+            line = raw.decode("utf-8-sig" if number == 1 else "utf-8").strip()
+        except UnicodeDecodeError:
+            line = None
+        if line is None or "\0" in line:
+            raise ValueError(f"{path}: line {number} is not UTF-8 text: a subject list is a text file naming one "
+                             "subject or video folder a line (# starts a comment)")
+        if not line or line.startswith("#"):
+            continue
+        entry = Path(line).expanduser()
+        folder = entry if entry.is_absolute() else path.parent / entry
+        if not folder.is_dir():
+            raise ValueError(f"{path}: line {number} ({line[:60]!r}) names no folder: a subject list names one "
+                             "existing subject or video folder a line (# starts a comment)")
+        folders.append(folder)
+    return folders
+
+
 def read_subjects(arguments: list[str | os.PathLike]) -> list[BatchSubject]:
     """The subjects named on the command line, in order.
 
-    Each argument is a subject folder, or a text file listing subject folders one a line (blank lines and lines
-    starting with ``#`` are skipped; a relative path is relative to the list file's folder). A path that does
-    not exist is kept: its fit fails alone, with the reader's error, in the batch's summary.
+    Each argument is a subject folder, or a subject list file (:func:`read_subject_list`), whose folders are
+    checked to exist. A folder argument that does not exist is kept: its fit fails alone, with the reader's
+    error, in the batch's summary.
 
     Raises:
-        ValueError: no subjects, or two subjects with the same folder name (their outputs would collide); the
-            message names both paths.
+        ValueError: a list file that is not a list of folders, no subjects, or two subjects with the same folder
+            name (their outputs would collide); the message names the file, or both paths.
     """
     paths: list[Path] = []
     for argument in arguments:
         argument = Path(argument)
         if argument.is_file():
-            for line in argument.read_text(encoding="utf-8").splitlines():
-                line = line.strip()
-                if line and not line.startswith("#"):
-                    entry = Path(line).expanduser()
-                    paths.append(entry if entry.is_absolute() else argument.parent / entry)
+            paths.extend(read_subject_list(argument))
         else:
             paths.append(argument)
     if not paths:

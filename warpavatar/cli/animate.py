@@ -10,6 +10,7 @@ from pathlib import Path
 import tqdm
 
 from warpavatar.cli.common import avatar_parser, check_output_path, friendly_errors, load_avatar, load_motion_for
+from warpavatar.io.output_files import output_lock
 
 DESCRIPTION = """Pose a fitted avatar frame by frame with a motion and write the animated Gaussians to USD.
 
@@ -18,13 +19,18 @@ for Gaussian splats, read by Omniverse and recent USD tools); 'points' writes a 
 widths, colours, opacities and primvars for orientations, scales and SH (read by Blender and older tools).
 Every part of the avatar runs as in a fit (learned secondary dynamics roll the motion out first).
 See docs/export.md for every attribute written.
+
+The file is written under a temporary name of its own beside -o and renamed once complete: an existing file at
+-o is replaced only then, and a failure (a full disk included: one line, exit status 2) leaves it as it was. One
+process at a time writes an output: a second one is refused while the first runs.
 """
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = avatar_parser("warpavatar-animate", DESCRIPTION, motion=True)
     parser.add_argument("-o", "--output", required=True, type=Path,
-                        help="the .usdc (or .usd, binary crate) file to write")
+                        help="the .usdc (or .usd, binary crate) file to write (an existing file is replaced once the "
+                             "new one is complete)")
     parser.add_argument("--layout", choices=("particlefield", "points"), default="particlefield",
                         help="USD prim layout (default: %(default)s)")
     parser.add_argument("--skeleton", action="store_true",
@@ -37,6 +43,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     check_output_path(args.output, "-o", folder=False)
+    with output_lock(args.output, flag="-o"):
+        return animate(args)
+
+
+def animate(args: argparse.Namespace) -> int:
+    """Write the animation of ``main``'s parsed arguments (its output locked); the exit status."""
     from warpavatar.io.animation import motion_time_codes, posed_frames
     from warpavatar.io.usd import GaussianUsdWriter
 

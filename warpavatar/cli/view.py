@@ -18,14 +18,26 @@ Ctrl+C stops the server.
 Needs viser: pip install "warpavatar[view]" (or pip install viser). Its page is served from the installed
 package; nothing is fetched from the internet. To look from another machine, forward the port
 (ssh -L 8080:localhost:8080 host) or listen on every interface (--host 0.0.0.0).
+
+Only the viewer's own page may connect: a websocket whose Origin is another site (any other web page open in the
+browser) is refused, and so is one reaching this machine by a name other than localhost, an IP address or the
+--host name. Renders are capped at {side} pixels a side and {pixels:,} pixels in all ({per_pixel} bytes a pixel
+within {budget} MiB; 4K UHD fits): a larger request is scaled down, keeping its aspect.
 """
 
 TRAINING_MOTION_HELP = "the fit's training motion, training_poses.npz in the fit's output folder; the rest pose " \
                        "where the folder has none"
 
 
+def _description() -> str:
+    from warpavatar.io.viewer import MAX_RENDER_PIXELS, MAX_RENDER_SIDE, RENDER_BYTES_PER_PIXEL, RENDER_MEMORY_BUDGET
+
+    return DESCRIPTION.format(side=MAX_RENDER_SIDE, pixels=MAX_RENDER_PIXELS, per_pixel=RENDER_BYTES_PER_PIXEL,
+                              budget=RENDER_MEMORY_BUDGET // 2**20)
+
+
 def build_parser():
-    parser = avatar_parser("warpavatar-view", DESCRIPTION, motion=True, motion_default=TRAINING_MOTION_HELP)
+    parser = avatar_parser("warpavatar-view", _description(), motion=True, motion_default=TRAINING_MOTION_HELP)
     parser.add_argument("--port", type=int, default=8080,
                         help="TCP port of the page (default 8080; 0: any free port; a busy port moves on to the next "
                              "free one, and the address printed says which)")
@@ -34,8 +46,8 @@ def build_parser():
                              "interface)")
     parser.add_argument("--image-size", type=int, default=512, metavar="PIXELS",
                         help="height of the rendered images in pixels at start, at most the browser window's; the "
-                             "width follows the window's aspect (default 512; the page's 'resolution' slider "
-                             "changes it)")
+                             "width follows the window's aspect (default 512, at most 4096; the page's 'resolution' "
+                             "slider changes it)")
     parser.add_argument("--background", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("R", "G", "B"),
                         help="background colour of the renders in 0..1 (default black)")
     parser.add_argument("--skeleton", action="store_true", help="show the skeleton at start (default: hidden)")
@@ -62,10 +74,10 @@ def rest_motion(avatar):
 def build_viewer(args):
     """The :class:`~warpavatar.io.viewer.AvatarViewer` that ``args`` (of :func:`build_parser`) ask for, serving."""
     from warpavatar.fit.outputs import TRAINING_MOTION_NAME
-    from warpavatar.io.viewer import AvatarViewer
+    from warpavatar.io.viewer import MAX_RENDER_SIDE, AvatarViewer
 
-    if not 1 <= args.image_size <= 8192:
-        raise ValueError(f"--image-size must be between 1 and 8192 pixels, got {args.image_size}")
+    if not 1 <= args.image_size <= MAX_RENDER_SIDE:
+        raise ValueError(f"--image-size must be between 1 and {MAX_RENDER_SIDE} pixels, got {args.image_size}")
     if not 0 <= args.port <= 65535:
         raise ValueError(f"--port must be between 0 and 65535, got {args.port}")
     avatar = load_avatar(args)

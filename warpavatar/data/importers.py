@@ -14,6 +14,7 @@ from warpavatar.data.checks import (VideoFolderError, check_intrinsics, check_ri
 from warpavatar.data.reader import FRAME_EXTENSIONS, load_video_folder, read_image, read_skeleton
 from warpavatar.data.types import DEFAULT_FPS, Camera
 from warpavatar.data.writer import cameras_json, save_npz, staged_folder, write_json, write_png
+from warpavatar.io.images import ImageFileError, decode_image
 
 __all__ = ["import_instantavatar"]
 
@@ -40,9 +41,10 @@ def _instantavatar_mask(path: Path) -> np.ndarray:
                 raise VideoFolderError(path, "the mask holds non-finite values")
             return np.where(mask > 0.5, 255, 0).astype(np.uint8)
         return np.where(mask > (127 if mask.max(initial=0) > 1 else 0), 255, 0).astype(np.uint8)
-    mask = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if mask is None:
-        raise VideoFolderError(path, "cannot be read as an image (unreadable or corrupt)")
+    try:
+        mask = decode_image(path, flags=cv2.IMREAD_UNCHANGED)
+    except ImageFileError as error:
+        raise VideoFolderError(path, error.problem) from None
     if mask.ndim == 3:
         mask = mask[..., 0]
     if mask.dtype != np.uint8:
@@ -62,7 +64,7 @@ def import_instantavatar(src_folder: str | os.PathLike, dst_folder: str | os.Pat
     ``joint_positions`` [T, J, 3]; row t belongs to the t-th image; without ``frame_ids`` the frames are
     numbered 0..T-1) for the skeleton in ``skeleton_json`` (warpavatar-skeleton/1).
 
-    The folder is written under ``<dst_folder>.tmp``, validated with :func:`load_video_folder` and renamed.
+    The folder is written under a temporary name beside it, validated with :func:`load_video_folder` and renamed.
 
     Args:
         src_folder: the InstantAvatar-style folder.
@@ -70,7 +72,8 @@ def import_instantavatar(src_folder: str | os.PathLike, dst_folder: str | os.Pat
         skeleton_json: the skeleton.json to copy (validated).
         bone_transforms_npz: the per-frame bone transforms.
         fps: frame rate written to meta.json.
-        overwrite: replace an existing ``dst_folder`` instead of raising FileExistsError.
+        overwrite: replace an earlier video folder at ``dst_folder`` instead of raising FileExistsError (a folder
+            this project did not write is always refused).
 
     Returns:
         ``dst_folder`` as a Path.

@@ -16,9 +16,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from warpavatar.data.checks import (VideoFolderError, check_intrinsics, check_rigid, float_array, listed,
-                                    positive_int, read_json, read_npz, require_mapping)
+from warpavatar.data.checks import (VideoFolderError, check_fps, check_frame_ids, check_intrinsics,
+                                    check_mask_coverage, check_rigid, check_subject_in_view, float_array, listed,
+                                    positive_int, read_json, read_npz, require_mapping, warn_unusual)
 from warpavatar.data.types import DEFAULT_FPS, POSE_SOURCES, Camera, Skeleton, Subject, VideoFolder
+from warpavatar.io.images import ImageFileError, check_opencv_path, decode_image
 
 __all__ = ["FRAME_EXTENSIONS", "load_video_folder", "load_subject", "LazyVideoFolders", "demo_subject_path",
            "read_poses", "read_skeleton", "read_image"]
@@ -30,6 +32,8 @@ _VIDEO_EXTENSIONS = (".mp4", ".mov", ".avi")
 _FRAME_NAME = re.compile(r"^(\d{6,})\.(png|jpg|jpeg)$", re.IGNORECASE)
 _MAX_IMAGE_SIDE = 65536  # pixels; larger sizes in cameras.json are mistakes (16K video is 15360 wide)
 _MASK_THRESHOLD = 128  # a resized mask pixel is subject (255) when its area average reaches this value
+_MASK_SOFT_MARGIN = 0.1  # a mask value within this share of its scale from 0 or the scale counts as two-valued
+_MASK_SOFT_SHARE = 0.05  # masks with more pixels than this share between those margins are warned about
 
 
 def _list_frame_files(folder: Path) -> dict[int, Path]:
@@ -114,10 +118,7 @@ def read_poses(path: str | os.PathLike, *, joint_count: int) -> tuple[np.ndarray
     if frame_ids.shape != (frame_count,):
         raise VideoFolderError(path, f"frame count mismatch: 'frame_ids' has shape {list(frame_ids.shape)} but "
                                      f"'bone_transforms' has {frame_count} frames")
-    if np.any(frame_ids < 0) or np.any(frame_ids > np.iinfo(np.int32).max):
-        raise VideoFolderError(path, "'frame_ids' must be non-negative int32 values")
-    if np.any(np.diff(frame_ids) <= 0):
-        raise VideoFolderError(path, "'frame_ids' must be strictly increasing (unique, in time order)")
+    frame_ids = check_frame_ids(frame_ids, path, increasing=True)
     joint_positions = arrays.get("joint_positions")
     if joint_positions is not None:
         if joint_positions.shape != (frame_count, joint_count, 3):
@@ -137,7 +138,7 @@ def _camera_from_json(entry: Mapping, width: int, height: int, fallback: Mapping
     if "world_to_camera" not in entry and "world_to_camera" not in fallback:
         raise VideoFolderError(path, f"{what} has no 'world_to_camera'")
     K = float_array(entry.get("K", fallback.get("K")), (3, 3), path, f"{what} 'K'")
-    check_intrinsics(K, path, f"{what} 'K'")
+    check_intrinsics(K, path, f"{what} 'K'", width=width, height=height)
     world_to_camera = float_array(entry.get("world_to_camera", fallback.get("world_to_camera")), (4, 4), path,
                                    f"{what} 'world_to_camera'")
     check_rigid(world_to_camera, path, f"{what} 'world_to_camera'")
@@ -170,9 +171,7 @@ def _read_meta(path: Path) -> tuple[dict, np.ndarray, float]:
     if not path.exists():
         return {}, np.zeros(3, dtype=np.float32), DEFAULT_FPS
     meta = dict(require_mapping(read_json(path), path, "meta.json"))
-    fps = meta.get("fps", DEFAULT_FPS)
-    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps) or fps <= 0:
-        raise VideoFolderError(path, f"'fps' must be a positive finite number, got {fps!r}")
+    fps = check_fps(meta.get("fps", DEFAULT_FPS), path)
     if meta.get("poses", POSE_SOURCES[0]) not in POSE_SOURCES:
         raise VideoFolderError(path, f"'poses' must be one of {', '.join(map(repr, POSE_SOURCES))}, "
                                      f"got {meta['poses']!r}")
@@ -207,9 +206,10 @@ def _resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
 
 def _decode_image(path: Path) -> np.ndarray:
     """An image file as 8-bit BGR [H,W,3] or BGRA [H,W,4]: grey is replicated, 16-bit is rounded to 8-bit."""
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
-    if image is None or image.size == 0:
-        raise VideoFolderError(path, "cannot be read as an image (unreadable or corrupt)")
+    try:
+        image = decode_image(path)  # byte-safe paths, header size checked, codec warnings silenced
+    except ImageFileError as error:
+        raise VideoFolderError(path, error.problem) from None
     if image.dtype == np.uint16:
         image = np.round(image / 257.0).astype(np.uint8)
     elif image.dtype != np.uint8:
@@ -273,12 +273,27 @@ def _read_frames(paths: list[Path], width: int, height: int, out_width: int, out
     return images, np.stack(alphas)
 
 
-def _read_mask_file(path: Path, width: int, height: int, out_width: int, out_height: int) -> np.ndarray:
-    mask = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if mask is None:
-        raise VideoFolderError(path, "cannot be read as an image (unreadable or corrupt)")
-    if mask.dtype != np.uint8:
-        raise VideoFolderError(path, f"masks must be 8-bit, got {mask.dtype}")
+def _mask_scale(mask: np.ndarray) -> int:
+    """The value that marks the subject in a mask: 1 when every value is 0 or 1, else 255 (an 8-bit mask, or a
+    16-bit one whose values stay below 256), else 65535."""
+    largest = int(mask.max()) if mask.size else 0
+    return 1 if largest <= 1 else 255 if largest <= 255 else 65535
+
+
+def _read_mask_file(path: Path, width: int, height: int, out_width: int,
+                    out_height: int) -> tuple[np.ndarray, float]:
+    """A mask file as 0/255 uint8 [out_height, out_width], and the share of its pixels that are not close to two
+    values (farther than :data:`_MASK_SOFT_MARGIN` of its scale from both 0 and the scale).
+
+    Whatever its scale (:func:`_mask_scale`: 0/1, 0/255, 0/65535), a pixel is the subject where its value reaches
+    half the scale.
+    """
+    try:
+        mask = decode_image(path, flags=cv2.IMREAD_UNCHANGED)
+    except ImageFileError as error:
+        raise VideoFolderError(path, error.problem) from None
+    if mask.dtype not in (np.uint8, np.uint16):
+        raise VideoFolderError(path, f"masks must be 8- or 16-bit, got {mask.dtype}")
     if mask.ndim == 3:
         if mask.shape[2] in (3, 4) and np.array_equal(mask[..., 0], mask[..., 1]) \
                 and np.array_equal(mask[..., 0], mask[..., 2]):
@@ -288,7 +303,11 @@ def _read_mask_file(path: Path, width: int, height: int, out_width: int, out_hei
     if mask.shape != (height, width):
         raise VideoFolderError(path, f"image size mismatch: the mask is {mask.shape[1]}x{mask.shape[0]} "
                                      f"but the frames are {width}x{height}")
-    return _resize_mask(mask, out_width, out_height)
+    scale = _mask_scale(mask)
+    values = mask.astype(np.float32) / scale
+    soft = float(np.mean((values > _MASK_SOFT_MARGIN) & (values < 1.0 - _MASK_SOFT_MARGIN))) if scale > 1 else 0.0
+    subject = np.where(values >= 0.5, 255, 0).astype(np.uint8)
+    return _resize_mask(subject, out_width, out_height), soft
 
 
 def _read_into(read, paths: list[Path]) -> None:
@@ -306,6 +325,11 @@ def _read_into(read, paths: list[Path]) -> None:
 
 def _read_video_frames(path: Path, frame_ids: np.ndarray, width: int, height: int, out_width: int,
                        out_height: int) -> np.ndarray:
+    try:
+        check_opencv_path(path)
+    except ValueError:
+        raise VideoFolderError(path, "the path is not valid UTF-8, which OpenCV needs to open a video; rename "
+                                     "the file or its folders") from None
     capture = cv2.VideoCapture(str(path))
     if not capture.isOpened():
         raise VideoFolderError(path, "cannot be opened as a video")
@@ -329,6 +353,25 @@ def _read_video_frames(path: Path, frame_ids: np.ndarray, width: int, height: in
     finally:
         capture.release()
     return images
+
+
+def _warn_about_soft_masks(paths: list[Path], soft_shares: np.ndarray) -> None:
+    soft = soft_shares > _MASK_SOFT_SHARE
+    if soft.any():
+        first = int(np.argmax(soft))
+        others = f" (and {int(soft.sum()) - 1} more masks)" if soft.sum() > 1 else ""
+        warn_unusual(paths[first], f"not a two-valued mask: {soft_shares[first]:.0%} of its pixels lie between 0 "
+                                   f"and full scale{others}; read as subject where at least half of full scale")
+
+
+def _check_subject_in_view(cameras: list[Camera], skeleton: Skeleton, bone_transforms: np.ndarray,
+                           frame_ids: np.ndarray, path: Path) -> None:
+    """Every pose row's camera must see its posed joints (:func:`~warpavatar.data.checks.check_subject_in_view`)."""
+    joints = np.einsum("tjab,jb->tja", bone_transforms[..., :3, :3].astype(np.float64),
+                       skeleton.heads.astype(np.float64)) + bone_transforms[..., :3, 3]
+    check_subject_in_view(np.stack([camera.world_to_camera for camera in cameras]),
+                          np.stack([camera.K for camera in cameras]), joints, width=cameras[0].width,
+                          height=cameras[0].height, frame_ids=frame_ids, path=path)
 
 
 def _check_selection(max_frames, frame_stride, scale) -> None:
@@ -387,8 +430,13 @@ def load_video_folder(path: str | os.PathLike, *, max_frames: int | None = None,
         frames are kept, but only the kept frames are decoded.
 
     Raises:
-        VideoFolderError: a missing or invalid file (the message names it), see ``docs/data.md``.
+        VideoFolderError: a missing or invalid file (the message names it), see ``docs/data.md``, or data that
+            cannot show the subject (``docs/FORMAT.md``, "Checks on load": implausible focal lengths, the subject
+            behind the camera or outside the image, empty masks in most frames).
         TypeError, ValueError: bad ``max_frames``, ``frame_stride`` or ``scale``.
+
+    Warns:
+        VideoFolderWarning: a few frames without the subject, or masks that are not two-valued.
     """
     _check_selection(max_frames, frame_stride, scale)
     root = Path(path)
@@ -397,6 +445,7 @@ def load_video_folder(path: str | os.PathLike, *, max_frames: int | None = None,
     poses_path = root / "poses.npz"
     bone_transforms, frame_ids, joint_positions = read_poses(poses_path, joint_count=skeleton.joint_count)
     cameras = _read_cameras(root / "cameras.json", len(frame_ids))
+    _check_subject_in_view(cameras, skeleton, bone_transforms, frame_ids, root / "cameras.json")
     meta, background, fps = _read_meta(root / "meta.json")
 
     frames_dir = root / "frames"
@@ -449,11 +498,16 @@ def load_video_folder(path: str | os.PathLike, *, max_frames: int | None = None,
     if mask_files is not None:
         paths = [mask_files[int(frame_id)] for frame_id in frame_ids]
         masks = np.empty((len(paths), out_height, out_width), np.uint8)
+        soft_shares = np.zeros(len(paths))
 
         def read_mask(index: int, path: Path) -> None:
-            masks[index] = _read_mask_file(path, width, height, out_width, out_height)
+            masks[index], soft_shares[index] = _read_mask_file(path, width, height, out_width, out_height)
 
         _read_into(read_mask, paths)
+        _warn_about_soft_masks(paths, soft_shares)
+    if masks is not None:
+        check_mask_coverage(masks, frame_ids, masks_dir if mask_files is not None else frames_dir,
+                            "masks" if mask_files is not None else "alpha masks")
 
     return VideoFolder(root=root, frame_ids=frame_ids, images=images, masks=masks, cameras=kept_cameras,
                        skeleton=skeleton, bone_transforms=bone_transforms, joint_positions=joint_positions,

@@ -136,23 +136,42 @@ class Skeleton:
                                              f"index, got {parent!r:.40}")
             names.append(joint["name"])
             parents.append(parent)
-            heads.append(float_array(joint["head"], (3,), path, f"joint {index} ({joint['name']}) 'head'"))
-            tails.append(float_array(joint["tail"], (3,), path, f"joint {index} ({joint['name']}) 'tail'"))
-        duplicates = sorted({name for name in names if names.count(name) > 1})
-        if duplicates:
+            heads.append(joint["head"])
+            tails.append(joint["tail"])
+        heads, tails = _joint_points(heads, names, path, "head"), _joint_points(tails, names, path, "tail")
+        if len(set(names)) < len(names):  # a set, not names.count per name: linear in the joint count
+            seen: set[str] = set()
+            duplicates = sorted({name for name in names if name in seen or seen.add(name)})
             raise VideoFolderError(path, f"joint names must be unique; repeated: {listed(duplicates)}")
         _check_parents(np.asarray(parents, dtype=np.int64), names, path)
-        return cls(names=names, parents=np.asarray(parents, dtype=np.int32), heads=np.stack(heads),
-                   tails=np.stack(tails), up=up)
+        ends = np.concatenate([heads, tails])
+        if not np.any(ends.max(axis=0) > ends.min(axis=0)):
+            point = [round(float(value), 6) for value in heads[0]]
+            raise VideoFolderError(path, f"every joint's head and tail lie at one point {point}: the skeleton has "
+                                         "no size (its rest pose needs joints apart)")
+        return cls(names=names, parents=np.asarray(parents, dtype=np.int32), heads=heads, tails=tails, up=up)
+
+
+def _joint_points(values: list, names: list[str], path: Path, key: str) -> np.ndarray:
+    """The joints' ``key`` points ('head' or 'tail') as float64 [J, 3]: checked all at once, and joint by joint
+    only to name the first bad one."""
+    try:
+        return float_array(values, (len(values), 3), path, f"'{key}'")
+    except VideoFolderError:
+        for index, value in enumerate(values):
+            float_array(value, (3,), path, f"joint {index} ({names[index]}) '{key}'")
+        raise
 
 
 def _check_parents(parents: np.ndarray, names: list[str], path: Path) -> None:
-    """Parents must index existing joints (-1 for a root) and form a forest with at least one root."""
+    """Parents must index existing joints (-1 for a root) and form a forest with at least one root; linear in the
+    joint count (each joint's chain is followed only up to a joint already settled)."""
     joint_count = len(parents)
-    for index, parent in enumerate(parents):
-        if parent < -1 or parent >= joint_count:
-            raise VideoFolderError(
-                path, f"joint {index} ({names[index]}) has parent {parent}, outside -1..{joint_count - 1}: not a tree")
+    outside = np.flatnonzero((parents < -1) | (parents >= joint_count))
+    if outside.size:
+        index = int(outside[0])
+        raise VideoFolderError(path, f"joint {index} ({names[index]}) has parent {parents[index]}, outside "
+                                     f"-1..{joint_count - 1}: not a tree")
     if not np.any(parents == -1):
         raise VideoFolderError(path, "no joint has parent -1: the skeleton has no root (parents form a cycle)")
     # Follow each joint's chain of parents up to a joint already known to reach a root; meeting a joint of

@@ -1,90 +1,58 @@
 """Writing video folders atomically: everything goes to a temporary sibling folder that is renamed into place
 once complete, so an interrupted or failed write never leaves a half-written folder under the final name.
 
-:func:`staged_folder` is that mechanism for any writer (``write_video_folder``, the InstantAvatar importer,
-``warpavatar-prepare``); :func:`write_json`, :func:`write_png` and :func:`save_npz` write the files of a
-video folder as docs/FORMAT.md lays them out.
+:func:`staged_folder` (:mod:`warpavatar.io.output_files`, re-exported here) is that mechanism for any writer
+(``write_video_folder``, the InstantAvatar importer, ``warpavatar-prepare``); it marks the folder as a
+``video-folder`` output, and replaces an existing folder only when it is such an output. :func:`write_json`,
+:func:`write_png` and :func:`save_npz` write the files of a video folder as docs/FORMAT.md lays them out, each
+through a temporary name, checked (a full disk is one clear error).
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
-import shutil
-from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from warpavatar.data.types import Camera, VideoFolder
+from warpavatar.io.images import write_image
+from warpavatar.io.output_files import atomic_open, staged_folder, write_text_atomic
 
 __all__ = ["staged_folder", "write_json", "write_png", "save_npz", "write_poses", "cameras_json", "write_video_folder"]
 
 
-@contextlib.contextmanager
-def staged_folder(destination: str | os.PathLike, *, overwrite: bool = False) -> Iterator[Path]:
-    """Write a folder atomically: yields the empty temporary folder ``<destination>.tmp`` to write into; when
-    the block ends normally it takes ``destination``'s place (replacing it), otherwise it is removed.
-
-    Args:
-        destination: the folder to create.
-        overwrite: replace an existing ``destination`` instead of raising FileExistsError.
-    """
-    destination = Path(destination)
-    if destination.exists() and not overwrite:
-        raise FileExistsError(f"{destination} already exists (pass overwrite=True to replace it)")
-    tmp = destination.with_name(destination.name + ".tmp")
-    if tmp.exists():
-        shutil.rmtree(tmp)  # left over from an interrupted run
-    destination.parent.mkdir(parents=True, exist_ok=True)
-    tmp.mkdir()
-    try:
-        yield tmp
-        if destination.exists():
-            old = destination.with_name(destination.name + ".old")
-            if old.exists():
-                shutil.rmtree(old)
-            destination.rename(old)
-            tmp.rename(destination)
-            shutil.rmtree(old)
-        else:
-            tmp.rename(destination)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
 def write_json(path: Path, value) -> None:
     """``value`` as indented JSON text (UTF-8, final newline)."""
-    path.write_text(json.dumps(value, indent=1) + "\n", encoding="utf-8")
+    write_text_atomic(path, json.dumps(value, indent=1) + "\n", fsync=False)
 
 
 def write_png(path: Path, image: np.ndarray, *, compression: int = 9) -> None:
-    """An 8-bit image (BGR or single channel) as a PNG (``compression`` 0-9: zlib level, 9 the smallest)."""
-    if not cv2.imwrite(str(path), image, [cv2.IMWRITE_PNG_COMPRESSION, compression]):
-        raise OSError(f"{path}: cannot be written")
+    """An 8-bit image (BGR or single channel) as a PNG (``compression`` 0-9: zlib level, 9 the smallest), through
+    a temporary name (a file of a staged folder: not synced)."""
+    rgb = image[..., ::-1] if image.ndim == 3 else image
+    write_image(path, rgb, params=[cv2.IMWRITE_PNG_COMPRESSION, compression], fsync=False)
 
 
 def save_npz(path: Path, **arrays) -> None:
     """Arrays as a compressed .npz archive."""
-    with open(path, "wb") as stream:
+    with atomic_open(path, fsync=False) as stream:
         np.savez_compressed(stream, **arrays)
 
 
 def write_poses(path: str | os.PathLike, bone_transforms, frame_ids, *, joint_positions=None, **extra) -> Path:
     """A ``poses.npz`` of docs/FORMAT.md (``bone_transforms`` [T,J,4,4] float32, ``frame_ids`` [T] int32, optional
-    ``joint_positions`` [T,J,3] float32, and any ``extra`` arrays such as ``fps``), written to a temporary name
-    and renamed."""
+    ``joint_positions`` [T,J,3] float32, and any ``extra`` arrays such as ``fps``), written to a temporary name,
+    synced and renamed."""
     path = Path(path)
     arrays = {"bone_transforms": np.asarray(bone_transforms, dtype=np.float32),
               "frame_ids": np.asarray(frame_ids, dtype=np.int32), **extra}
     if joint_positions is not None:
         arrays["joint_positions"] = np.asarray(joint_positions, dtype=np.float32)
-    tmp = path.with_name(path.name + ".tmp")
-    save_npz(tmp, **arrays)
-    os.replace(tmp, path)
+    with atomic_open(path) as stream:
+        np.savez_compressed(stream, **arrays)
     return path
 
 
@@ -110,7 +78,8 @@ def write_video_folder(video: VideoFolder, path: str | os.PathLike, *, overwrite
     Args:
         video: what to write; its ``cameras`` become a fixed camera when they are all equal.
         path: the folder to create.
-        overwrite: replace an existing folder instead of raising FileExistsError.
+        overwrite: replace an earlier video folder this project wrote (its marker says so) instead of raising
+            FileExistsError; any other non-empty folder is refused (:func:`staged_folder`).
 
     Returns:
         ``path`` as a Path.

@@ -1,4 +1,4 @@
-"""TAGA's backward mapping: find and correct "ambiguous" Gaussians (paper 004, Sec. 3.2-3.4, appendix C).
+"""TAGA's backward mapping: find and correct "ambiguous" Gaussians (TAGA, Sec. 3.2-3.4, appendix C).
 
 Without a body template, the forward fit can skin a Gaussian to the wrong bone (armpit Gaussians that follow
 the arm, Gaussians between the legs that follow the other leg) while still rendering the training view right.

@@ -82,12 +82,12 @@ class FitContext:
     Attributes:
         avatar: the avatar being fitted (:class:`~warpavatar.model.avatar.Avatar`); its Gaussians are replaced
             as density control renumbers them, so read ``avatar.gaussians`` when needed.
-        frames: the training frames (:class:`~warpavatar.fit.frames.TrainingFrames`): ``count``,
+        frames: the training frames (:class:`~warpavatar.fit.training_frames.TrainingFrames`): ``count``,
             ``bone_transforms`` [T,J,4,4], ``intervals`` [T] and ``seconds`` (seconds since the frame before),
             ``times`` [T] (seconds), ``skeleton``.
         config: the whole fit configuration (core fields and every enabled extension's options).
         extent: half the diagonal of the canonical box [world units]: the length scale of a fit.
-        skinning: the skinning-field stage (:class:`~warpavatar.fit.skinning.SkinningStage`): ``field``,
+        skinning: the skinning-field stage (:class:`~warpavatar.fit.skinning_field_stage.SkinningStage`): ``field``,
             ``grid(...)``, ``add_joints(parents)``.
         density: the density control (:class:`~warpavatar.fit.density.DensityControl`): ``visible_count`` [N],
             the steps each Gaussian was seen in since the last densification round.

@@ -1,4 +1,4 @@
-"""SMAD's secondary dynamics (paper 000, Sec. 3.1-3.2 and appendix B): a velocity-encoded Gaussian graph whose
+"""SMAD's secondary dynamics (SMAD, Sec. 3.1-3.2 and appendix B): a velocity-encoded Gaussian graph whose
 nodes move by a mass-spring-damper system, stepped by explicit (semi-implicit) Euler, under forces a
 message-passing network predicts from the body's motion.
 

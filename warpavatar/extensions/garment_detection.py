@@ -72,7 +72,7 @@ The rule, each threshold a geometric statement rather than a tuned number:
 Robots, animals and tightly dressed people should get weights inside one chain everywhere except at small
 patches, so that no region passes rules 3 and 5 and the fit runs exactly as without the garment extension.
 On the H100 a field still settling does blend a robot's legs now and then (two robot fits of this kind: at
-step 3000 of one, at step 5000 of another), so rule 8 is the last word. ``tools/garment_report.py`` runs rules 1-7 on a saved avatar.
+step 3000 of one, at step 5000 of another), so rule 8 is the last word. ``research/garment_report.py`` runs rules 1-7 on a saved avatar.
 """
 
 from __future__ import annotations

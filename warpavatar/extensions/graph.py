@@ -1,4 +1,4 @@
-"""SMAD's Gaussian graph (paper 000, Sec. 3.2-3.3), shared by the secondary-motion extensions.
+"""SMAD's Gaussian graph (SMAD, Sec. 3.2-3.3), shared by the secondary-motion extensions.
 
 The canonical Gaussians are voxel-downsampled into graph *nodes*, joined by k-NN edges (k = 16) whose rest
 offsets are those of the canonical shape. A secondary-motion part gives every node a displacement in the

@@ -1,4 +1,4 @@
-"""ToMiE's modular skeleton growth (paper 003, Sec. 4.1-4.4): extra joints where garments do not follow the body.
+"""ToMiE's modular skeleton growth (ToMiE, Sec. 4.1-4.4): extra joints where garments do not follow the body.
 
 Where LBS on the given skeleton cannot follow a part of the subject (a skirt swinging off the legs, an object
 in the hand), the Gaussians there keep large position gradients. Growth happens once, at step ``grow_at`` of a

@@ -452,9 +452,8 @@ class PoseRefinementExtension(Extension):
             self.part.write_poses(folder / "poses_refined.npz")
 
     def summary_lines(self) -> list[str]:
-        if self.part is None:
-            return ["poses used as given: meta.json does not say they are estimated (--refine-poses on refines "
-                    "them anyway)"]
+        if self.part is None:  # poses used as given: nothing to report
+            return []
         corrections = self.part.corrections()
         return [f"poses refined: {float(corrections['angle_deg'].mean()):.2f} deg per joint and "
                 f"{float(corrections['root_offset'].mean()) * 1000:.1f} mm at the root on average "

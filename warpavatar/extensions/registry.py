@@ -7,10 +7,11 @@ import importlib.metadata
 import warnings
 
 from warpavatar.extensions.base import Extension
+from warpavatar.model.parts import EXTENSION_ENTRY_POINT_GROUP
 
 __all__ = ["register", "unregister", "registered", "get_extension", "load_entry_points", "ENTRY_POINT_GROUP"]
 
-ENTRY_POINT_GROUP = "warpavatar.extensions"
+ENTRY_POINT_GROUP = EXTENSION_ENTRY_POINT_GROUP
 """Entry-point group through which installed packages add extensions (each entry an Extension subclass)."""
 
 _REGISTRY: dict[str, type[Extension]] = {}

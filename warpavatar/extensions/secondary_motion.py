@@ -1,4 +1,4 @@
-"""Secondary motion of the training instants on SMAD's Gaussian graph (paper 000, Sec. 3.2-3.3).
+"""Secondary motion of the training instants on SMAD's Gaussian graph (SMAD, Sec. 3.2-3.3).
 
 Loose cloth (a skirt that flares and swings) does not follow the skeleton: its shape at an instant depends on
 the motion before it. On SMAD's graph (:mod:`warpavatar.extensions.graph`), every training frame ``t`` has a

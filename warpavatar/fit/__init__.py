@@ -5,5 +5,6 @@ from warpavatar.fit.checkpoint import CHECKPOINT_NAME
 from warpavatar.fit.config import FitConfig
 from warpavatar.fit.presets import preset, preset_names, preset_values
 from warpavatar.fit.trainer import Trainer
+from warpavatar.fit.training_frames import load_training_video
 
-__all__ = ["FitConfig", "preset", "preset_names", "preset_values", "Trainer", "CHECKPOINT_NAME"]
+__all__ = ["FitConfig", "preset", "preset_names", "preset_values", "Trainer", "CHECKPOINT_NAME", "load_training_video"]

@@ -45,14 +45,15 @@ def _check_choices(values) -> None:
 class FitConfig:
     """Every knob of a fit. Iteration counts are optimizer steps (one training frame each)."""
 
-    iterations: int = _core(8000, "total optimizer steps (one training frame per step)", group="data and schedule",
+    iterations: int = _core(8000, "total optimizer steps, one training frame each [steps]", group="data and schedule",
                             product=True)
     seed: int = _core(0, "random seed: on the CPU the fit is deterministic for a given seed; on CUDA the "
                          "gradients' atomic sums make two fits of one seed differ slightly",
                       group="data and schedule", product=True)
-    image_scale: float = _core(1.0, "resize training frames by this factor (K is scaled to match)",
+    image_scale: float = _core(1.0, "resize training frames by this factor, the intrinsics K with them [times the "
+                               "frames' size]",
                                group="data and schedule", product=True)
-    max_train_frames: int = _core(0, "use at most this many training frames, evenly spaced (0 = all)",
+    max_train_frames: int = _core(0, "use at most this many training frames, evenly spaced (0 = all) [frames]",
                                   group="data and schedule", product=True)
     matmul_precision: str = _core(
         "tf32", "precision of the float32 matrix products of the MLPs (skinning field, pose correction) on CUDA, "
@@ -62,27 +63,32 @@ class FitConfig:
         "'fp32' (full float32 products: slower, as fits before this option); no effect on a CPU",
         group="data and schedule", product=True, choices=MATMUL_PRECISIONS)
     # Initialization (TAGA Sec. 3.1, no body template) and the Gaussians
-    init_points_per_bone: int = _core(400, "Gaussians sampled around each bone's midpoint at start", group="Gaussians")
+    init_points_per_bone: int = _core(400, "Gaussians sampled around each bone's midpoint at start [Gaussians per "
+                                      "bone]", group="Gaussians")
     init_carve: bool = _core(True, "also seed Gaussians by carving the canonical box with the training masks",
                              group="Gaussians")
-    init_carve_candidates: int = _core(200000, "random canonical points tested against the masks when carving",
+    init_carve_candidates: int = _core(200000, "random canonical points tested against the masks when carving [points]",
                                        group="Gaussians")
-    init_carve_points: int = _core(20000, "at most this many carved points are kept", group="Gaussians")
-    sh_degree: int = _core(3, "spherical-harmonics degree of the colours (0 = view-independent)", group="Gaussians")
-    sh_increase_every: int = _core(1000, "raise the active SH degree by one every this many steps", group="Gaussians")
+    init_carve_points: int = _core(20000, "at most this many carved points are kept [points]", group="Gaussians")
+    sh_degree: int = _core(3, "spherical-harmonics degree of the colours (0 = view-independent) [degree]",
+                           group="Gaussians")
+    sh_increase_every: int = _core(1000, "raise the active SH degree by one every this many steps [steps]",
+                                   group="Gaussians")
     # Skinning field (TAGA Sec. 3.1, appendix C)
     grid_cells: int = _core(128, "voxel skinning grid cells along the longest canonical axis (TAGA: 64x64x16; "
-                            "128 measured 0.3 dB better on novel views, BENCHMARKS.md)", group="skinning field")
-    grid_min_cells: int = _core(16, "fewest voxel cells along any axis", group="skinning field")
-    field_hidden: int = _core(128, "hidden width of the skinning-field MLP", group="skinning field")
-    field_layers: int = _core(4, "hidden layers of the skinning-field MLP", group="skinning field")
-    field_frequencies: int = _core(6, "positional-encoding frequencies of the skinning-field MLP input",
+                            "128 measured 0.3 dB better on novel views, BENCHMARKS.md) [cells]", group="skinning field")
+    grid_min_cells: int = _core(16, "fewest voxel cells along any axis [cells]", group="skinning field")
+    field_hidden: int = _core(128, "hidden width of the skinning-field MLP [features]", group="skinning field")
+    field_layers: int = _core(4, "hidden layers of the skinning-field MLP [layers]", group="skinning field")
+    field_frequencies: int = _core(6, "positional-encoding frequencies of the skinning-field MLP input [octaves]",
                                    group="skinning field")
     skinning_prior_temperature: float = _core(
         0.02, "temperature of the rigid bone-distance skinning prior that the field's warm-up distils and carving "
-        "poses points with, as a fraction of the skeleton's size: small values give each point its nearest bone, "
-        "larger ones blend neighbouring bones (loose garments)", group="skinning field")
-    field_warmup_steps: int = _core(600, "warm-up steps that distil a rigid bone-distance prior into the field",
+        "poses points with: small values give each point its nearest bone, larger ones blend neighbouring bones "
+        "(loose garments) [fraction of the skeleton's size]",
+        group="skinning field")
+    field_warmup_steps: int = _core(600, "warm-up steps that distil a rigid bone-distance prior into the field, "
+                                    "before the fit's first step [distillation steps]",
                                     group="skinning field")
     field_cells: str = _core(
         "active", "grid points at which a training step evaluates the skinning-field MLP: 'active' (those that "
@@ -91,15 +97,18 @@ class FitConfig:
         "which no step reads; the loss and its gradient are those of 'all') or 'all' (every grid point, every "
         "step)",
         group="skinning field", choices=("active", "all"))
-    field_cells_every: int = _core(100, "steps between choices of the active grid points (--field-cells active)",
+    field_cells_every: int = _core(100, "steps between choices of the active grid points (--field-cells active) "
+                                   "[steps]",
                                    group="skinning field")
-    field_warmup_batch: int = _core(32768, "grid points per warm-up step, drawn at random (0 = every grid point)",
+    field_warmup_batch: int = _core(32768, "grid points per warm-up step, drawn at random (0 = every grid point) "
+                                    "[grid points]",
                                     group="skinning field")
-    gaussian_only_steps: int = _core(1500, "steps after warm-up where only the Gaussians train (field frozen)",
+    gaussian_only_steps: int = _core(1500, "steps after warm-up where only the Gaussians train (field frozen) [steps]",
                                      group="skinning field")
     field_lr: float = _core(1e-3, "Adam learning rate of the skinning-field MLP (and of the networks that train "
-                            "with it)", group="skinning field")
-    lambda_bone: float = _core(5.0, "weight of the bone regularization (one-hot weights at bone midpoints)",
+                            "with it) [Adam step size]", group="skinning field")
+    lambda_bone: float = _core(5.0, "weight of the bone regularization (one-hot weights at bone midpoints) "
+                               "[loss weight]",
                                group="skinning field")
     # Colours
     shading: str = _core("world", "'world': colours follow how the body faces a fixed light rig (evaluated from "
@@ -112,40 +121,47 @@ class FitConfig:
                         "the flat background the frames were rendered over, so their anti-aliased edge pixels "
                         "stay; 'masked' otherwise)", group="losses", product=True,
                         choices=("auto", "frame", "masked"))
-    lambda_ssim: float = _core(0.2, "weight of (1 - SSIM) in the photometric loss", group="losses")
-    lambda_mask: float = _core(0.1, "weight of the L1 loss between rendered alpha and the foreground mask",
+    lambda_ssim: float = _core(0.2, "weight of (1 - SSIM) in the photometric loss [fraction, 0-1]", group="losses")
+    lambda_mask: float = _core(0.1, "weight of the L1 loss between rendered alpha and the foreground mask "
+                               "[loss weight]",
                                group="losses")
     lambda_scale: float = _core(0.0, "weight of a penalty on Gaussian scales above 5 % of the canonical extent "
-                                "(world units)", group="losses")
+                                "(world units) [loss weight]", group="losses")
     # Optimizer (3DGS rates; positions scaled by the canonical extent)
-    lr_position: float = _core(1.6e-4, "initial position learning rate, times the canonical extent",
+    lr_position: float = _core(1.6e-4, "initial position learning rate [Adam step size, times the canonical extent]",
                                group="optimizer")
-    lr_position_final: float = _core(1.6e-6, "final position learning rate, times the canonical extent",
+    lr_position_final: float = _core(1.6e-6, "final position learning rate [Adam step size, times the canonical "
+                                     "extent]",
                                      group="optimizer")
-    lr_scale: float = _core(5e-3, "learning rate of log-scales", group="optimizer")
-    lr_rotation: float = _core(1e-3, "learning rate of quaternions", group="optimizer")
-    lr_opacity: float = _core(2.5e-2, "learning rate of opacity logits", group="optimizer")
-    lr_color: float = _core(2.5e-3, "learning rate of SH DC coefficients (higher orders use 1/20 of it)",
+    lr_scale: float = _core(5e-3, "learning rate of log-scales [Adam step size]", group="optimizer")
+    lr_rotation: float = _core(1e-3, "learning rate of quaternions [Adam step size]", group="optimizer")
+    lr_opacity: float = _core(2.5e-2, "learning rate of opacity logits [Adam step size]", group="optimizer")
+    lr_color: float = _core(2.5e-3, "learning rate of SH DC coefficients, higher orders 1/20 of it [Adam step size]",
                             group="optimizer")
     # Adaptive density control
-    densify_from: int = _core(500, "first step of densification (after the warm-up)", group="density control")
-    densify_until: int = _core(6000, "last step of densification", group="density control")
-    densify_every: int = _core(100, "steps between densification rounds", group="density control")
-    densify_grad_threshold: float = _core(2e-4, "mean screen-space gradient (NDC) above which a Gaussian is cloned "
-                                          "or split", group="density control")
-    densify_percent_dense: float = _core(0.01, "relative size (of the canonical extent) separating clone from "
-                                         "split", group="density control")
-    max_gaussians: int = _core(200000, "Gaussian budget: the densification threshold rises as the count nears it",
-                               group="density control")
-    prune_opacity: float = _core(0.005, "Gaussians whose opacity falls below this are pruned",
+    densify_from: int = _core(500, "first step of densification (after the warm-up) [step]", group="density control")
+    densify_until: int = _core(6000, "last step of densification [step]", group="density control")
+    densify_every: int = _core(100, "steps between densification rounds [steps]", group="density control")
+    densify_grad_threshold: float = _core(2e-4, "mean screen-space gradient above which a Gaussian is cloned or "
+                                          "split [NDC units]", group="density control")
+    densify_percent_dense: float = _core(0.01, "size separating clone from split [fraction of the canonical "
+                                         "extent]", group="density control")
+    max_gaussians: int = _core(200000, "the most Gaussians the fit holds, a hard cap: a densification round clones "
+                               "and splits only as many as stay within it (those of the largest gradients), and an "
+                               "initialization with more keeps a random subset [Gaussians]", group="density control")
+    densify_slowdown: float = _core(0.0, "where density control slows down, as ToMiE's Gaussian budget (appendix "
+                                    "A.4): past this share of --max-gaussians the clone/split threshold rises with "
+                                    "the count, and from 1.5 times it no round densifies; 0 = never, the threshold "
+                                    "holds up to the cap [fraction of --max-gaussians]", group="density control")
+    prune_opacity: float = _core(0.005, "Gaussians whose opacity falls below this are pruned [opacity, 0-1]",
                                  group="density control")
-    prune_max_scale: float = _core(0.1, "Gaussians larger than this fraction of the canonical extent are pruned",
+    prune_max_scale: float = _core(0.1, "Gaussians larger than this are pruned [fraction of the canonical extent]",
                                    group="density control")
-    opacity_reset_every: int = _core(2500, "steps between opacity resets (0 = never)", group="density control")
+    opacity_reset_every: int = _core(2500, "steps between opacity resets (0 = never) [steps]", group="density control")
     # Book-keeping
-    log_every: int = _core(50, "steps between training-log lines (JSON lines)", group="book-keeping")
-    checkpoint_every: int = _core(1000, "steps between checkpoints (written atomically)", group="book-keeping")
-    preview_frames: int = _core(3, "training frames rendered as previews at the end", group="book-keeping")
+    log_every: int = _core(50, "steps between training-log lines (JSON lines) [steps]", group="book-keeping")
+    checkpoint_every: int = _core(1000, "steps between checkpoints (written atomically) [steps]", group="book-keeping")
+    preview_frames: int = _core(3, "training frames rendered as previews at the end [frames]", group="book-keeping")
     #: the enabled extensions' options by extension name (see :mod:`warpavatar.extensions`)
     extensions: dict = field(default_factory=dict)
 
@@ -235,6 +251,7 @@ _UNBOUNDED = float("inf")
 RANGES: dict[str, tuple[float, float, bool]] = {
     # name: (low, high, low excluded); sizes above ``high`` would exhaust memory or time long before a result
     "iterations": (1, 10_000_000, False),
+    "seed": (0, 2**63 - 1, False),  # torch's generators take seeds up to 2**64 - 1; int64 keeps them portable
     "image_scale": (0.0, 4.0, True),
     "max_train_frames": (0, _UNBOUNDED, False),
     "init_points_per_bone": (1, 100_000, False),
@@ -268,6 +285,7 @@ RANGES: dict[str, tuple[float, float, bool]] = {
     "densify_grad_threshold": (0.0, _UNBOUNDED, True),
     "densify_percent_dense": (0.0, 1.0, True),
     "max_gaussians": (1, 100_000_000, False),
+    "densify_slowdown": (0.0, 1.0, False),
     "prune_opacity": (0.0, 1.0, False),
     "prune_max_scale": (0.0, _UNBOUNDED, True),
     "opacity_reset_every": (0, _UNBOUNDED, False),

@@ -1,15 +1,40 @@
-"""Adaptive density control (3DGS) with a Gaussian budget (ToMiE appendix A.4), as its own strategy."""
+"""Adaptive density control (3DGS) under a hard cap on the Gaussian count, slowed past a soft budget (ToMiE
+appendix A.4), as its own strategy."""
 
 from __future__ import annotations
 
+import math
+
 import torch
 
-__all__ = ["DensityControl"]
+__all__ = ["DensityControl", "strongest"]
+
+
+def strongest(grad_norm: torch.Tensor, *, threshold: float, count: int) -> torch.Tensor:
+    """``grad_norm`` [N] with only its ``count`` largest values at or above ``threshold`` (> 0) kept there: the
+    other values at or above it become 0, so that at most ``count`` Gaussians pass the threshold (ties go to the
+    lower index). When no more than ``count`` pass it, ``grad_norm`` itself (not a copy) is returned; a ``count``
+    of at least N returns it without reading the device."""
+    if count >= grad_norm.shape[0]:
+        return grad_norm
+    selected = grad_norm >= threshold
+    if int(selected.sum()) <= count:
+        return grad_norm
+    ranked = torch.where(selected, grad_norm, torch.full_like(grad_norm, -math.inf))
+    order = torch.sort(ranked, descending=True, stable=True).indices[:max(count, 0)]
+    kept = torch.zeros_like(selected)
+    kept[order] = True
+    return torch.where(kept | ~selected, grad_norm, torch.zeros_like(grad_norm))
 
 
 class DensityControl:
     """Clones and splits the Gaussians whose screen-space gradient stays large, prunes the faint and the huge,
     resets opacities, and tells the fit's extensions when the Gaussians are renumbered.
+
+    ``max_gaussians`` is a hard cap: a round clones and splits at most as many Gaussians as keep the count at or
+    below it (those of the largest gradients; a split adds one Gaussian, as a clone does). Past the budget,
+    ``densify_slowdown`` times the cap (when set), the clone/split threshold rises with the count, and from 1.5
+    times the budget no round densifies (ToMiE A.4).
 
     Args:
         config: the fit configuration (``densify_*``, ``max_gaussians``, ``prune_*``, ``opacity_reset_every``).
@@ -52,16 +77,17 @@ class DensityControl:
         if in_window and step > 0 and step % config.densify_every == 0:
             count = gaussians.count
             threshold = config.densify_grad_threshold
-            budget = config.max_gaussians
-            if count > budget:  # ToMiE A.4: raise the threshold as the count passes the budget
+            budget = config.densify_slowdown * config.max_gaussians  # ToMiE A.4's budget (0: none)
+            if budget and count > budget:  # ToMiE A.4: raise the threshold as the count passes the budget
                 threshold *= 2.0 + (count - budget) / (budget / 6.0)
             grad_norm = (self.grad_accum / self.visible_count.clamp_min(1)[:, None]).norm(dim=-1)
             for extension in extensions:
                 extension.before_densify(self.visible_count)
             source = torch.arange(count, device=self.grad_accum.device)
-            if count < 1.5 * budget:
-                source = gaussians.densify(grad_norm, threshold=threshold,
-                                           size_split=config.densify_percent_dense * self.extent,
+            room = config.max_gaussians - count
+            if room > 0 and not (budget and count >= 1.5 * budget):
+                source = gaussians.densify(strongest(grad_norm, threshold=threshold, count=room),
+                                           threshold=threshold, size_split=config.densify_percent_dense * self.extent,
                                            generator=self.generator)
             max_scale = gaussians.scales.detach().max(dim=1).values
             keep = (gaussians.opacities.detach() > config.prune_opacity) & (

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from warpavatar.fit.frames import evenly_spaced
+from warpavatar.fit.training_frames import evenly_spaced
 from warpavatar.model.skinning_field import bone_distance_prior
 
 __all__ = ["initial_gaussians"]
@@ -60,6 +60,9 @@ def initial_gaussians(skeleton, video, config, *, generator: torch.Generator, de
     pad = 0.08 * float((hi - lo).max())
     bbox_min, bbox_max = lo - pad, hi + pad
     positions = torch.maximum(torch.minimum(positions, bbox_max), bbox_min)
+    if positions.shape[0] > config.max_gaussians:  # the cap holds from the start (the box keeps every seed)
+        kept = torch.randperm(positions.shape[0], generator=generator)[:config.max_gaussians].sort().values
+        positions = positions[kept]
     colours = _initial_colours(positions, heads, tails, video, temperature=temperature)
     return positions.to(device), colours.to(device), bbox_min.to(device), bbox_max.to(device)
 

@@ -1,5 +1,5 @@
 """What a finished fit writes besides the avatar: the canonical Gaussians as a 3DGS .ply, the training motion and
-preview images."""
+preview images; each file through a temporary name of its own and checked (:mod:`warpavatar.io.output_files`)."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from warpavatar.data import write_poses
+from warpavatar.io.images import write_image
 from warpavatar.io.ply import write_gaussian_ply
 
 __all__ = ["TRAINING_MOTION_NAME", "write_canonical_ply", "write_training_motion", "write_previews"]
@@ -36,8 +37,6 @@ def write_training_motion(frames, path: str | Path) -> None:
 @torch.no_grad()
 def write_previews(avatar, frames, folder: str | Path, *, count: int) -> None:
     """``render | ground truth`` PNGs of ``count`` evenly spaced training frames, named by frame number."""
-    import cv2
-
     folder = Path(folder)
     folder.mkdir(exist_ok=True)
     for index in frames.spread(count):
@@ -46,4 +45,4 @@ def write_previews(avatar, frames, folder: str | Path, *, count: int) -> None:
         target, _ = frames.target(index)
         row = torch.cat([image, target], dim=1).clamp(0, 1).cpu().numpy()
         path = folder / f"{frames.frame_id(index):06d}.png"
-        cv2.imwrite(str(path), cv2.cvtColor((row * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
+        write_image(path, (row * 255).round().astype(np.uint8))

@@ -2,7 +2,7 @@
 
 Stages (TAGA appendix C): (1) warm-up: the skinning field alone distils a rigid bone-distance prior; (2)
 Gaussian-only: the Gaussians train under that frozen field; (3) joint: the field trains too, with the bone
-regularization (:class:`~warpavatar.fit.skinning.SkinningStage`). Adaptive density control runs with a
+regularization (:class:`~warpavatar.fit.skinning_field_stage.SkinningStage`). Adaptive density control runs with a
 Gaussian budget (:class:`~warpavatar.fit.density.DensityControl`). Every optional part of the avatar is an
 extension (:mod:`warpavatar.extensions`) whose hooks the loop calls in the registry's order: the loss is the
 sum of ``weight * value`` over the terms that the core and each extension return, logged by name.
@@ -19,16 +19,17 @@ from pathlib import Path
 import torch
 import tqdm
 
+from warpavatar._src.graphs.step_graph import StepGraph
 from warpavatar._src.precision import matmul_precision, mlp_precision
 from warpavatar.extensions import FitContext, LossTerm, StepContext, get_extension
-from warpavatar.fit.checkpoint import CHECKPOINT_NAME, read_checkpoint, save_checkpoint
-from warpavatar.fit.config import FitConfig, changed_options
+from warpavatar.fit.checkpoint import CHECKPOINT_NAME, check_resume, read_checkpoint, save_checkpoint, training_record
+from warpavatar.fit.config import FitConfig
 from warpavatar.fit.density import DensityControl
-from warpavatar.fit.frames import TrainingFrames
+from warpavatar.fit.training_frames import TrainingFrames
 from warpavatar.fit.init import initial_gaussians
 from warpavatar.fit.outputs import TRAINING_MOTION_NAME, write_canonical_ply, write_previews, write_training_motion
-from warpavatar.fit.skinning import SkinningStage
-from warpavatar.fit.step_graph import StepGraph
+from warpavatar.fit.skinning_field_stage import SkinningStage
+from warpavatar.io.output_files import append_text, write_text_atomic
 from warpavatar.metrics import image_loss_terms, psnr
 from warpavatar.model import Avatar, GaussianModel, VoxelSkinningField
 from warpavatar.model.capacity import IntersectionCapacity
@@ -40,7 +41,7 @@ class Trainer:
     """Fits an :class:`~warpavatar.model.avatar.Avatar` to one video folder.
 
     Args:
-        video: the training :class:`~warpavatar.data.VideoFolder` (already loaded, possibly rescaled).
+        video: the training :class:`~warpavatar.data.VideoFolder` (:func:`~warpavatar.fit.load_training_video`).
         config: the fit configuration.
         output_dir: where checkpoints, the avatar file, the log and previews go.
         device: torch device to train on.
@@ -284,6 +285,7 @@ class Trainer:
             "generator": self.generator.get_state(),
             "frame_order": list(self.frame_order),
             "extensions": {extension.name: extension.state_dict() for extension in self.extensions},
+            "training": training_record(self.frames.video),
         }
 
     def save_checkpoint(self) -> Path:
@@ -291,13 +293,7 @@ class Trainer:
 
     def load_checkpoint(self, path: str | os.PathLike) -> None:
         state = read_checkpoint(path)
-        changed = [f"--{name.replace('_', '-')}: {'(off)' if saved is None else saved} in the checkpoint vs "
-                   f"{'(off)' if given is None else given} given"
-                   for name, saved, given in changed_options(FitConfig.from_dict(state["config"]), self.config)]
-        if changed:
-            raise ValueError(f"{path}: the checkpoint was made with other options ({'; '.join(changed)}); resume "
-                             "with the checkpoint's options, or start over with --overwrite or in a new output "
-                             "folder")
+        check_resume(path, state, config=self.config, video=self.frames.video)  # same options, skeleton, folder
         self.avatar.gaussians = GaussianModel.from_checkpoint(state["gaussians"], device=self.device)
         self._make_gaussian_optimizer()
         self.gaussians.optimizer.load_state_dict(state["gaussian_optimizer"])
@@ -335,7 +331,7 @@ class Trainer:
             self.load_checkpoint(checkpoint)
         else:
             self.log_path.unlink(missing_ok=True)
-            (self.output_dir / "config.json").write_text(config.to_json())
+            write_text_atomic(self.output_dir / "config.json", config.to_json())
             warm = self.skinning.warmup(config.field_warmup_steps)
             self._log({"stage": "warmup", "distillation_loss": warm, "gaussians": self.gaussians.count})
         start_time = time.time()
@@ -360,8 +356,7 @@ class Trainer:
         return self.avatar
 
     def _log(self, record: dict) -> None:
-        with open(self.log_path, "a", encoding="utf-8") as f:
-            f.write(json.dumps(record) + "\n")
+        append_text(self.log_path, json.dumps(record) + "\n")
 
     def summary_lines(self) -> list[str]:
         """What the extensions report about the finished fit (for the command line)."""

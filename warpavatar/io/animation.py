@@ -16,8 +16,11 @@ from typing import Iterator, Mapping
 import numpy as np
 import torch
 
-__all__ = ["OrbitCamera", "orbit_cameras", "read_cameras_json", "posed_frames", "parse_frame_range",
-           "read_grown_rotations", "motion_time_codes"]
+from warpavatar.data.checks import check_intrinsics, check_rigid
+from warpavatar.io.images import MAX_IMAGE_SIDE
+
+__all__ = ["OrbitCamera", "orbit_cameras", "read_cameras_json", "RENDER_ROTATION_TOLERANCE", "posed_frames",
+           "parse_frame_range", "read_grown_rotations", "motion_time_codes"]
 
 
 @dataclass
@@ -103,8 +106,26 @@ def orbit_cameras(skeleton, frame_count: int, *, width: int = 512, height: int =
     return cameras
 
 
+RENDER_ROTATION_TOLERANCE = 1e-4
+"""The largest entry of ``|R^T R - I|`` accepted for the rotation part of a ``--camera`` extrinsic."""
+
+
+def _check_render_camera(camera: OrbitCamera, path: Path, what: str) -> None:
+    """A camera to render from must be plausible: focal lengths within ``FOCAL_RANGE`` times the larger image side
+    and an extrinsic whose rotation part is a rotation (docs/FORMAT.md, "Checks on load")."""
+    check_intrinsics(camera.K.astype(np.float64), path, f"{what} 'K'", width=camera.width, height=camera.height)
+    check_rigid(camera.world_to_camera.astype(np.float64), path, f"{what} 'world_to_camera'",
+                tolerance=RENDER_ROTATION_TOLERANCE)
+
+
 def read_cameras_json(path: str | Path, frame_count: int) -> list[OrbitCamera]:
-    """Cameras from a docs/FORMAT.md ``cameras.json`` (fixed, or one per frame), one per motion frame."""
+    """Cameras from a docs/FORMAT.md ``cameras.json`` (fixed, or one per frame), one per motion frame.
+
+    Raises:
+        ValueError: the file is unreadable or malformed, too few per-frame cameras, focal lengths outside
+            ``FOCAL_RANGE`` times the larger image side, or an extrinsic whose rotation part is not a rotation within
+            :data:`RENDER_ROTATION_TOLERANCE` (the message names the file).
+    """
     path = Path(path)
     try:
         spec = json.loads(path.read_text())
@@ -119,8 +140,13 @@ def read_cameras_json(path: str | Path, frame_count: int) -> list[OrbitCamera]:
             if not (np.isfinite(K).all() and np.isfinite(w2c).all()):
                 raise ValueError("non-finite camera values")
             cameras.append(OrbitCamera(K, w2c, width, height))
-    except (OSError, KeyError, TypeError, json.JSONDecodeError, ValueError) as error:
+    except (OSError, KeyError, TypeError, json.JSONDecodeError, ValueError, OverflowError, RecursionError) as error:
         raise ValueError(f"{path}: not a usable cameras.json ({error})") from error
+    if not (1 <= width <= MAX_IMAGE_SIDE and 1 <= height <= MAX_IMAGE_SIDE):
+        raise ValueError(f"{path}: the camera's 'width' and 'height' must be 1 to {MAX_IMAGE_SIDE} pixels, got "
+                         f"{width}x{height}")
+    for index, camera in enumerate(cameras):
+        _check_render_camera(camera, path, "the camera" if len(cameras) == 1 else f"frames[{index}]")
     if len(cameras) == 1:
         return cameras * frame_count
     if len(cameras) < frame_count:

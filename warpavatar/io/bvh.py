@@ -21,6 +21,7 @@ import re
 
 import numpy as np
 
+from warpavatar.data.checks import FPS_RANGE
 from warpavatar.data.types import MAX_JOINT_DEPTH
 
 __all__ = ["BvhError", "BvhMotion", "parse_bvh", "bvh_rest_positions", "bvh_forward_kinematics",
@@ -207,8 +208,10 @@ def parse_bvh(path: str | os.PathLike) -> BvhMotion:
         frame_time = float(time_match.group(1))
     except ValueError:
         raise BvhError(f"{path}, line {header[1][1]}: bad Frame Time {time_match.group(1)!r}") from None
-    if not np.isfinite(frame_time) or frame_time <= 0:
-        raise BvhError(f"{path}, line {header[1][1]}: Frame Time must be > 0, got {frame_time}")
+    shortest, longest = 1.0 / FPS_RANGE[1], 1.0 / FPS_RANGE[0]
+    if not (np.isfinite(frame_time) and shortest <= frame_time <= longest):
+        raise BvhError(f"{path}, line {header[1][1]}: Frame Time must be from {shortest:g} to {longest:g} seconds "
+                       f"({FPS_RANGE[1]:g} to {FPS_RANGE[0]:g} frames per second), got {time_match.group(1)}")
     channel_total = sum(len(c) for c in channels)
     text = " ".join(lines[row:]).split()
     if len(text) != frame_count * channel_total:

@@ -8,7 +8,6 @@ finiteness and rigidity, with errors that name the file.
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import zipfile
 import zlib
@@ -16,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from warpavatar.data.checks import VideoFolderError, check_fps, check_frame_ids, read_json
 from warpavatar.io.bvh import BvhError, match_joint_names, parse_bvh, retarget_bvh
 
 __all__ = ["Motion", "MotionError", "load_motion", "check_bone_transforms"]
@@ -105,7 +105,10 @@ def _read_npz(path: str) -> tuple[np.ndarray, np.ndarray | None, float | None]:
                 raise MotionError(f"{path}: no 'bone_transforms' array (found {archive.files})")
             bone_transforms = archive["bone_transforms"]
             frame_ids = archive["frame_ids"] if "frame_ids" in archive.files else None
-            fps = float(archive["fps"]) if "fps" in archive.files else None
+            fps = archive["fps"] if "fps" in archive.files else None
+            if fps is not None and fps.shape not in ((), (1,)):
+                raise MotionError(f"{path}: 'fps' must be one number, got an array of shape {list(fps.shape)}")
+            fps = None if fps is None else fps.reshape(-1)[0]
     except MotionError:
         raise
     except (OSError, ValueError, zipfile.BadZipFile, zlib.error, EOFError, TypeError) as error:
@@ -117,10 +120,9 @@ def _read_fps(meta_path: str) -> float | None:
     if not os.path.exists(meta_path):
         return None
     try:
-        with open(meta_path, encoding="utf-8") as stream:
-            meta = json.load(stream)
-    except (OSError, ValueError) as error:
-        raise MotionError(f"{meta_path}: cannot read as JSON: {error}") from None
+        meta = read_json(Path(meta_path))
+    except VideoFolderError as error:
+        raise MotionError(str(error)) from None
     fps = meta.get("fps") if isinstance(meta, dict) else None
     return None if fps is None else fps
 
@@ -146,7 +148,8 @@ def load_motion(source: str | os.PathLike, skeleton, *, name_map: dict | None = 
 
     Raises:
         MotionError: missing or unreadable files, an unknown source type, wrong joint count, non-finite
-            or non-rigid transforms, a bad fps, an empty selection, BVH errors; the message names the file.
+            or non-rigid transforms, an fps outside 0.01..1000 (``FPS_RANGE``), frame ids outside 0..2**31 - 1,
+            an empty selection, BVH errors; the message names the file.
         TypeError: ``frames`` is not a slice.
     """
     if frames is not None and not isinstance(frames, slice):
@@ -193,11 +196,9 @@ def load_motion(source: str | os.PathLike, skeleton, *, name_map: dict | None = 
     if fps is None:
         fps = DEFAULT_FPS
     try:
-        fps = float(fps)
-    except (TypeError, ValueError):
-        raise MotionError(f"{fps_source}: fps must be a number, got {fps!r}") from None
-    if not (np.isfinite(fps) and fps > 0):
-        raise MotionError(f"{fps_source}: fps must be a finite number > 0, got {fps}")
+        fps = check_fps(fps, fps_source, "fps")
+    except VideoFolderError as error:
+        raise MotionError(str(error)) from None
 
     bone_transforms = check_bone_transforms(bone_transforms, joint_count=joint_count, source=described)
     frame_count = bone_transforms.shape[0]
@@ -207,6 +208,10 @@ def load_motion(source: str | os.PathLike, skeleton, *, name_map: dict | None = 
     if frame_ids.shape != (frame_count,) or frame_ids.dtype.kind not in "iu":
         raise MotionError(f"{described}: frame_ids must be {frame_count} integers, got shape "
                           f"{list(frame_ids.shape)} dtype {frame_ids.dtype}")
+    try:  # a motion's rows may come in any order (motion_time_codes), but ids outside int32 would wrap
+        frame_ids = check_frame_ids(frame_ids, described, increasing=False)
+    except VideoFolderError as error:
+        raise MotionError(str(error)) from None
     if frames is not None:
         bone_transforms = bone_transforms[frames]
         frame_ids = frame_ids[frames]

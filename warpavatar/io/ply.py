@@ -23,6 +23,8 @@ import os
 
 import numpy as np
 
+from warpavatar.io.output_files import atomic_open
+
 __all__ = ["write_gaussian_ply", "read_gaussian_ply"]
 
 # PLY scalar type names (both spellings of the standard) -> numpy little-endian dtype codes.
@@ -103,8 +105,10 @@ def _property_names(rest_count: int) -> list[str]:
 def write_gaussian_ply(path: str | os.PathLike, *, means, quats, scales, opacities, sh_coeffs) -> str:
     """Write Gaussians to a 3DGS ``.ply`` file (binary little endian, float32).
 
-    The file is written under a temporary name in the same folder and renamed into place, so a reader
-    never sees a half-written file and an error leaves any existing file at ``path`` untouched.
+    The file is written under a temporary name of its own in the same folder and renamed into place
+    (:func:`~warpavatar.io.output_files.atomic_open`), so a reader never sees a half-written file and an error
+    (a full disk: :class:`~warpavatar.io.output_files.DiskFullError`) leaves any existing file at ``path``
+    untouched and no temporary file.
 
     Args:
         path: destination file.
@@ -149,17 +153,9 @@ def write_gaussian_ply(path: str | os.PathLike, *, means, quats, scales, opaciti
     header += "end_header\n"
 
     path = os.fspath(path)
-    # Same folder (so the rename is atomic), unique per process, default permissions (unlike mkstemp's 0600).
-    temporary = f"{path}.{os.getpid()}.tmp"
-    try:
-        with open(temporary, "wb") as stream:
-            stream.write(header.encode("ascii"))
-            stream.write(vertices.tobytes())
-        os.replace(temporary, path)
-    except BaseException:
-        if os.path.exists(temporary):
-            os.remove(temporary)
-        raise
+    with atomic_open(path) as stream:
+        stream.write(header.encode("ascii"))
+        stream.write(vertices.tobytes())
     return path
 
 

@@ -32,13 +32,16 @@ matrices are their transposes).
 
 from __future__ import annotations
 
+import errno
 import numbers
 import os
+import re
 
 import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom, UsdSkel, UsdVol, Vt
 
 from warpavatar.geometry import SH_C0, quat_from_matrix
+from warpavatar.io.output_files import disk_full_error, temporary_path
 from warpavatar.io.ply import _check_array
 
 __all__ = ["GaussianUsdWriter", "read_gaussian_usd", "gaussian_extent", "LAYOUTS"]
@@ -48,6 +51,18 @@ LAYOUTS = ("particlefield", "points")
 
 _EXTENT_SIGMAS = 3.0
 _FLUSH_BYTES = 64 * 2**20
+
+
+def _save_error(path: str, error: Exception) -> OSError:
+    """usd-core's multi-line ``Tf.ErrorException`` of a failed create or save as one line naming ``path``: a
+    :class:`~warpavatar.io.output_files.DiskFullError` where the disk filled up."""
+    text = str(error)
+    for code in (errno.ENOSPC, errno.EDQUOT):
+        if os.strerror(code) in text:
+            return disk_full_error(path, code)
+    messages = re.findall(r" : '(.*)'\s*$", text, flags=re.MULTILINE)
+    reason = messages[0] if messages else " ".join(text.split())
+    return OSError(f"{path}: USD cannot write the file ({reason})")
 
 
 def gaussian_extent(positions: np.ndarray, orientations: np.ndarray, scales: np.ndarray,
@@ -154,8 +169,9 @@ class GaussianUsdWriter:
             for t, (x, q, s) in enumerate(frames):
                 w.write_frame(t, positions=x, orientations=q, scales=s)
 
-    Until :meth:`close`, the data goes to ``<path without extension>.tmp.usdc`` in the same folder (missing
-    folders are created); a writer dropped without :meth:`close` deletes it.
+    Until :meth:`close`, the data goes to a temporary file of its own in the same folder,
+    ``<path without extension>.tmp-<pid>-<hex>.usdc`` (missing folders are created); a writer dropped without
+    :meth:`close` deletes it. An error while saving (a full disk included) is one line naming ``path``.
 
     Args:
         path: destination, ending in ``.usdc`` or ``.usd`` (written in the binary crate format).
@@ -179,6 +195,8 @@ class GaussianUsdWriter:
     Raises:
         ValueError: bad path extension, layout, shapes, values or prim path.
         TypeError: non-numeric arrays or a malformed skeleton.
+        OSError: the file cannot be created or saved (:class:`~warpavatar.io.output_files.DiskFullError` for a
+            full disk), here or in :meth:`write_frame` and :meth:`close`; the temporary file is then removed.
     """
 
     def __init__(self, path: str | os.PathLike, *, layout: str = "particlefield", gaussian_count: int,
@@ -225,21 +243,21 @@ class GaussianUsdWriter:
         self.gaussian_count = count
         self.sh_degree = int(sh_degree)
         self.prim_path = prim_path
-        self.temporary_path = os.path.splitext(path)[0] + ".tmp.usdc"
+        self.temporary_path = os.fspath(temporary_path(path, suffix=".usdc"))
         frame_bytes = max(1, count * 4 * (3 + 4 + 3 + (1 if layout == "points" else 0)))
         self.flush_every = int(flush_every) if flush_every is not None else max(1, _FLUSH_BYTES // frame_bytes)
         self.time_codes: list[int] = []
         self._closed = False
         self._unsaved_frames = 0
 
-        if os.path.exists(self.temporary_path):
-            os.remove(self.temporary_path)  # left over by a crashed run
         try:
             layer = Sdf.Layer.CreateNew(self.temporary_path)
         except Tf.ErrorException as error:
-            raise OSError(f"cannot create the USD file {self.temporary_path!r}: {error}") from None
+            if os.path.exists(self.temporary_path):
+                os.remove(self.temporary_path)
+            raise _save_error(path, error) from None
         if layer is None:  # pragma: no cover - usd-core raises instead in practice
-            raise OSError(f"cannot create the USD file {self.temporary_path!r}")
+            raise OSError(f"{path}: USD cannot create the file")
         try:
             self._layer = layer
             self._stage = Usd.Stage.Open(layer)
@@ -247,7 +265,7 @@ class GaussianUsdWriter:
             self._skeleton = None
             if skeleton_fields is not None:
                 self._author_skeleton(prefixes[0], *skeleton_fields)
-            self._layer.Save()
+            self._save()
         except BaseException:
             self._discard()
             raise
@@ -431,11 +449,17 @@ class GaussianUsdWriter:
 
     # -- finishing -------------------------------------------------------------------------------
 
+    def _save(self) -> None:
+        try:
+            self._layer.Save()
+        except Tf.ErrorException as error:
+            raise _save_error(self.path, error) from None
+
     def _flush(self) -> None:
         if self.time_codes:
             self._stage.SetStartTimeCode(self.time_codes[0])
             self._stage.SetEndTimeCode(self.time_codes[-1])
-        self._layer.Save()
+        self._save()
         self._unsaved_frames = 0
 
     def close(self) -> str:
@@ -447,6 +471,7 @@ class GaussianUsdWriter:
         Raises:
             ValueError: no frame was written (the temporary file is removed).
             RuntimeError: the writer was aborted or closed already.
+            OSError: the final save failed (the temporary file is removed, ``path`` left as it was).
         """
         if self._closed:
             raise RuntimeError("GaussianUsdWriter is closed")
@@ -459,7 +484,11 @@ class GaussianUsdWriter:
             self.abort()
             raise
         self._release()
-        os.replace(self.temporary_path, self.path)
+        try:
+            os.replace(self.temporary_path, self.path)
+        except BaseException:
+            self._discard()
+            raise
         return self.path
 
     def abort(self) -> None:

@@ -9,14 +9,21 @@ state wins), and plays the motion at its frame rate by skipping frames where ren
 
 The page has a timeline (frame index), play/pause, the playback rate, the skeleton (line segments between the
 posed joints, the joints grown by ``--grow-joints`` in another colour) and the render resolution.
+
+What a browser sends is not trusted: only pages loaded from the viewer itself may open its websocket
+(:func:`origin_refusal`; any other web page the user has open could otherwise watch the renders and drive the
+controls), and the size of a render is capped (:func:`render_size`) whatever size the page asks for.
 """
 
 from __future__ import annotations
 
+import asyncio
+import ipaddress
 import math
 import sys
 import threading
 import time
+import urllib.parse
 
 import numpy as np
 import torch
@@ -24,10 +31,102 @@ import torch
 from warpavatar.geometry import quat_to_matrix
 from warpavatar.io.animation import OrbitCamera, orbit_cameras
 
-__all__ = ["opencv_camera", "skeleton_segments", "AvatarViewer"]
+__all__ = ["MAX_RENDER_SIDE", "RENDER_BYTES_PER_PIXEL", "RENDER_MEMORY_BUDGET", "MAX_RENDER_PIXELS", "render_size",
+           "origin_refusal", "opencv_camera", "skeleton_segments", "AvatarViewer"]
+
+MAX_RENDER_SIDE = 4096
+"""The widest and the tallest image the viewer renders [pixels], whatever a browser asks for."""
+
+RENDER_BYTES_PER_PIXEL = 64
+"""Memory one rendered pixel costs the server [bytes], rounded up: the rasterizer's per-pixel outputs and state
+(28 B, docs/rasterizer_memory.md) and the copies that turn its float image into a JPEG; measured on the CPU as
+about 40 B (peak resident memory of a 2048 x 2048 render)."""
+
+RENDER_MEMORY_BUDGET = 512 * 2**20
+"""The most memory [bytes] one render's pixels may take: ``width * height * RENDER_BYTES_PER_PIXEL`` stays within
+it."""
+
+MAX_RENDER_PIXELS = RENDER_MEMORY_BUDGET // RENDER_BYTES_PER_PIXEL
+"""The most pixels of one render, 8,388,608 (4K UHD, 3840 x 2160, fits; 4096 x 4096 does not)."""
 
 _SKELETON_COLOUR = (0.10, 0.85, 0.95)
 _GROWN_COLOUR = (1.00, 0.55, 0.10)
+_ORIGIN_REFUSED = 1008  # websocket close code: policy violation
+
+
+def render_size(canvas_width, canvas_height, *, rows) -> tuple[int, int]:
+    """The ``(width, height)`` [pixels] to render for a browser canvas of ``canvas_width`` x ``canvas_height``
+    pixels at a resolution of ``rows``: never more rows than the canvas has, the width following its aspect, then
+    scaled down, keeping the aspect, to at most :data:`MAX_RENDER_SIDE` a side and :data:`MAX_RENDER_PIXELS` in
+    all. A value that is not a positive finite number (a browser's bad message) counts as 1.
+    """
+
+    def positive(value) -> float:
+        try:
+            value = float(value)
+        except (TypeError, ValueError, OverflowError):
+            return 1.0
+        return min(value, 1e12) if math.isfinite(value) and value >= 1.0 else 1.0
+
+    canvas_width, canvas_height = positive(canvas_width), positive(canvas_height)
+    height = float(int(min(positive(rows), canvas_height)))
+    width = max(1.0, round(height * canvas_width / canvas_height))
+    shrink = min(1.0, MAX_RENDER_SIDE / width, MAX_RENDER_SIDE / height,
+                 math.sqrt(MAX_RENDER_PIXELS / (width * height)))
+    if shrink < 1.0:
+        width, height = max(1.0, math.floor(width * shrink)), max(1.0, math.floor(height * shrink))
+    return int(width), int(height)
+
+
+def _host_and_port(netloc: str, default_port: int) -> tuple[str, int] | None:
+    """``("name", port)`` of a ``name[:port]`` or ``[v6]:port`` network location; None when malformed."""
+    try:
+        parts = urllib.parse.urlsplit("//" + netloc)
+        port = parts.port
+    except ValueError:
+        return None
+    if not parts.hostname or parts.username is not None or parts.password is not None:
+        return None
+    return parts.hostname.lower(), default_port if port is None else port
+
+
+def origin_refusal(origin: str | None, host: str | None, *, listen_host: str) -> str | None:
+    """Why a websocket handshake with these ``Origin`` and ``Host`` headers is refused; None when it is accepted.
+
+    Accepted are pages loaded from the viewer itself: the ``Origin`` (an ``http`` or ``https`` page) must name the
+    host and port of the ``Host`` the browser connected to, and that host must be this machine by a name no web
+    page can redirect (``localhost``, an IP address, or ``listen_host`` as given to ``--host``), which keeps out
+    pages whose domain name was pointed at this machine (DNS rebinding). Browsers always send an ``Origin`` with a
+    websocket; a client without one is refused too.
+
+    Args:
+        origin: the handshake's ``Origin`` header (None: absent).
+        host: its ``Host`` header (None: absent).
+        listen_host: the address the viewer listens on.
+    """
+    if not origin:
+        return "no Origin header (only the viewer's own page may connect)"
+    try:
+        parts = urllib.parse.urlsplit(origin)
+    except ValueError:
+        parts = None
+    default_port = {"http": 80, "https": 443}.get(parts.scheme.lower()) if parts is not None else None
+    page = _host_and_port(parts.netloc, default_port) if default_port is not None else None
+    if page is None or parts.path not in ("", "/"):
+        return f"Origin {origin!r} is not a web page's origin"
+    served = _host_and_port(host or "", default_port)
+    if served is None:
+        return f"no usable Host header (got {host!r})"
+    if page != served:
+        return f"Origin {origin!r} is another site than the viewer ({served[0]}:{served[1]})"
+    name = served[0].strip("[]")
+    try:
+        ipaddress.ip_address(name)
+    except ValueError:
+        if name not in ("localhost", listen_host.lower()):
+            return (f"Origin {origin!r} names this machine by {name!r}, which a web page could point elsewhere; "
+                    "open the viewer at localhost, an IP address or the --host name")
+    return None
 
 
 def opencv_camera(camera_to_world_wxyz, position, vertical_fov: float, *, height: int, aspect: float) -> OrbitCamera:
@@ -138,7 +237,11 @@ class AvatarViewer:
         self._playing = play
         self._play_origin = (time.monotonic(), 0)
 
+        self.refused_connections = 0
+        self._refused_origins: set[str] = set()
+        self._listen_host = host
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self._refuse_foreign_pages()
         self.server.scene.set_up_direction(tuple(float(v) for v in np.asarray(avatar.skeleton.up)))
         self._set_initial_camera()
         self._build_gui(fps or motion.fps, image_height, show_skeleton)
@@ -146,6 +249,51 @@ class AvatarViewer:
         self.server.on_client_disconnect(self._on_disconnect)
         self._thread = threading.Thread(target=self._render_loop, name="warpavatar-view render", daemon=True)
         self._thread.start()
+
+    # -------------------------------------------------------------------------------------------- security
+    def _refuse_foreign_pages(self) -> None:
+        """Close every websocket whose handshake :func:`origin_refusal` refuses, before it receives or sends
+        anything.
+
+        viser (1.x) has no hook at the handshake, so this hooks its websocket server's connect callbacks: they run
+        once the handshake is done, after viser registers the client and before the client's first message is
+        read or anything is sent to it. Connections made while the viewer started are checked here too.
+        """
+        websocket_server = getattr(self.server, "_websock_server", None)
+        connections = getattr(websocket_server, "_live_connections", None)
+        if websocket_server is None or not isinstance(connections, dict):
+            self.server.stop()
+            import viser
+
+            raise RuntimeError("warpavatar-view cannot check the origin of connections with this version of viser "
+                               f"({viser.__version__}): pip install 'viser>=1.1,<2'")
+
+        async def refuse_foreign_page(client) -> None:
+            connection = connections.get(client.client_id)
+            if connection is not None and self._refused(connection):
+                await connection.close(_ORIGIN_REFUSED, "only the viewer's own page may connect")
+
+        websocket_server.on_client_connect(refuse_foreign_page)
+        loop = websocket_server._background_event_loop
+        for connection in list(connections.values()):
+            if self._refused(connection) and loop is not None:
+                asyncio.run_coroutine_threadsafe(connection.close(_ORIGIN_REFUSED, "only the viewer's own page may "
+                                                                                   "connect"), loop)
+
+    def _refused(self, connection) -> bool:
+        """Whether a websocket connection must be closed (:func:`origin_refusal`); says so once per origin."""
+        request = getattr(connection, "request", None)
+        headers = getattr(request, "headers", None)
+        origin = headers.get("Origin") if headers is not None else None
+        reason = origin_refusal(origin, headers.get("Host") if headers is not None else None,
+                                listen_host=self._listen_host)
+        if reason is None:
+            return False
+        self.refused_connections += 1
+        if str(origin) not in self._refused_origins:
+            self._refused_origins.add(str(origin))
+            print(f"warpavatar-view: refused a connection: {reason}", file=sys.stderr)
+        return True
 
     # ------------------------------------------------------------------------------------------------ page
     @property
@@ -297,9 +445,9 @@ class AvatarViewer:
             start = time.perf_counter()
             if frame != self.frame or self._posed is None:
                 self._pose(frame)
-            # never more pixels than the browser shows
-            rows = min(height, max(1, int(camera.image_height)))
-            view = opencv_camera(camera.wxyz, camera.position, camera.fov, height=rows, aspect=camera.aspect)
+            # never more pixels than the browser shows, nor than the caps allow
+            width, rows = render_size(camera.image_width, camera.image_height, rows=height)
+            view = opencv_camera(camera.wxyz, camera.position, camera.fov, height=rows, aspect=width / rows)
             image, _, _ = self.avatar.rasterize(self._posed, view, background=self.background)
             pixels = (image.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
             client.scene.set_background_image(pixels, format="jpeg", jpeg_quality=90)

@@ -27,7 +27,9 @@ import torch
 
 from warpavatar import ops
 from warpavatar._src.precision import check_matmul_precision
+from warpavatar._src.tensor_files import read_tensor_file
 from warpavatar.geometry import camera_centre
+from warpavatar.io.output_files import atomic_open
 from warpavatar.model.frozen import FrozenCanonical
 from warpavatar.model.gaussians import GaussianModel
 from warpavatar.model.parts import (AvatarPart, CanonicalGaussians, PoseFrame, frame_intervals, part_class_path,
@@ -299,11 +301,11 @@ class Avatar(torch.nn.Module):
         }
 
     def save(self, path: str | os.PathLike, *, config: dict | None = None) -> Path:
-        """Write the avatar file atomically (temporary name, then rename)."""
+        """Write the avatar file atomically (a temporary name of its own, synced, then renamed; a full disk is one
+        :class:`~warpavatar.io.output_files.DiskFullError` and leaves no file behind)."""
         path = Path(path)
-        tmp = path.with_name(path.name + ".tmp")
-        torch.save(self.state_for_file(config), tmp)
-        os.replace(tmp, path)
+        with atomic_open(path) as stream:
+            torch.save(self.state_for_file(config), stream)
         return path
 
     @classmethod
@@ -338,20 +340,28 @@ class Avatar(torch.nn.Module):
 
     @classmethod
     def load(cls, path: str | os.PathLike, *, device="cpu") -> "Avatar":
-        """Load an avatar file written by :meth:`save` (or an output folder containing ``avatar.pt``)."""
+        """Load an avatar file written by :meth:`save` (or an output folder containing ``avatar.pt``) with torch's
+        weights-only unpickler: nothing in the file runs.
+
+        Raises:
+            FileNotFoundError: no such file.
+            ValueError: a file holding objects other than tensors and plain containers (not loaded), one that
+                cannot be read, holds no dict, misses entries or is of another format; one line naming it.
+        """
         path = Path(path)
         if path.is_dir():
             path = path / "avatar.pt"
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no avatar file here (run warpavatar-fit first)")
-        try:
-            state = torch.load(path, map_location="cpu", weights_only=False)
-        except Exception as error:  # noqa: BLE001 - any unreadable file gets the same clear message
-            raise ValueError(f"{path}: cannot read the avatar file ({error})") from error
+        state = read_tensor_file(path, what="avatar file")  # tensors and plain containers only: nothing runs
         try:
             return cls.from_state(state, device=device)
-        except (KeyError, TypeError) as error:
+        except KeyError as error:
             raise ValueError(f"{path}: a damaged or incomplete avatar file (missing {error})") from None
+        except (TypeError, AttributeError, IndexError) as error:  # an entry of the wrong kind
+            raise ValueError(f"{path}: a damaged or incomplete avatar file ({error})") from None
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from None
 
 
 def _upgrade_legacy_state(state: dict) -> dict:

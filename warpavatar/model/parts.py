@@ -27,7 +27,9 @@ How a part is *fitted* (its losses, optimizers, schedule) is not the model's bus
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
 import math
+import sys
 from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar, Mapping
 
@@ -184,7 +186,10 @@ def part_class_path(part: AvatarPart) -> str:
 def part_from_file_state(name: str, entry: dict, *, device="cpu") -> AvatarPart:
     """Rebuild part ``name`` of an avatar file from its entry ``{"type": class path, "state": ...}``."""
     path = entry.get("type", "")
-    module_name, _, qualname = path.partition(":")
+    module_name, _, qualname = path.partition(":") if isinstance(path, str) else ("", "", "")
+    if not _importable_part_module(module_name):
+        raise ValueError(f"avatar file: part {name!r} names {path!r}, which is neither in warpavatar nor in a "
+                         "package that registers warpavatar extensions; it was not imported")
     try:
         cls = importlib.import_module(module_name)
         for attribute in qualname.split("."):
@@ -194,3 +199,24 @@ def part_from_file_state(name: str, entry: dict, *, device="cpu") -> AvatarPart:
     if not (isinstance(cls, type) and issubclass(cls, AvatarPart)):
         raise ValueError(f"avatar file: part {name!r} names {path!r}, which is not an avatar part")
     return cls.from_file_state(entry["state"], device=device)
+
+
+EXTENSION_ENTRY_POINT_GROUP = "warpavatar.extensions"
+"""The entry-point group through which installed packages register extensions (and so the parts they save)."""
+
+
+def _importable_part_module(module_name: str) -> bool:
+    """Whether an avatar file may make ``module_name`` be imported: a module of this package, one that is
+    imported already (importing it again runs nothing), or one of a top-level package that registers
+    extensions through :data:`EXTENSION_ENTRY_POINT_GROUP`. Any other name in a file is refused, so a crafted
+    file cannot run the top-level code of an arbitrary installed module."""
+    if not module_name or any(not part.isidentifier() for part in module_name.split(".")):
+        return False
+    top = module_name.partition(".")[0]
+    if top == "warpavatar" or module_name in sys.modules:
+        return True
+    try:
+        entry_points = importlib.metadata.entry_points(group=EXTENSION_ENTRY_POINT_GROUP)
+    except Exception:  # noqa: BLE001 - broken metadata of some distribution: trust none
+        return False
+    return any(entry.value.partition(":")[0].partition(".")[0] == top for entry in entry_points)

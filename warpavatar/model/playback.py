@@ -4,7 +4,7 @@ a CUDA graph.
 A :class:`Player` keeps every input of a frame in tensors of its own (the bone transforms, the camera matrices,
 the parts' explicit inputs), which :meth:`Player.render` refills before drawing, and rasterizes with a fixed
 intersection capacity (:func:`warpavatar.ops.rasterize_gaussians`), so a frame reads nothing from the device
-and, on CUDA, is captured once as a graph (:mod:`warpavatar._src.cuda_graph`) and replayed per frame. The first
+and, on CUDA, is captured once as a graph (:mod:`warpavatar._src.graphs.capture`) and replayed per frame. The first
 frame is drawn with exact buffers to learn how many (Gaussian, tile) pairs the avatar makes, and the capacity
 is set to ``capacity_factor`` times that. After every frame the player reads the most pairs a frame needed
 so far from a copy that travels to the host behind the frames' work
@@ -29,7 +29,7 @@ from typing import Any, Mapping
 
 import torch
 
-from warpavatar._src.cuda_graph import capture_or_fall_back, resolve_cuda_graph
+from warpavatar._src.graphs.capture import capture_or_fall_back, resolve_cuda_graph
 from warpavatar._src.precision import check_matmul_precision, mlp_dtype, mlp_precision
 from warpavatar.model.capacity import IntersectionCapacity
 from warpavatar.model.frozen import FrozenCanonical, tensor_versions

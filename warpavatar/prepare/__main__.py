@@ -2,6 +2,6 @@
 
 import sys
 
-from warpavatar.prepare.cli import main
+from warpavatar.cli.prepare import main
 
 sys.exit(main())

@@ -6,8 +6,8 @@ model, the extensions or the fit.
 """
 
 from warpavatar.sim.capsules import capsules_near, distance_to_segments, fit_body_capsules, pose_capsules
-from warpavatar.sim.cloth import Capsules, ClothGraph, ClothModel, ClothState, cloth_graph
-from warpavatar.sim.frames import nearest_nodes, node_rotations, ride_on_nodes
+from warpavatar.sim.mass_spring_cloth import Capsules, ClothGraph, ClothModel, ClothState, cloth_graph
+from warpavatar.sim.node_frames import nearest_nodes, node_rotations, ride_on_nodes
 
 __all__ = ["Capsules", "ClothGraph", "ClothModel", "ClothState", "cloth_graph", "fit_body_capsules", "pose_capsules",
            "capsules_near",

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from warpavatar.sim.cloth import Capsules
+from warpavatar.sim.mass_spring_cloth import Capsules
 
 __all__ = ["fit_body_capsules", "pose_capsules", "capsules_near", "select", "distance_to_segments"]
 

@@ -1,6 +1,6 @@
 """Is a simulated garment's error its geometry? Fit one instant's cloth nodes to the images and see what follows.
 
-    python tools/garment_oracle.py AVATAR SUBJECT --frames 20 55 80 [--steps 150] [--appearance] [--scale 1.0]
+    python -m research.garment_oracle AVATAR SUBJECT --frames 20 55 80 [--steps 150] [--appearance] [--scale 1.0]
         [--height-band 0.28 0.76] [--device cpu] [--json PATH]
 
 ``AVATAR`` is a fit's ``avatar.pt`` (or its folder) with a garment (``--garment auto`` found one); ``SUBJECT`` the
@@ -28,61 +28,19 @@ garment's Gaussians themselves (their number and cover) are.
 
 from __future__ import annotations
 
-import argparse
 import sys
-from contextlib import contextmanager
-from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_common import markdown_table  # noqa: E402
-from error_breakdown import height_band_mask, masked_psnr  # noqa: E402
+from research.common import (garment_appearance, garment_of, garment_tool_parser, load_garment_tool_inputs,
+                             markdown_table, masked_psnr, slab_of)
+from warpavatar import data
+from warpavatar.evaluate import write_json_atomic
+from warpavatar.geometry import match_pose
+from warpavatar.model import Avatar
 
-from warpavatar import data  # noqa: E402
-from warpavatar.evaluate import write_json_atomic  # noqa: E402
-from warpavatar.geometry import match_pose  # noqa: E402
-from warpavatar.model import Avatar  # noqa: E402
-
-__all__ = ["oracle_rows", "slab_of", "garment_tool_parser", "load_garment_tool_inputs"]
-
-MODES = ("rollout", "training view", "every view", "every view + appearance")
-
-# The garment Gaussians' parameters the appearance fits learn, with Adam steps as in 3DGS's defaults.
-_APPEARANCE_STEPS = {"sh_dc": 2.5e-3, "sh_rest": 1.25e-4, "opacity_logits": 0.05, "log_scales": 5e-3}
-
-
-@contextmanager
-def garment_appearance(avatar: Avatar, garment, *, trainable: bool = True):
-    """For the ``with`` block: the avatar's parameters frozen, but for Adam parameter groups (``[{"params",
-    "lr"}]``) of the garment Gaussians' colours (SH), opacity logits and log scales, whose gradients reach the
-    garment's Gaussians only; on exit their values (every Gaussian's) and every parameter's ``requires_grad`` flag
-    are put back. With ``trainable=False`` the groups are empty: everything stays frozen."""
-    looks = {name: getattr(avatar.gaussians, name) for name in _APPEARANCE_STEPS}
-    member = torch.zeros(avatar.gaussians.means.shape[0], dtype=torch.bool, device=avatar.gaussians.means.device)
-    member[garment.gaussian_ids] = True
-    kept = {name: tensor.detach().clone() for name, tensor in looks.items()}
-    flags = {parameter: parameter.requires_grad for parameter in avatar.parameters()}
-    hooks, groups = [], []
-    try:
-        for parameter in flags:
-            parameter.requires_grad_(False)
-        for name, tensor in looks.items():
-            if trainable:
-                tensor.requires_grad_(True)
-                shape = (-1,) + (1,) * (tensor.dim() - 1)
-                hooks.append(tensor.register_hook(lambda grad, keep=member.view(shape): grad * keep))
-                groups.append({"params": [tensor], "lr": _APPEARANCE_STEPS[name]})
-        yield groups
-    finally:
-        for hook in hooks:
-            hook.remove()
-        with torch.no_grad():
-            for name, tensor in looks.items():
-                tensor.copy_(kept[name])
-        for parameter, flag in flags.items():
-            parameter.requires_grad_(flag)
+__all__ = ["oracle_rows"]
 
 
 def _views_of(subject: data.Subject, frame_id: int) -> list[tuple[str, data.VideoFolder, int]]:
@@ -93,13 +51,6 @@ def _views_of(subject: data.Subject, frame_id: int) -> list[tuple[str, data.Vide
         if frame_id in ids:
             views.append((name, video, ids.index(frame_id)))
     return views
-
-
-def slab_of(video: data.VideoFolder, index: int, band: tuple[float, float]) -> np.ndarray:
-    """The pixels [H,W] (bool) of frame ``index`` between heights ``band`` (``tools/error_breakdown.py
-    --height-band``, measured at the posed root joint's depth)."""
-    root = video.bone_transforms[index][0].astype(np.float64) @ np.append(video.skeleton.heads[0], 1.0)
-    return height_band_mask(video.cameras[index], root[:3], video.skeleton.up, low=band[0], high=band[1])
 
 
 def _psnrs(image: torch.Tensor, video: data.VideoFolder, index: int, band: tuple[float, float]) -> tuple[float, float]:
@@ -127,9 +78,7 @@ def oracle_rows(avatar: Avatar, subject: data.Subject, frame_ids: list[int], *, 
     Raises:
         ValueError: the avatar has no garment, or a frame id is not among the training frames.
     """
-    garment = avatar.part("garment")
-    if garment is None or garment.node_count == 0:
-        raise ValueError("the avatar has no simulated garment (fit with --garment auto on a subject that has one)")
+    garment = garment_of(avatar)
     device = avatar.gaussians.means.device
     background = torch.as_tensor(subject.train.background, dtype=torch.float32, device=device)
     grid = avatar.field.grid_weights().detach()
@@ -187,34 +136,6 @@ def _training_instant(subject: data.Subject, fitted_poses: torch.Tensor, frame_i
         if float(matched):
             return int(row)
     raise ValueError(f"frame id {frame_id} is not one of the fit's training frames in {subject.train.root}")
-
-
-def garment_tool_parser(description: str) -> argparse.ArgumentParser:
-    """The arguments the garment diagnostics share: AVATAR, SUBJECT, ``--scale``, ``--height-band``, ``--device``
-    and ``--json`` (:func:`load_garment_tool_inputs` reads them)."""
-    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("avatar", help="a fit's avatar.pt, or its folder")
-    parser.add_argument("subject", help="the subject folder (train/ and novel_view/*)")
-    parser.add_argument("--scale", type=float, default=1.0, help="image scale of the folders (the fit's "
-                        "--image-scale)")
-    parser.add_argument("--height-band", type=float, nargs=2, default=(0.28, 0.76), metavar=("LOW", "HIGH"),
-                        help="the slab's heights [world units along the skeleton's up axis]")
-    parser.add_argument("--device", default="cpu", help="torch device")
-    parser.add_argument("--json", default=None, help="also write the rows to this JSON file")
-    return parser
-
-
-def load_garment_tool_inputs(parser: argparse.ArgumentParser, args) -> tuple[data.Subject, Avatar]:
-    """The subject and the avatar that :func:`garment_tool_parser`'s arguments name (the band checked first).
-
-    Raises:
-        data.VideoFolderError, ValueError, FileNotFoundError: unreadable inputs (the tools print them on one line).
-    """
-    if not args.height_band[0] < args.height_band[1]:
-        parser.error("--height-band LOW HIGH needs LOW < HIGH")
-    path = Path(args.avatar)
-    path = path / "avatar.pt" if path.is_dir() else path
-    return data.load_subject(args.subject, scale=args.scale), Avatar.load(path, device=args.device)
 
 
 def main(argv=None) -> int:

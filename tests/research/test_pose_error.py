@@ -1,4 +1,4 @@
-"""tools/pose_error.py: pose errors against exact poses, split along and across each frame's camera axis."""
+"""research/pose_error.py: pose errors against exact poses, split along and across each frame's camera axis."""
 
 import math
 
@@ -6,15 +6,17 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from conftest import load_tool
 
+from research import pose_error
 from warpavatar import data
 from warpavatar.model.kinematics import ancestor_jumps, corrected_transforms
+
+pytestmark = pytest.mark.research
 
 
 @pytest.fixture(scope="module")
 def tool():
-    return load_tool("pose_error")
+    return pose_error
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ from typing import Any, Callable
 
 import torch
 
-from warpavatar._src.cuda_graph import capture_or_fall_back, resolve_cuda_graph
+from warpavatar._src.graphs.capture import capture_or_fall_back, resolve_cuda_graph
 
 __all__ = ["StepGraph"]
 

@@ -1,4 +1,4 @@
-"""tools/view_coverage.py: which surface points a camera sees, and the seen share of a novel view's region."""
+"""research/view_coverage.py: which surface points a camera sees, and the seen share of a novel view's region."""
 
 import dataclasses
 import math
@@ -8,13 +8,16 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import load_tool, small_avatar
+from conftest import small_avatar
+from research import view_coverage
 from warpavatar import data
+
+pytestmark = pytest.mark.research
 
 
 @pytest.fixture(scope="module")
 def tool():
-    return load_tool("view_coverage")
+    return view_coverage
 
 
 def _camera(width=40, height=30, world_to_camera=None):

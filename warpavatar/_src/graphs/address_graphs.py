@@ -2,7 +2,7 @@
 cost, and without memory of their own.
 
 A rasterizer pass at avatar scale takes less GPU time than the host needs to queue its launches (issue #18), and
-a graph that owns its buffers (:mod:`warpavatar._src.splat_replay`) doubles the pass's memory on small images
+a graph that owns its buffers (:mod:`warpavatar._src.graphs.splat_replay`) doubles the pass's memory on small images
 (``docs/rasterizer_memory.md``). The work of one call is fixed by its kernels' arguments: the addresses of the
 buffers it reads and writes, their sizes and a few scalars. Callers that allocate the same buffers in the same
 order call after call get the same addresses back from torch's caching allocator. So :class:`AddressKeyedGraphs`

@@ -1,11 +1,11 @@
 """How far estimated or refined poses lie from exact ones, split by what the training camera can see.
 
-    python tools/pose_error.py EXACT POSES [POSES ...] [--per-joint N]
+    python -m research.pose_error EXACT POSES [POSES ...] [--per-joint N]
 
 EXACT is a video folder whose poses are exact (a rendered subject's ``train/``; a subject folder stands for its
 ``train/``). Each POSES is a ``poses.npz`` of docs/FORMAT.md for the same skeleton, a fit's output folder (its
 ``poses_refined.npz``, what ``--refine-poses`` wrote) or a video folder (its ``poses.npz``, e.g. a copy made by
-``tools/perturb_poses.py``). Over the frames a file shares with EXACT (matched by frame id) and every joint it
+``research/perturb_poses.py``). Over the frames a file shares with EXACT (matched by frame id) and every joint it
 prints the mean of:
 
 * ``pivots``: the distance between a joint's pivot and its exact place (world units; mm for metres);

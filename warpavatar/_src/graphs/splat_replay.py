@@ -134,7 +134,7 @@ class _Replay:
             return self._outputs
 
         if device.type == "cuda":
-            from warpavatar._src.cuda_graph import capture_cuda_graph  # noqa: PLC0415 (torch.cuda only here)
+            from warpavatar._src.graphs.capture import capture_cuda_graph  # noqa: PLC0415 (torch.cuda only here)
 
             self._graph, _ = capture_cuda_graph(queue, device=device, warmup=1)
             self._replay = self._graph.replay

@@ -1,16 +1,40 @@
-"""The frames a fit trains on, held on the training device."""
+"""The frames a fit trains on: the video folder read at the fit's training resolution, then held on the training
+device."""
 
 from __future__ import annotations
 
+import os
 from types import SimpleNamespace
 
 import numpy as np
 import torch
 
+from warpavatar.data import VideoFolder, load_video_folder
 from warpavatar.geometry import camera_centre
 from warpavatar.model.parts import frame_intervals
 
-__all__ = ["evenly_spaced", "TrainingFrames"]
+__all__ = ["load_training_video", "evenly_spaced", "TrainingFrames"]
+
+
+def load_training_video(folder: str | os.PathLike, config) -> VideoFolder:
+    """Read the video folder a fit trains on at the fit's training resolution.
+
+    This is the one place a fit's ``image_scale`` is applied: images, masks and intrinsics are resized as the
+    frames are read (:func:`~warpavatar.data.load_video_folder` with ``scale=config.image_scale``), so a caller
+    hands over the folder and never scales anything itself. Every frame is read; ``max_train_frames`` picks
+    among them later (:class:`TrainingFrames`).
+
+    Args:
+        folder: the training video folder (``docs/data.md``).
+        config: the fit's :class:`~warpavatar.fit.config.FitConfig` (its ``image_scale``, a fraction).
+
+    Returns:
+        The folder's contents, ``round(W * image_scale) x round(H * image_scale)`` pixels a frame.
+
+    Raises:
+        VideoFolderError: a missing or invalid file (the message names it).
+    """
+    return load_video_folder(folder, scale=config.image_scale)
 
 
 def evenly_spaced(total: int, count: int) -> np.ndarray:
@@ -22,7 +46,8 @@ class TrainingFrames:
     """The training frames of a video folder (all, or ``max_train_frames`` evenly spaced), on the device.
 
     Args:
-        video: the training :class:`~warpavatar.data.VideoFolder` (already loaded, possibly rescaled).
+        video: the training :class:`~warpavatar.data.VideoFolder` at the training resolution
+            (:func:`load_training_video`).
         max_frames: use at most this many frames, evenly spaced (0: all).
         target: what a render is compared with (:attr:`warpavatar.fit.config.FitConfig.target`).
         device: the training device.

@@ -1,14 +1,17 @@
-"""The alignment of tools/monocular_protocol.py: a similarity transform from skeletons, and calibrated cameras
+"""The alignment of research/monocular_protocol.py: a similarity transform from skeletons, and calibrated cameras
 carried into the monocular world without changing what they see."""
 
 import numpy as np
 import pytest
-from conftest import load_tool
 from scipy.spatial.transform import Rotation
+
+from research import monocular_protocol
+
+pytestmark = pytest.mark.research
 
 
 def _tool():
-    return load_tool("monocular_protocol")
+    return monocular_protocol
 
 
 def test_similarity_transform_recovers_a_known_one_and_rejects_degenerate_points():

@@ -1,6 +1,6 @@
 """How much of what a novel view shows does the one training camera see at the same instant?
 
-    python tools/view_coverage.py AVATAR SUBJECT [--height-band 0.28 0.76] [--depth-tolerance 0.03]
+    python -m research.view_coverage AVATAR SUBJECT [--height-band 0.28 0.76] [--depth-tolerance 0.03]
         [--target 18] [--stride 1] [--scale 1.0] [--device cpu] [--json PATH]
 
 ``AVATAR`` is a fit's ``avatar.pt`` (or its folder), ``SUBJECT`` the subject folder it was fitted on (``train/``
@@ -27,19 +27,14 @@ from __future__ import annotations
 
 import math
 import sys
-from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_common import markdown_table  # noqa: E402
-from error_breakdown import band_needed  # noqa: E402
-from garment_oracle import garment_tool_parser, load_garment_tool_inputs, slab_of  # noqa: E402
-
-from warpavatar import data  # noqa: E402
-from warpavatar.evaluate import write_json_atomic  # noqa: E402
-from warpavatar.model import Avatar  # noqa: E402
+from research.common import band_needed, garment_tool_parser, load_garment_tool_inputs, markdown_table, slab_of
+from warpavatar import data
+from warpavatar.evaluate import write_json_atomic
+from warpavatar.model import Avatar
 
 __all__ = ["surface_points", "seen_from", "coverage_rows"]
 

@@ -1,6 +1,6 @@
 """Garment detection on a fitted avatar, offline: what ``--garment auto`` would find in it, and where it would hang.
 
-    python tools/garment_report.py AVATAR VIDEO_FOLDER [--max-train-frames N] [--band LOW HIGH] [--json PATH]
+    python -m research.garment_report AVATAR VIDEO_FOLDER [--max-train-frames N] [--band LOW HIGH] [--json PATH]
 
 ``AVATAR`` is a fit's ``avatar.pt`` (or its folder); ``VIDEO_FOLDER`` the folder it was fitted on, whose
 training motion the detection reads (give the fit's ``--max-train-frames``). The rule and its defaults are the

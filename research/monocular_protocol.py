@@ -1,6 +1,6 @@
 """Real footage measured honestly: fit one camera of a calibrated multi-view video, evaluate on the others.
 
-    python tools/monocular_protocol.py DEMO -o OUT [--train-camera cam01] [--preset default] [--device cuda]
+    python -m research.monocular_protocol DEMO -o OUT [--train-camera cam01] [--preset default] [--device cuda]
         [--holdout-every 5] [--eval-refine-steps 0] [--eval-scale 1] [--refine-modes off,on]
         [--oracle [--oracle-modes off]] [fit flags...]
 
@@ -214,7 +214,7 @@ def _prepared(args) -> tuple[Path, Path] | None:
     """The monocular and calibrated subjects prepared from the demo's videos (``warpavatar-prepare``, once);
     None when the demo lacks the training camera's video or a calibration."""
     from warpavatar.prepare.calibration import match_cameras, read_calibration
-    from warpavatar.prepare.cli import prepare_subject
+    from warpavatar.prepare.pipeline import prepare_subject
 
     videos = sorted((args.demo / "videos").glob("*.mp4"))
     calibrations = sorted(p for p in (args.demo / "calibration").glob("*") if p.is_file())
@@ -285,7 +285,7 @@ def main(argv=None) -> int:
     except ValueError as error:
         parser.error(str(error))
     from warpavatar.evaluate import evaluate_avatar, write_json_atomic
-    from warpavatar.fit import Trainer
+    from warpavatar.fit import Trainer, load_training_video
 
     recipe = {"holdout_every": args.holdout_every, "subject_scale": args.subject_scale}
     made = subject_folder / "alignment.json"
@@ -313,13 +313,12 @@ def main(argv=None) -> int:
     for name, folder, refine in runs:
         args.refine_poses = refine
         config = config_from_arguments(args, args.preset)
-        subject = data.load_subject(folder, scale=config.image_scale)
+        video = load_training_video(folder / "train", config)
         start = time.time()
-        trainer = Trainer(subject.train, config, args.output / f"fit_{name}", device=args.device)
+        trainer = Trainer(video, config, args.output / f"fit_{name}", device=args.device)
         trainer.fit(progress=False)
         minutes = (time.time() - start) / 60
-        full = (subject if config.image_scale == args.eval_scale
-                else data.load_subject(folder, scale=args.eval_scale))
+        full = data.load_subject(folder, scale=args.eval_scale)
         for view, video in full.novel_view.items():
             result = evaluate_avatar(trainer.avatar, video, progress=False, refine_steps=args.eval_refine_steps)
             refined = result.get("refined") or {}

@@ -1,7 +1,7 @@
 """Do the simulated garment's global physics or its rest shape hold its novel views back? Roll the training motion
 out again under changed parameters and score every view of the training instants.
 
-    python tools/garment_sweep.py AVATAR SUBJECT [--variant SPEC ...] [--skinned] [--retexture STEPS]
+    python -m research.garment_sweep AVATAR SUBJECT [--variant SPEC ...] [--skinned] [--retexture STEPS]
         [--stride 3] [--scale 1.0] [--height-band 0.28 0.76] [--device cpu] [--json PATH]
 
 ``AVATAR`` is a fit's ``avatar.pt`` (or its folder) with a garment (``--garment auto`` found one); ``SUBJECT`` the
@@ -40,20 +40,16 @@ from __future__ import annotations
 import math
 import sys
 from contextlib import contextmanager
-from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_common import markdown_table  # noqa: E402
-from error_breakdown import masked_psnr  # noqa: E402
-from garment_oracle import garment_appearance, garment_tool_parser, load_garment_tool_inputs, slab_of  # noqa: E402
-
-from warpavatar import data  # noqa: E402
-from warpavatar.evaluate import write_json_atomic  # noqa: E402
-from warpavatar.model import Avatar  # noqa: E402
-from warpavatar.model.parts import frame_intervals  # noqa: E402
+from research.common import (garment_appearance, garment_of, garment_tool_parser, load_garment_tool_inputs,
+                             markdown_table, masked_psnr, slab_of)
+from warpavatar.data import VideoFolderError
+from warpavatar.evaluate import write_json_atomic
+from warpavatar.model import Avatar
+from warpavatar.model.parts import frame_intervals
 
 __all__ = ["parse_variant", "changed_cloth", "fitted_values", "sweep_rows"]
 
@@ -177,9 +173,7 @@ def sweep_rows(avatar: Avatar, subject, variants: list[dict[str, float]], *, str
     Raises:
         ValueError: the avatar has no garment, or a variant's value is outside the model's range.
     """
-    part = avatar.part("garment")
-    if part is None or part.node_count == 0:
-        raise ValueError("the avatar has no simulated garment (fit with --garment auto on a subject that has one)")
+    part = garment_of(avatar)
     if retexture_steps < 0:
         raise ValueError(f"retexture_steps must be >= 0, got {retexture_steps}")
     device = avatar.gaussians.means.device
@@ -296,7 +290,7 @@ def main(argv=None) -> int:
                   + " (stiffness: mean fraction of its bound; damping, drag: fractions of theirs)")
         rows = sweep_rows(avatar, subject, variants, stride=args.stride, band=tuple(args.height_band),
                           skinned=args.skinned, retexture_steps=args.retexture)
-    except (data.VideoFolderError, ValueError, FileNotFoundError) as error:
+    except (VideoFolderError, ValueError, FileNotFoundError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
     names = list(rows[0]["iou"])

@@ -1,6 +1,6 @@
 """Copy a video folder (or a subject's training folder) with its poses perturbed by a known, reproducible noise.
 
-    python tools/perturb_poses.py SOURCE -o OUT --rotation-deg 5 --translation-m 0.02 [--smooth-frames 5] [--seed 0]
+    python -m research.perturb_poses SOURCE -o OUT --rotation-deg 5 --translation-m 0.02 [--smooth-frames 5] [--seed 0]
         [--confine image-plane|depth]
 
 The perturbation is what pose refinement has to undo, measured against poses known exactly (a rendered
