@@ -266,3 +266,40 @@ def test_resume_accepts_the_same_video_folder_at_another_path(finished_fit, tmp_
     code, out, err = run_command(fit.main, [moved, "-o", output, "--resume", *FIT], capsys)
     assert code == 0, err
     assert "done in" in out
+
+
+def test_an_avatar_file_cannot_import_a_module_outside_warpavatar_and_its_extensions(tmp_path, monkeypatch):
+    """A part's class path in an avatar file names the module to import: a module of neither warpavatar nor a
+    package that registers extensions is refused before it is imported, so its top-level code never runs."""
+    from warpavatar.model.parts import part_from_file_state
+
+    marker = tmp_path / "ran"
+    (tmp_path / "payload_module_for_a_test.py").write_text(
+        f"import pathlib\npathlib.Path({str(marker)!r}).touch()\nclass Part:\n    pass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    entry = {"type": "payload_module_for_a_test:Part", "state": {}}
+    with pytest.raises(ValueError, match="neither in warpavatar nor in a package that registers"):
+        part_from_file_state("garment", entry, device="cpu")
+    assert not marker.exists()
+    assert "payload_module_for_a_test" not in sys.modules
+    for bad in ("", "os;x:y", 5):
+        with pytest.raises(ValueError):
+            part_from_file_state("garment", {"type": bad, "state": {}}, device="cpu")
+
+
+def test_a_package_that_registers_extensions_may_name_its_part_classes(tmp_path, monkeypatch):
+    """The same module is imported once a distribution declares an entry point of warpavatar's extension group
+    in its top-level package (a third-party part loads as the built-in ones do)."""
+    import importlib.metadata
+
+    from warpavatar.model.parts import EXTENSION_ENTRY_POINT_GROUP, part_from_file_state
+
+    (tmp_path / "third_party_parts_for_a_test.py").write_text("class Part:\n    pass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    declared = importlib.metadata.EntryPoint(name="x", value="third_party_parts_for_a_test:Extension",
+                                             group=EXTENSION_ENTRY_POINT_GROUP)
+    monkeypatch.setattr(importlib.metadata, "entry_points",
+                        lambda group=None: [declared] if group == EXTENSION_ENTRY_POINT_GROUP else [])
+    with pytest.raises(ValueError, match="which is not an avatar part"):  # imported, then checked
+        part_from_file_state("garment", {"type": "third_party_parts_for_a_test:Part", "state": {}}, device="cpu")
+    assert "third_party_parts_for_a_test" in sys.modules

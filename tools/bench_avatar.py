@@ -51,6 +51,7 @@ from warpavatar import data
 from warpavatar._src import splat as splat_bridge
 from warpavatar.fit import Trainer, load_training_video, preset
 from warpavatar.fit.config import FitConfig
+from warpavatar.fit.schedule import make_gaussian_optimizer
 from warpavatar.model import Avatar
 from warpavatar.model.playback import Player
 
@@ -169,7 +170,7 @@ def _steady_trainer(video, config, fitted, device: str, folder: str, *, cuda_gra
     trainer = Trainer(video, config, folder, device=device, cuda_graph=cuda_graph)
     if fitted is not None:
         trainer.avatar.gaussians = copy.deepcopy(fitted.gaussians)
-        trainer._make_gaussian_optimizer()
+        make_gaussian_optimizer(trainer.gaussians, config, extent=trainer.extent)
         trainer.density.reset(trainer.gaussians.count, trainer.device)
         trainer.skinning.field.load_state_dict(fitted.field.state_dict())
         for name, part in trainer.avatar.parts.items():

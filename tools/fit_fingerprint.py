@@ -25,7 +25,7 @@ from warpavatar.fit import Trainer, load_training_video, preset
 BASE = dict(iterations=60, image_scale=0.5, max_train_frames=12, init_points_per_bone=30,
             init_carve_candidates=20000, init_carve_points=1500, sh_degree=1, sh_increase_every=20, grid_cells=16,
             grid_min_cells=6, field_hidden=32, field_layers=2, field_warmup_steps=40, gaussian_only_steps=25,
-            densify_from=10, densify_until=50, densify_every=10, max_gaussians=6000, checkpoint_every=1000,
+            densify_from=10, densify_until=50, densify_every=10, max_gaussians=12000, checkpoint_every=1000,
             log_every=10, preview_frames=1, pose_correction=True, pose_correction_hidden=16, secondary_from=25)
 CASES = {
     "secondary": dict(secondary_motion=True),

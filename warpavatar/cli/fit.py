@@ -73,8 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
                                   help="fit the built-in demo subject (a reduced robot) with the 'demo' preset and "
                                        "evaluate it on its held-out view and pose (default: off)"))
     main_option(main.add_argument("--resume", action="store_true",
-                                  help="continue from checkpoint.pt in the output folder, same options required "
-                                       "(default: off)"))
+                                  help="continue from checkpoint.pt in the output folder: the same video folder, "
+                                       "skeleton and options are required (default: off)"))
     main_option(main.add_argument("--overwrite", action="store_true",
                                   help="start over in a non-empty output folder, deleting the earlier fit's "
                                        "outputs; other files stay (default: off, a non-empty folder is refused)"))
@@ -150,9 +150,6 @@ def fit_and_report(args: argparse.Namespace, device, argv) -> int:
                      video=video)
     print(f"fitting {folder} ({video.frame_count} frames, {video.width}x{video.height}, "
           f"{video.skeleton.joint_count} joints) on {device} with preset '{preset_name}' -> {output}")
-    warning = schedule_warning(config)
-    if warning is not None and not (args.resume and (output / "checkpoint.pt").is_file()):  # (said at its start)
-        print(warning, file=sys.stderr)
     if args.overwrite:
         remove_fit_outputs(output)
     else:  # the lock is held: temporary files there are a killed fit's
@@ -160,6 +157,10 @@ def fit_and_report(args: argparse.Namespace, device, argv) -> int:
     mark_output_folder(output, FIT_KIND)
     start = time.time()
     trainer = Trainer(video, config, output, device=device, cuda_graph=args.cuda_graph)
+    # after the trainer, whose parts check their own options first; a resumed fit said it at its start
+    warning = schedule_warning(config)
+    if warning is not None and not (args.resume and (output / "checkpoint.pt").is_file()):
+        print(warning, file=sys.stderr)
     if args.resume and not (output / "checkpoint.pt").is_file():
         print(f"no checkpoint.pt in {output}: the fit starts from the beginning")
     with stop_on_interrupt(trainer) as stop:

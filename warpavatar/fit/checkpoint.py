@@ -16,10 +16,12 @@ import torch
 
 from warpavatar._src.tensor_files import read_tensor_file
 from warpavatar.fit.config import FitConfig, changed_options
+from warpavatar.fit.schedule import make_gaussian_optimizer
 from warpavatar.io.output_files import atomic_open
+from warpavatar.model import GaussianModel
 
 __all__ = ["CHECKPOINT_NAME", "CHECKPOINT_FORMAT", "save_checkpoint", "read_checkpoint", "training_record",
-           "check_resume"]
+           "check_resume", "trainer_state", "restore_trainer_state"]
 
 CHECKPOINT_NAME = "checkpoint.pt"
 CHECKPOINT_FORMAT = "warpavatar-checkpoint/3"
@@ -82,6 +84,41 @@ def training_record(video) -> dict:
             "skeleton": {"names": [str(name) for name in skeleton.names],
                          "parents": [int(parent) for parent in skeleton.parents],
                          "rest_pose": _digest(skeleton.heads, skeleton.tails, skeleton.up)}}
+
+
+def trainer_state(trainer) -> dict:
+    """What a checkpoint holds of a :class:`~warpavatar.fit.trainer.Trainer`: the steps done, the config, the
+    Gaussians and their optimizer, the skinning stage, density control, the random generator and the frames left
+    in this epoch's order, each extension's state by name and the :func:`training_record` of its video folder."""
+    return {
+        "step": trainer.step,
+        "config": trainer.config.to_dict(),
+        "gaussians": trainer.gaussians.state_for_checkpoint(),
+        "gaussian_optimizer": trainer.gaussians.optimizer.state_dict(),
+        "skinning": trainer.skinning.state_dict(),
+        "density": trainer.density.state_dict(),
+        "generator": trainer.generator.get_state(),
+        "frame_order": list(trainer.frame_order),
+        "extensions": {extension.name: extension.state_dict() for extension in trainer.extensions},
+        "training": training_record(trainer.frames.video),
+    }
+
+
+def restore_trainer_state(trainer, state: dict) -> None:
+    """Put a checkpoint's :func:`trainer_state` back into ``trainer`` (made with the same options on the same
+    folder: :func:`check_resume`): new Gaussians with their optimizer's state, then each extension (one may give
+    the field outputs, grown joints, that the saved skinning state has), the skinning stage, density control, the
+    generator, the frame order and the step."""
+    trainer.avatar.gaussians = GaussianModel.from_checkpoint(state["gaussians"], device=trainer.device)
+    make_gaussian_optimizer(trainer.gaussians, trainer.config, extent=trainer.extent)
+    trainer.gaussians.optimizer.load_state_dict(state["gaussian_optimizer"])
+    for extension in trainer.extensions:
+        extension.load_state_dict(state["extensions"][extension.name])
+    trainer.skinning.load_state_dict(state["skinning"])
+    trainer.density.load_state_dict(state["density"], device=trainer.device)
+    trainer.generator.set_state(state["generator"])
+    trainer.frame_order = list(state["frame_order"])
+    trainer.step = int(state["step"])
 
 
 def check_resume(path: str | os.PathLike, state: dict, *, config: FitConfig, video) -> None:

@@ -1,5 +1,6 @@
 """Template-free initialization of a fit's Gaussians (TAGA Sec. 3.1: no body template): points around the bone
-midpoints, and points carved out of the canonical box by the training masks, coloured by what they see."""
+midpoints, and points carved out of the canonical box by the training masks, coloured by what they see; and the
+avatar a fit starts from, those Gaussians with a skinning field over their box."""
 
 from __future__ import annotations
 
@@ -7,9 +8,10 @@ import numpy as np
 import torch
 
 from warpavatar.fit.training_frames import evenly_spaced
+from warpavatar.model import Avatar, GaussianModel, VoxelSkinningField
 from warpavatar.model.skinning_field import bone_distance_prior
 
-__all__ = ["initial_gaussians"]
+__all__ = ["initial_avatar", "initial_gaussians"]
 
 
 def _project(points: torch.Tensor, K: torch.Tensor, world_to_camera: torch.Tensor
@@ -19,6 +21,36 @@ def _project(points: torch.Tensor, K: torch.Tensor, world_to_camera: torch.Tenso
     z = camera[:, 2]
     focal, centre = torch.stack([K[0, 0], K[1, 1]]), torch.stack([K[0, 2], K[1, 2]])
     return camera[:, :2] / z.clamp_min(1e-6)[:, None] * focal + centre, z
+
+
+def initial_avatar(video, frames, config, *, generator: torch.Generator, device) -> tuple[Avatar, float]:
+    """The avatar a fit starts from: :func:`initial_gaussians` as isotropic Gaussians of 1% of the extent, and a
+    skinning field over their canonical box, with the config's shading and matmul precision.
+
+    Args:
+        video: the training video folder (its ``skeleton``, images and masks).
+        frames: its :class:`~warpavatar.fit.training_frames.TrainingFrames` (the camera centre of world shading).
+        config: the fit configuration.
+        generator: the fit's random generator (the initial points draw from it).
+        device: torch device of the avatar.
+
+    Returns:
+        (avatar, extent): the extent is half the diagonal of the canonical box [world units].
+    """
+    skeleton = video.skeleton
+    positions, colours, bbox_min, bbox_max = initial_gaussians(skeleton, video, config, generator=generator,
+                                                               device=device)
+    extent = float((bbox_max - bbox_min).norm()) * 0.5
+    gaussians = GaussianModel(positions, colours, torch.full_like(positions, 0.01 * extent),
+                              sh_degree=config.sh_degree)
+    field = VoxelSkinningField(bbox_min, bbox_max, skeleton.joint_count, cells=config.grid_cells,
+                               min_cells=config.grid_min_cells, hidden=config.field_hidden,
+                               layers=config.field_layers, frequencies=config.field_frequencies).to(device)
+    avatar = Avatar(skeleton, gaussians, field)
+    avatar.matmul_precision = config.matmul_precision
+    if config.shading == "world":
+        avatar.shading_origin = frames.camera_centre()
+    return avatar, extent
 
 
 def initial_gaussians(skeleton, video, config, *, generator: torch.Generator, device

@@ -1,5 +1,6 @@
-"""What a finished fit writes besides the avatar: the canonical Gaussians as a 3DGS .ply, the training motion and
-preview images; each file through a temporary name of its own and checked (:mod:`warpavatar.io.output_files`)."""
+"""What a finished fit writes: the avatar file, the canonical Gaussians as a 3DGS .ply, the training motion, each
+extension's own files and preview images; each file through a temporary name of its own and checked
+(:mod:`warpavatar.io.output_files`)."""
 
 from __future__ import annotations
 
@@ -12,19 +13,95 @@ from warpavatar.data import write_poses
 from warpavatar.io.images import write_image
 from warpavatar.io.ply import write_gaussian_ply
 
-__all__ = ["TRAINING_MOTION_NAME", "write_canonical_ply", "write_training_motion", "write_previews"]
+__all__ = ["TRAINING_MOTION_NAME", "FLOATER_MARGIN", "FLOATER_OPACITY", "write_fitted_avatar",
+           "canonical_floaters", "write_canonical_ply", "write_training_motion",
+           "write_previews"]
 
 TRAINING_MOTION_NAME = "training_poses.npz"
 """The file in a fit's output folder that holds the poses it was fitted on (``warpavatar-view`` plays it)."""
 
 
-def write_canonical_ply(gaussians, path: str | Path) -> None:
-    """The canonical Gaussians with the 3DGS attribute names (opens in common splat viewers)."""
-    write_gaussian_ply(path, means=gaussians.means.detach().cpu().numpy(),
-                       quats=gaussians.normalized_quats.detach().cpu().numpy(),
-                       scales=gaussians.scales.detach().cpu().numpy(),
-                       opacities=gaussians.opacities.detach().cpu().numpy(),
-                       sh_coeffs=gaussians.sh_coefficients().detach().cpu().numpy())
+def write_fitted_avatar(avatar, frames, extensions, folder: str | Path, *, config) -> None:
+    """End a fit and write its avatar: each extension's ``finish()``, then ``avatar.pt`` (with ``config``), the
+    canonical .ply, the training motion and each extension's own files into ``folder``.
+
+    Args:
+        avatar: the fitted :class:`~warpavatar.model.avatar.Avatar`.
+        frames: its :class:`~warpavatar.fit.training_frames.TrainingFrames`.
+        extensions: the enabled extensions, in the registry's order.
+        folder: the fit's output folder.
+        config: the fit's :class:`~warpavatar.fit.config.FitConfig` (saved in the avatar file).
+    """
+    folder = Path(folder)
+    for extension in extensions:
+        extension.finish()
+    avatar.save(folder / "avatar.pt", config=config.to_dict())
+    write_canonical_ply(avatar.gaussians, folder / "canonical.ply", skeleton=avatar.skeleton)
+    write_training_motion(frames, folder / TRAINING_MOTION_NAME)
+    for extension in extensions:
+        extension.write_outputs(folder)
+
+
+FLOATER_MARGIN = 0.25
+"""A Gaussian whose centre lies farther than this fraction of the skeleton's height from every bone segment is a
+floater (:func:`canonical_floaters`)."""
+
+FLOATER_OPACITY = 1.0 / 255.0
+"""A Gaussian less opaque than this (it changes no 8-bit pixel on its own) is a floater."""
+
+
+def canonical_floaters(means: torch.Tensor, opacities: torch.Tensor, skeleton) -> torch.Tensor:
+    """Which canonical Gaussians are floaters, left out of ``canonical.ply``: those whose centre lies farther than
+    :data:`FLOATER_MARGIN` times the skeleton's height (its bones' extent along ``skeleton.up``) from every bone
+    segment head -> tail, and those with an opacity below :data:`FLOATER_OPACITY`.
+
+    Args:
+        means: [N,3] canonical centres [m].
+        opacities: [N] opacities in 0..1.
+        skeleton: the :class:`~warpavatar.data.Skeleton` (rest pose ``heads``, ``tails`` [J,3], ``up`` [3]).
+
+    Returns:
+        [N] bool, True for a floater.
+    """
+    from warpavatar.model.skinning_field import closest_on_segments
+
+    means = means.detach().to("cpu", torch.float64)
+    heads = torch.as_tensor(np.asarray(skeleton.heads), dtype=torch.float64)
+    tails = torch.as_tensor(np.asarray(skeleton.tails), dtype=torch.float64)
+    up = torch.as_tensor(np.asarray(skeleton.up), dtype=torch.float64)
+    up = up / up.norm()
+    heights = torch.cat([heads, tails]) @ up
+    margin = FLOATER_MARGIN * float(heights.max() - heights.min())
+    nearest = torch.empty(means.shape[0], dtype=torch.float64)
+    for start in range(0, means.shape[0], 16384):  # [chunk, J, 3] at a time
+        chunk = means[start:start + 16384]
+        nearest[start:start + 16384] = (chunk[:, None] - closest_on_segments(chunk, heads, tails)).norm(dim=-1).amin(1)
+    return (nearest > margin) | (opacities.detach().cpu() < FLOATER_OPACITY)
+
+
+def write_canonical_ply(gaussians, path: str | Path, *, skeleton=None, keep_floaters: bool = False) -> int:
+    """The canonical Gaussians with the 3DGS attribute names (opens in common splat viewers), floaters left out.
+
+    Args:
+        gaussians: the avatar's :class:`~warpavatar.model.GaussianModel` (not changed).
+        path: the ``.ply`` to write (atomically).
+        skeleton: the avatar's skeleton; with it, the :func:`canonical_floaters` are left out unless
+            ``keep_floaters``; None writes every Gaussian (there are no bones to measure from).
+        keep_floaters: write every Gaussian even so.
+
+    Returns:
+        the number of Gaussians written.
+    """
+    keep = slice(None)
+    if skeleton is not None and not keep_floaters:
+        keep = ~canonical_floaters(gaussians.means, gaussians.opacities, skeleton)
+    means = gaussians.means.detach().cpu()[keep].numpy()
+    write_gaussian_ply(path, means=means,
+                       quats=gaussians.normalized_quats.detach().cpu()[keep].numpy(),
+                       scales=gaussians.scales.detach().cpu()[keep].numpy(),
+                       opacities=gaussians.opacities.detach().cpu()[keep].numpy(),
+                       sh_coeffs=gaussians.sh_coefficients().detach().cpu()[keep].numpy())
+    return int(means.shape[0])
 
 
 def write_training_motion(frames, path: str | Path) -> None:

@@ -10,8 +10,6 @@ sum of ``weight * value`` over the terms that the core and each extension return
 
 from __future__ import annotations
 
-import json
-import math
 import os
 import time
 from pathlib import Path
@@ -22,16 +20,19 @@ import tqdm
 from warpavatar._src.graphs.step_graph import StepGraph
 from warpavatar._src.precision import matmul_precision, mlp_precision
 from warpavatar.extensions import FitContext, LossTerm, StepContext, get_extension
-from warpavatar.fit.checkpoint import CHECKPOINT_NAME, check_resume, read_checkpoint, save_checkpoint, training_record
+from warpavatar.fit.checkpoint import (CHECKPOINT_NAME, check_resume, read_checkpoint, restore_trainer_state,
+                                       save_checkpoint, trainer_state)
 from warpavatar.fit.config import FitConfig
 from warpavatar.fit.density import DensityControl
 from warpavatar.fit.training_frames import TrainingFrames
-from warpavatar.fit.init import initial_gaussians
-from warpavatar.fit.outputs import TRAINING_MOTION_NAME, write_canonical_ply, write_previews, write_training_motion
+from warpavatar.fit.init import initial_avatar
+from warpavatar.fit.loss_terms import add_extension_loss_terms, core_loss_terms, detached_loss_terms, weighted_loss
+from warpavatar.fit.outputs import write_fitted_avatar, write_previews
+from warpavatar.fit.schedule import active_sh_degree, make_gaussian_optimizer, position_learning_rate
 from warpavatar.fit.skinning_field_stage import SkinningStage
-from warpavatar.io.output_files import append_text, write_text_atomic
-from warpavatar.metrics import image_loss_terms, psnr
-from warpavatar.model import Avatar, GaussianModel, VoxelSkinningField
+from warpavatar.fit.training_log import TRAINING_LOG_NAME, TrainingLog, step_log_record
+from warpavatar.io.output_files import write_text_atomic
+from warpavatar.model import Avatar, GaussianModel
 from warpavatar.model.capacity import IntersectionCapacity
 
 __all__ = ["Trainer"]
@@ -57,34 +58,24 @@ class Trainer:
         self.output_dir = Path(output_dir)
         self.device = torch.device(device)
         self.output_dir.mkdir(parents=True, exist_ok=True)
-        self.log_path = self.output_dir / "train_log.jsonl"
+        self.training_log = TrainingLog(self.output_dir / TRAINING_LOG_NAME)
+        self.log_path = self.training_log.path
         torch.manual_seed(config.seed)
         self.generator = torch.Generator().manual_seed(config.seed)
         self.frames = TrainingFrames(video, max_frames=config.max_train_frames, target=config.target,
                                      device=self.device)
-        skeleton = video.skeleton
-        positions, colours, bbox_min, bbox_max = initial_gaussians(skeleton, video, config, generator=self.generator,
-                                                                   device=self.device)
-        self.extent = float((bbox_max - bbox_min).norm()) * 0.5
-        gaussians = GaussianModel(positions, colours, torch.full_like(positions, 0.01 * self.extent),
-                                  sh_degree=config.sh_degree)
-        field = VoxelSkinningField(bbox_min, bbox_max, skeleton.joint_count, cells=config.grid_cells,
-                                   min_cells=config.grid_min_cells, hidden=config.field_hidden,
-                                   layers=config.field_layers, frequencies=config.field_frequencies).to(self.device)
-        self.avatar = Avatar(skeleton, gaussians, field)
-        self.avatar.matmul_precision = config.matmul_precision
-        if config.shading == "world":
-            self.avatar.shading_origin = self.frames.camera_centre()
-        self.skinning = SkinningStage(field, skeleton, config, extent=self.extent)
+        self.avatar, self.extent = initial_avatar(video, self.frames, config, generator=self.generator,
+                                                  device=self.device)
+        self.skinning = SkinningStage(self.avatar.field, video.skeleton, config, extent=self.extent)
         self.density = DensityControl(config, extent=self.extent, generator=self.generator)
-        self.density.reset(gaussians.count, self.device)
+        self.density.reset(self.gaussians.count, self.device)
         context = FitContext(avatar=self.avatar, frames=self.frames, config=config, extent=self.extent,
-                             skinning=self.skinning, density=self.density, log=self._log)
+                             skinning=self.skinning, density=self.density, log=self.training_log.write)
         #: the enabled extensions, in the registry's order (the order their hooks run)
         self.extensions = [get_extension(name)(options, context) for name, options in config.extensions.items()]
         for extension in self.extensions:
             extension.attach()
-        self._make_gaussian_optimizer()
+        make_gaussian_optimizer(self.gaussians, config, extent=self.extent)
         self.step = 0
         self.frame_order: list[int] = []
         self._stop_requested = False
@@ -95,6 +86,7 @@ class Trainer:
 
     @property
     def gaussians(self) -> GaussianModel:
+        """The avatar's canonical Gaussians (a new model after each densification round or a resume)."""
         return self.avatar.gaussians
 
     @property
@@ -116,34 +108,10 @@ class Trainer:
         """The enabled extension called ``name``, or None."""
         return next((extension for extension in self.extensions if extension.name == name), None)
 
-    def _make_gaussian_optimizer(self) -> None:
-        config = self.config
-        self.gaussians.make_optimizer(lr_position=config.lr_position * self.extent, lr_scale=config.lr_scale,
-                                      lr_rotation=config.lr_rotation, lr_opacity=config.lr_opacity,
-                                      lr_color=config.lr_color)
-
     def _next_frame(self) -> int:
         if not self.frame_order:
             self.frame_order = torch.randperm(self.frames.count, generator=self.generator).tolist()
         return self.frame_order.pop()
-
-    def _position_lr(self, step: int) -> float:
-        config = self.config
-        fraction = min(1.0, step / max(1, config.iterations))
-        start, end = config.lr_position * self.extent, config.lr_position_final * self.extent
-        return math.exp(math.log(start) * (1 - fraction) + math.log(end) * fraction)
-
-    def _core_losses(self, step: StepContext) -> dict[str, LossTerm]:
-        """The photometric loss (L1 and D-SSIM), the mask and scale terms, and the skinning field's."""
-        config = self.config
-        image_terms = image_loss_terms(step.image, step.target, lambda_ssim=config.lambda_ssim, alpha=step.alpha,
-                                       mask=step.mask, lambda_mask=config.lambda_mask)
-        terms = {name: LossTerm(*term) for name, term in image_terms.items()}
-        if config.lambda_scale > 0:
-            terms["scale"] = LossTerm(config.lambda_scale,
-                                      torch.relu(self.gaussians.scales - 0.05 * self.extent).mean())
-        terms.update(self.skinning.losses(step, self.avatar.skinning_groups()))
-        return terms
 
     # ------------------------------------------------------------------------------------------------ a step
     def _step_work(self, step: StepContext, buffers, degree: int, inputs: dict, optimizers: list):
@@ -159,13 +127,10 @@ class Trainer:
         step.image, step.alpha, step.depth, info = self.avatar.rasterize(
             step.posed, buffers.camera, background=frames.background, densify_grad_out=grad_out, return_info=True,
             intersection_capacity=self.capacity.value)
-        terms = self._core_losses(step)
-        for extension in self.extensions:
-            for name, term in extension.losses(step).items():
-                if name in terms:
-                    raise ValueError(f"extension {extension.name!r} returns a loss term {name!r} another part has")
-                terms[name] = term
-        loss = sum(term.weight * term.value for term in terms.values())
+        terms = core_loss_terms(step, config=self.config, gaussians=self.gaussians, extent=self.extent)
+        terms.update(self.skinning.losses(step, self.avatar.skinning_groups()))
+        add_extension_loss_terms(terms, self.extensions, step)
+        loss = weighted_loss(terms)
         for optimizer in optimizers:
             optimizer.zero_grad(set_to_none=True)
         with matmul_precision(self.config.matmul_precision, self.device):
@@ -182,8 +147,7 @@ class Trainer:
         # parameters' AccumulateGrad nodes, bound to the stream they were made on, and a later step captured on
         # another stream would then synchronize with that one, which invalidates the capture.
         self.skinning.release_graph()
-        terms = {name: LossTerm(term.weight, term.value.detach()) for name, term in terms.items()}
-        terms["loss"] = LossTerm(1.0, loss.detach())
+        terms = detached_loss_terms(terms, loss)
         step.posed = type(step.posed)({name: value.detach() if isinstance(value, torch.Tensor) else value
                                        for name, value in step.posed.items()})
         step.image, step.alpha, step.depth = step.image.detach(), step.alpha.detach(), step.depth.detach()
@@ -207,8 +171,8 @@ class Trainer:
         exceeded = self.capacity.value
         overflow = self.capacity.check()
         if overflow is not None:
-            self._log({"step": self.step, "note": f"intersection capacity {exceeded} exceeded ({overflow} pairs): "
-                       f"grown to {self.capacity.value}"})
+            self.training_log.write({"step": self.step, "note": f"intersection capacity {exceeded} exceeded "
+                                     f"({overflow} pairs): grown to {self.capacity.value}"})
 
     def train_step(self) -> tuple[StepContext, dict[str, LossTerm]]:
         """One optimizer step on one training frame; returns the step and its loss terms (device tensors).
@@ -231,10 +195,10 @@ class Trainer:
                            read_grid=lambda: self.skinning.grid(number, train_field=train_field))
         for extension in self.extensions:
             extension.begin_step(step)
-        self.gaussians.set_position_lr(self._position_lr(number))
+        self.gaussians.set_position_lr(position_learning_rate(config, number, extent=self.extent))
         inputs = {extension.name: value for extension in self.extensions
                   if (value := extension.frame_input(step)) is not None}
-        degree = min(config.sh_degree, number // max(1, config.sh_increase_every))
+        degree = active_sh_degree(config, number)
         buffers = self.frames.step_buffers(step.index)
         optimizers = [self.gaussians.optimizer, *self.skinning.optimizers(step)]
         for extension in self.extensions:
@@ -254,7 +218,7 @@ class Trainer:
             between=self.skinning.forget_step,  # the graph evaluates the grid itself
             rekey=lambda: self._graph_key(step, degree, buffers, optimizers))
         if key is not None and not self.step_graph.enabled:
-            self._log({"step": number, "note": "CUDA graph capture failed, the fit goes on eagerly"})
+            self.training_log.write({"step": number, "note": "CUDA graph capture failed, the fit goes on eagerly"})
         step.image, step.alpha = image, alpha
         count = self.gaussians.count
         self.density.after_step(number, self.gaussians, self.extensions)
@@ -266,45 +230,24 @@ class Trainer:
         self.step += 1
         return step, terms
 
-    def _log_record(self, step: StepContext, terms: dict[str, LossTerm]) -> dict:
-        record = {name: float(term.value.detach()) for name, term in terms.items()}
-        for extension in self.extensions:
-            record.update(extension.log_values())
-        record.update(psnr=psnr(step.image.detach(), step.target), gaussians=self.gaussians.count)
-        return record
-
     # ------------------------------------------------------------------------------------------- checkpoints
     def checkpoint_state(self) -> dict:
-        return {
-            "step": self.step,
-            "config": self.config.to_dict(),
-            "gaussians": self.gaussians.state_for_checkpoint(),
-            "gaussian_optimizer": self.gaussians.optimizer.state_dict(),
-            "skinning": self.skinning.state_dict(),
-            "density": self.density.state_dict(),
-            "generator": self.generator.get_state(),
-            "frame_order": list(self.frame_order),
-            "extensions": {extension.name: extension.state_dict() for extension in self.extensions},
-            "training": training_record(self.frames.video),
-        }
+        """What a checkpoint holds of this fit (:func:`~warpavatar.fit.checkpoint.trainer_state`)."""
+        return trainer_state(self)
 
     def save_checkpoint(self) -> Path:
+        """Write :meth:`checkpoint_state` to ``checkpoint.pt`` in the output folder (atomically); returns its path."""
         return save_checkpoint(self.output_dir / CHECKPOINT_NAME, self.checkpoint_state())
 
     def load_checkpoint(self, path: str | os.PathLike) -> None:
+        """Continue from the checkpoint at ``path``.
+
+        Raises:
+            ValueError: one made with other options, skeleton or video folder (:func:`check_resume`), or unreadable.
+        """
         state = read_checkpoint(path)
         check_resume(path, state, config=self.config, video=self.frames.video)  # same options, skeleton, folder
-        self.avatar.gaussians = GaussianModel.from_checkpoint(state["gaussians"], device=self.device)
-        self._make_gaussian_optimizer()
-        self.gaussians.optimizer.load_state_dict(state["gaussian_optimizer"])
-        # extensions first: one may give the field outputs (grown joints) that its saved state has
-        for extension in self.extensions:
-            extension.load_state_dict(state["extensions"][extension.name])
-        self.skinning.load_state_dict(state["skinning"])
-        self.density.load_state_dict(state["density"], device=self.device)
-        self.generator.set_state(state["generator"])
-        self.frame_order = list(state["frame_order"])
-        self.step = int(state["step"])
+        restore_trainer_state(self, state)
 
     # ------------------------------------------------------------------------------------------------ run
     def request_stop(self) -> None:
@@ -330,10 +273,10 @@ class Trainer:
         if resume and checkpoint.is_file():
             self.load_checkpoint(checkpoint)
         else:
-            self.log_path.unlink(missing_ok=True)
+            self.training_log.clear()
             write_text_atomic(self.output_dir / "config.json", config.to_json())
             warm = self.skinning.warmup(config.field_warmup_steps)
-            self._log({"stage": "warmup", "distillation_loss": warm, "gaussians": self.gaussians.count})
+            self.training_log.write({"stage": "warmup", "distillation_loss": warm, "gaussians": self.gaussians.count})
         start_time = time.time()
         end = config.iterations if stop_at is None else min(stop_at, config.iterations)
         bar = tqdm.tqdm(total=config.iterations, initial=self.step, disable=not progress, desc="fit", unit="step")
@@ -342,9 +285,11 @@ class Trainer:
             bar.update(1)
             if self.step % config.log_every == 0 or self.step == config.iterations:
                 self.check_rasterizer()
-                record = self._log_record(step, terms)  # the only host reads of a step, every log_every steps
-                record.update(self.step_graph.log_values(), **self.skinning.log_values())
-                self._log({**record, "step": self.step, "seconds": round(time.time() - start_time, 2)})
+                # the only host reads of a step, every log_every steps
+                record = step_log_record(step, terms, extensions=self.extensions, gaussian_count=self.gaussians.count,
+                                         stages=(self.step_graph, self.skinning), step_number=self.step,
+                                         seconds=time.time() - start_time)
+                self.training_log.write(record)
                 bar.set_postfix(loss=f"{record['loss']:.4f}", psnr=f"{record['psnr']:.2f}", n=record["gaussians"])
             if self.step % config.checkpoint_every == 0 and self.step < config.iterations:
                 self.save_checkpoint()
@@ -355,9 +300,6 @@ class Trainer:
             self.save_checkpoint()
         return self.avatar
 
-    def _log(self, record: dict) -> None:
-        append_text(self.log_path, json.dumps(record) + "\n")
-
     def summary_lines(self) -> list[str]:
         """What the extensions report about the finished fit (for the command line)."""
         return [line for extension in self.extensions for line in extension.summary_lines()]
@@ -365,13 +307,7 @@ class Trainer:
     def write_outputs(self) -> None:
         """Avatar file, canonical .ply, the training motion, previews of a few training frames; the last checkpoint
         stays."""
-        for extension in self.extensions:
-            extension.finish()
-        self.avatar.save(self.output_dir / "avatar.pt", config=self.config.to_dict())
-        write_canonical_ply(self.gaussians, self.output_dir / "canonical.ply")
-        write_training_motion(self.frames, self.output_dir / TRAINING_MOTION_NAME)
-        for extension in self.extensions:
-            extension.write_outputs(self.output_dir)
+        write_fitted_avatar(self.avatar, self.frames, self.extensions, self.output_dir, config=self.config)
         self.save_checkpoint()
         write_previews(self.avatar, self.frames, self.output_dir / "previews", count=self.config.preview_frames)
 

@@ -19,8 +19,8 @@ import torch
 from warpavatar.data.checks import check_intrinsics, check_rigid
 from warpavatar.io.images import MAX_IMAGE_SIDE
 
-__all__ = ["OrbitCamera", "orbit_cameras", "read_cameras_json", "RENDER_ROTATION_TOLERANCE", "posed_frames",
-           "parse_frame_range", "read_grown_rotations", "motion_time_codes"]
+__all__ = ["OrbitCamera", "orbit_cameras", "camera_looking_at_skeleton", "read_cameras_json",
+           "RENDER_ROTATION_TOLERANCE", "posed_frames", "parse_frame_range", "read_grown_rotations", "motion_time_codes"]
 
 
 @dataclass
@@ -81,21 +81,72 @@ def _look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
     return matrix.astype(np.float32)
 
 
-def orbit_cameras(skeleton, frame_count: int, *, width: int = 512, height: int = 512, turns: float = 1.0,
-                  elevation_degrees: float = 10.0, field_of_view_degrees: float = 40.0) -> list[OrbitCamera]:
-    """Cameras circling the skeleton's rest-pose centre once per ``turns``, framing its whole height."""
+def _skeleton_frame(skeleton) -> tuple[np.ndarray, np.ndarray, float]:
+    """(unit up [3], centre of the rest-pose bones' bounding box [3], its diagonal [m]) of a skeleton."""
     up = np.asarray(skeleton.up, dtype=np.float64)
-    up /= np.linalg.norm(up)
+    up = up / np.linalg.norm(up)
     points = np.concatenate([skeleton.heads, skeleton.tails]).astype(np.float64)
     centre = 0.5 * (points.min(0) + points.max(0))
-    size = float(np.linalg.norm(points.max(0) - points.min(0)))
+    return up, centre, float(np.linalg.norm(points.max(0) - points.min(0)))
+
+
+def _orbit_intrinsics(width: int, height: int, field_of_view_degrees: float) -> np.ndarray:
     focal = 0.5 * height / math.tan(math.radians(field_of_view_degrees) * 0.5)
+    return np.array([[focal, 0, (width - 1) * 0.5], [0, focal, (height - 1) * 0.5], [0, 0, 1]], dtype=np.float32)
+
+
+def camera_looking_at_skeleton(skeleton, eye: np.ndarray, *, width: int = 512, height: int = 512,
+                               field_of_view_degrees: float = 40.0) -> OrbitCamera:
+    """A camera at ``eye`` [3] (world, metres) looking at the centre of the skeleton's rest-pose bones, upright
+    along ``skeleton.up``, with the orbit's intrinsics."""
+    up, centre, _ = _skeleton_frame(skeleton)
+    return OrbitCamera(_orbit_intrinsics(width, height, field_of_view_degrees),
+                       _look_at(np.asarray(eye, dtype=np.float64), centre, up), width, height)
+
+
+def _rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
+    """The 3x3 rotation by ``angle`` [rad] about the unit ``axis`` (right-handed)."""
+    x, y, z = axis
+    cross = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + math.sin(angle) * cross + (1.0 - math.cos(angle)) * cross @ cross
+
+
+def orbit_cameras(skeleton, frame_count: int, *, width: int = 512, height: int = 512, turns: float = 1.0,
+                  elevation_degrees: float = 10.0, field_of_view_degrees: float = 40.0,
+                  start=None) -> list[OrbitCamera]:
+    """Cameras circling the skeleton's rest-pose centre ``turns`` times over ``frame_count`` frames.
+
+    Args:
+        skeleton: the avatar's skeleton (rest ``heads``, ``tails`` [J,3] and ``up`` [3]).
+        frame_count: the number of cameras, one per frame; camera t is turned by ``turns * 360 * t / frame_count``
+            degrees about ``up`` (right-handed).
+        width, height: image size [pixels] (without ``start``).
+        turns: full circles over the frames.
+        elevation_degrees: height of the circle above the centre, as an angle [degrees] (without ``start``).
+        field_of_view_degrees: vertical field of view [degrees] (without ``start``).
+        start: a camera (``K`` [3,3], ``world_to_camera`` [4,4], ``width``, ``height``) to start from: camera 0
+            is that camera, and the others turn it about the up axis through the centre (its distance, height,
+            intrinsics and image size kept). None: a circle framing the skeleton's whole height, starting on a
+            fixed side.
+    """
+    up, centre, size = _skeleton_frame(skeleton)
+    if start is not None:
+        first = np.asarray(start.world_to_camera, dtype=np.float64)
+        K = np.asarray(start.K, dtype=np.float32)
+        cameras = []
+        for t in range(frame_count):
+            angle = 2 * math.pi * turns * t / max(1, frame_count)
+            turn = np.eye(4)  # camera_to_world turned about the axis: world_to_camera @ T(centre) R^T T(-centre)
+            turn[:3, :3] = _rotation_about(up, angle).T
+            turn[:3, 3] = centre - turn[:3, :3] @ centre
+            cameras.append(OrbitCamera(K, (first @ turn).astype(np.float32), int(start.width), int(start.height)))
+        return cameras
     distance = 0.75 * size / math.tan(math.radians(field_of_view_degrees) * 0.5)
     # two axes orthogonal to up
     side = np.cross(up, [1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.cross(up, [0.0, 1.0, 0.0])
     side /= np.linalg.norm(side)
     other = np.cross(up, side)
-    K = np.array([[focal, 0, (width - 1) * 0.5], [0, focal, (height - 1) * 0.5], [0, 0, 1]], dtype=np.float32)
+    K = _orbit_intrinsics(width, height, field_of_view_degrees)
     cameras = []
     elevation = math.radians(elevation_degrees)
     for t in range(frame_count):

@@ -50,7 +50,7 @@ REPLAYS_KEPT = 1
 REPLAY_MAX_BYTES = 128 << 20
 """The most a shape's graph may hold between calls (:func:`held_bytes`); a larger shape stays eager. Graphs grow
 with the Gaussians and their tile pairs, and passes that large are bound by the GPU's work, not the host's, so a
-replay saves them little: on an H100 (session 24) 500k Gaussians at 1080p would hold 244 MiB to take the forward
+replay saves them little: on an H100 (2026-11-28) 500k Gaussians at 1080p would hold 244 MiB to take the forward
 from 1.76-1.96 ms to 1.67, 1M would hold 432 MiB for no gain, where 100k at 1080p holds 93 MiB and goes from
 1.34-1.62 ms to 1.01."""
 
