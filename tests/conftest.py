@@ -6,6 +6,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from warpavatar import data
 from warpavatar._src.warp_utils import available_devices
 
 DEVICES = available_devices()
@@ -86,3 +87,20 @@ def assert_matches_central_differences(objective, inputs: dict, grads: dict, *, 
         assert scale > min_scale, name
         torch.testing.assert_close(grad.double().cpu(), numeric, rtol=rtol, atol=relative_atol * scale,
                                    msg=lambda message, n=name: f"d/d{n}: {message}")
+
+
+# A fit small enough for a test: about 40 ms a step on a CPU core (tests run it through the CLI).
+TINY_FIT = ["--preset", "quick", "--image-scale", "0.25", "--max-train-frames", "4", "--init-points-per-bone", "10",
+            "--init-carve-candidates", "2000", "--init-carve-points", "200", "--grid-cells", "8", "--grid-min-cells",
+            "4", "--field-hidden", "16", "--field-layers", "1", "--field-warmup-steps", "5", "--gaussian-only-steps",
+            "20", "--densify-from", "10", "--densify-until", "40", "--densify-every", "10", "--max-gaussians", "2000",
+            "--log-every", "1", "--preview-frames", "1", "--no-progress", "--device", "cpu"]
+
+
+@pytest.fixture(scope="module")
+def avatar_dir(tmp_path_factory):
+    """A test module's small avatar on the demo skeleton (Gaussians around its bones, a briefly distilled field)."""
+    skeleton = data.load_video_folder(data.demo_subject_path() / "train", max_frames=1).skeleton
+    folder = tmp_path_factory.mktemp("avatar")
+    small_avatar(skeleton, seed=5, per_bone=6, cells=8, distill_steps=10).save(folder / "avatar.pt")
+    return folder

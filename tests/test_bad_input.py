@@ -18,18 +18,12 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import small_avatar
+from conftest import TINY_FIT
 from warpavatar import data
 from warpavatar.cli import fit
 
 DEMO = data.demo_subject_path()
 
-# A fit small enough for a test: about 40 ms a step on a CPU core.
-TINY_FIT = ["--preset", "quick", "--image-scale", "0.25", "--max-train-frames", "4", "--init-points-per-bone", "10",
-            "--init-carve-candidates", "2000", "--init-carve-points", "200", "--grid-cells", "8", "--grid-min-cells",
-            "4", "--field-hidden", "16", "--field-layers", "1", "--field-warmup-steps", "5", "--gaussian-only-steps",
-            "20", "--densify-from", "10", "--densify-until", "40", "--densify-every", "10", "--max-gaussians", "2000",
-            "--log-every", "1", "--preview-frames", "1", "--no-progress", "--device", "cpu"]
 
 
 def run_command(main, argv, capsys):
@@ -231,15 +225,6 @@ def test_fit_overwrite_deletes_only_an_earlier_fits_outputs(tmp_path):
 
 # ----------------------------------------------------------------------------------------------------------
 # warpavatar-animate: motions and the output file
-
-
-@pytest.fixture(scope="module")
-def avatar_dir(tmp_path_factory):
-    """A small avatar on the demo skeleton (Gaussians around its bones, a briefly distilled field)."""
-    skeleton = data.load_video_folder(DEMO / "train", max_frames=1).skeleton
-    folder = tmp_path_factory.mktemp("avatar")
-    small_avatar(skeleton, seed=5, per_bone=6, cells=8, distill_steps=10).save(folder / "avatar.pt")
-    return folder
 
 
 def _animate(avatar_dir, motion, output, capsys, *options):

@@ -21,7 +21,6 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import small_avatar
 from warpavatar import data
 from warpavatar.io import output_files
 from warpavatar.io.output_files import DiskFullError, lock_path, output_lock
@@ -92,15 +91,6 @@ def error_line(code: int, err: str) -> str:
 def listing(folder: Path) -> list[str]:
     """Every entry below ``folder``, hidden ones included, as sorted relative paths."""
     return sorted(path.relative_to(folder).as_posix() for path in folder.rglob("*"))
-
-
-@pytest.fixture(scope="module")
-def avatar_dir(tmp_path_factory):
-    """A small avatar on the demo skeleton (Gaussians around its bones, a briefly distilled field)."""
-    skeleton = data.load_video_folder(DEMO / "train", max_frames=1).skeleton
-    folder = tmp_path_factory.mktemp("avatar")
-    small_avatar(skeleton, seed=5, per_bone=6, cells=8, distill_steps=10).save(folder / "avatar.pt")
-    return folder
 
 
 @pytest.fixture

@@ -13,7 +13,8 @@ tests are marked ``readme``: ``pytest -m readme`` runs them alone):
 A block is parsed into :class:`Command` s, one per simple command: continued lines joined, comments dropped, split at
 ``&&``, ``||``, ``;`` and ``|``. :func:`run_command` runs one as a reader of the README would, from the repository
 root (a ``warpavatar-*`` command through its entry point with this interpreter), and :func:`run_block` a whole
-block, so that a test of the demo's blocks can be added with them.
+block. The demo's test runs the demo's fit, then the block README gives next: the viewer (until it serves its
+page), the turntable and the export, in a fresh folder on the shipped data.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import re
 import shlex
 import subprocess
 import sys
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -110,7 +112,8 @@ def entry_point_argv(script: str, arguments: tuple[str, ...] | list[str]) -> lis
     return [sys.executable, "-c", code, script, *arguments]
 
 
-def run_command(command: Command, *, cwd: Path = REPOSITORY, timeout: float = HELP_SECONDS) -> subprocess.CompletedProcess:
+def run_command(command: Command, *, cwd: Path = REPOSITORY,
+                timeout: float = HELP_SECONDS) -> subprocess.CompletedProcess:
     """Run one README command as its reader would, from ``cwd`` (the repository root by default).
 
     ``warpavatar-*`` commands run through their entry points, ``python``/``python3`` is this interpreter, anything
@@ -207,7 +210,8 @@ def test_an_option_that_help_does_not_list_is_reported():
 
 
 def test_paths_are_taken_from_blocks_links_and_code_spans():
-    markdown = ("see [a](docs/a.md#top), [b](B.md), [c](https://example.com/c), `tools/x.py` and `warpavatar-out/demo`\n"
+    markdown = ("see [a](docs/a.md#top), [b](B.md), [c](https://example.com/c), `tools/x.py` and "
+                "`warpavatar-out/demo`\n"
                 "```bash\nrun research/y.py -o out/z https://example.com/docs/q\n```\n")
     assert repository_paths(markdown) == ["docs/a.md", "B.md", "research/y.py", "tools/x.py"]
 
@@ -248,3 +252,51 @@ def test_quick_lines_run(command):
     result = run_command(command)
     assert result.returncode == 0, f"{command.line!r} exited with {result.returncode}:\n{result.stderr[-2000:]}"
     assert result.stdout.startswith("usage: " + command.argv[0]), result.stdout[:500]
+
+
+def _demo_blocks() -> tuple[Command, list[Command]]:
+    """The demo's fit (the first set-up command, without its install) and the block of commands README runs on
+    its output (the one that opens the viewer on ``warpavatar-out/demo``)."""
+    blocks = [parse_block(text, block=index) for index, text in enumerate(bash_blocks(README.read_text()))]
+    (fit,) = [command for command in blocks[0] if command.argv[:2] == ("warpavatar-fit", "--demo")]
+    (after,) = [block for block in blocks
+                if any(command.argv[:2] == ("warpavatar-view", "warpavatar-out/demo") for command in block)]
+    return fit, after
+
+
+def _view_serves(command: Command, cwd: Path, *, timeout: float = 300) -> str:
+    """Start ``warpavatar-view`` as README says, wait for the address it prints, stop it; that address."""
+    process = subprocess.Popen(entry_point_argv(command.argv[0], command.argv[1:]), cwd=cwd, text=True,
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        timer = threading.Timer(timeout, process.kill)
+        timer.start()
+        for line in process.stdout:
+            if found := re.search(r"http://127\.0\.0\.1:\d+/", line):
+                return found.group(0)
+        return ""
+    finally:
+        timer.cancel()
+        process.terminate()
+        process.wait(timeout=60)
+
+
+def test_the_demo_and_the_commands_on_its_output_run(tmp_path):
+    """README's demo, run as a reader would (in a fresh folder, on the shipped data), then the block it gives next:
+    the viewer serves its page, the turntable is rendered and the export is written (the installs skipped)."""
+    fit, after = _demo_blocks()
+    result = run_command(fit, cwd=tmp_path, timeout=1800)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "demo result in" in result.stdout and result.stdout.rstrip().splitlines()[-1].startswith("next: ")
+    assert (tmp_path / "warpavatar-out" / "demo" / "avatar.pt").is_file()
+    outputs = []
+    for command in after:
+        if command.argv[0] == "pip":
+            continue
+        if command.argv[0] == "warpavatar-view":
+            assert _view_serves(command, tmp_path), f"{command.line!r} printed no address"
+            continue
+        result = run_command(command, cwd=tmp_path, timeout=900)
+        assert result.returncode == 0, f"{command.line!r}: {result.stderr[-2000:]}"
+        outputs.append(command.argv[command.argv.index("-o") + 1])
+    assert outputs and all((tmp_path / output).stat().st_size > 0 for output in outputs), outputs

@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 import torch
 
-from test_bad_input import TINY_FIT, assert_bad_input, run_command
+from conftest import TINY_FIT
+from test_bad_input import assert_bad_input, run_command
 from warpavatar import data
 from warpavatar.batch.job import fit_subject
 from warpavatar.batch.subjects import BatchSubject

@@ -22,8 +22,8 @@ from warpavatar.fit.outputs import TRAINING_MOTION_NAME, write_training_motion
 from warpavatar.geometry import quat_from_matrix
 from warpavatar.io.animation import orbit_cameras
 from warpavatar.io.motion import load_motion
-from warpavatar.io.viewer import (MAX_RENDER_PIXELS, MAX_RENDER_SIDE, opencv_camera, origin_refusal, render_size,
-                                  skeleton_segments)
+from warpavatar.io.viewer import (MAX_RENDER_PIXELS, MAX_RENDER_SIDE, RENDERING_TEXT, opencv_camera, origin_refusal,
+                                  render_size, skeleton_segments)
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")
@@ -201,6 +201,8 @@ def test_the_viewer_caps_the_render_size_a_browser_asks_for(live_viewer):
 
     port = live_viewer.server.get_port()
     with _websocket(live_viewer, f"http://127.0.0.1:{port}") as websocket:
+        # a page that has no image yet says so (and shows the background colour rather than white)
+        _wait(lambda: live_viewer.stats_text.content == RENDERING_TEXT, "the rendering message")
         for width, height in ((10**7, 4000), (64, 64)):
             count = live_viewer.render_count
             camera = _messages.ViewerCameraMessage(
@@ -211,6 +213,7 @@ def test_the_viewer_caps_the_render_size_a_browser_asks_for(live_viewer):
             # at most the resolution slider's 64 rows, then capped to 4096 a side keeping the canvas's aspect
             assert live_viewer.last_image.shape == ((1, 4096, 3) if width > height else (64, 64, 3))
     assert live_viewer.last_error is None
+    assert live_viewer.stats_text.content.startswith("64x64 pixels, ")  # the message gave way to the render's
 
 
 def test_view_plays_the_given_motion_or_the_rest_pose(avatar_dir, tmp_path, capsys):

@@ -20,7 +20,8 @@ from warpavatar.data.checks import check_intrinsics, check_rigid
 from warpavatar.io.images import MAX_IMAGE_SIDE
 
 __all__ = ["OrbitCamera", "orbit_cameras", "camera_looking_at_skeleton", "read_cameras_json",
-           "RENDER_ROTATION_TOLERANCE", "posed_frames", "parse_frame_range", "read_grown_rotations", "motion_time_codes"]
+           "RENDER_ROTATION_TOLERANCE", "posed_frames", "parse_frame_range", "read_grown_rotations",
+           "motion_time_codes"]
 
 
 @dataclass

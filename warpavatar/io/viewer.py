@@ -34,6 +34,9 @@ from warpavatar.io.animation import OrbitCamera, orbit_cameras
 __all__ = ["MAX_RENDER_SIDE", "RENDER_BYTES_PER_PIXEL", "RENDER_MEMORY_BUDGET", "MAX_RENDER_PIXELS", "render_size",
            "origin_refusal", "opencv_camera", "skeleton_segments", "AvatarViewer"]
 
+RENDERING_TEXT = "rendering..."
+"""What the panel says until a browser's first image is rendered."""
+
 MAX_RENDER_SIDE = 4096
 """The widest and the tallest image the viewer renders [pixels], whatever a browser asks for."""
 
@@ -340,7 +343,7 @@ class AvatarViewer:
             self.resolution_slider = gui.add_slider("resolution", min=64, max=2160, step=16,
                                                     initial_value=int(min(2160, max(64, image_height))),
                                                     hint="height of the rendered image [pixels]")
-            self.stats_text = gui.add_markdown("")
+            self.stats_text = gui.add_markdown(RENDERING_TEXT)
 
         @self.frame_slider.on_update
         def _(event) -> None:
@@ -372,6 +375,12 @@ class AvatarViewer:
         self._skeleton_lines = None
 
     def _on_connect(self, client) -> None:
+        # until the first render arrives the page shows the background colour and says it is rendering,
+        # rather than a blank white page
+        colour = (self.background.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
+        client.scene.set_background_image(np.broadcast_to(colour, (8, 8, 3)).copy(), format="png")
+        self.stats_text.content = RENDERING_TEXT
+
         @client.camera.on_update
         def _(_) -> None:
             self._cameras_known.add(client.client_id)
