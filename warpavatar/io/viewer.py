@@ -375,16 +375,22 @@ class AvatarViewer:
         self._skeleton_lines = None
 
     def _on_connect(self, client) -> None:
-        # until the first render arrives the page shows the background colour and says it is rendering,
-        # rather than a blank white page
+        # until its first render arrives the page shows the background colour and says it is rendering, rather
+        # than a blank white page; set before any render of it can be sent, so it never covers one
         colour = (self.background.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
         client.scene.set_background_image(np.broadcast_to(colour, (8, 8, 3)).copy(), format="png")
         self.stats_text.content = RENDERING_TEXT
 
-        @client.camera.on_update
-        def _(_) -> None:
+        def camera_known() -> None:
             self._cameras_known.add(client.client_id)
             self._wake.set()
+
+        client.camera.on_update(lambda _: camera_known())
+        try:  # the page may have sent its camera while this ran (viser asserts while none has come)
+            client.camera.update_timestamp
+        except AssertionError:
+            return
+        camera_known()
 
     def _on_disconnect(self, client) -> None:
         self._cameras_known.discard(client.client_id)
