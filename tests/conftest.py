@@ -1,6 +1,8 @@
 """Shared pytest set-up: every kernel test runs once per available device (CPU always, CUDA when present)."""
 
 import importlib.util
+import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -104,3 +106,17 @@ def avatar_dir(tmp_path_factory):
     folder = tmp_path_factory.mktemp("avatar")
     small_avatar(skeleton, seed=5, per_bone=6, cells=8, distill_steps=10).save(folder / "avatar.pt")
     return folder
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMEDRIVER = shutil.which("chromedriver")
+
+
+def require_browser():
+    """Skip where Chromium or chromedriver is missing, except under CI (the variable CI set), where it fails."""
+    missing = [name for name, found in (("chromium", CHROMIUM), ("chromedriver", CHROMEDRIVER)) if found is None]
+    if missing:
+        message = f"no {' and no '.join(missing)} executable (Debian: apt-get install chromium chromium-driver)"
+        if os.environ.get("CI"):
+            pytest.fail(f"{message}; CI is set, so the browser test must run")
+        pytest.skip(message)

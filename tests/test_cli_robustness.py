@@ -22,6 +22,7 @@ import pytest
 import torch
 
 from conftest import TINY_FIT
+from test_bad_input import _log_steps
 from warpavatar import data
 
 DEMO = data.demo_subject_path()
@@ -62,14 +63,6 @@ def assert_one_line(code, err, *named, status=2):
 def folder(tmp_path):
     """A copy of the demo's training folder (50 frames of 128x128, 41 joints, masks)."""
     return Path(shutil.copytree(DEMO / "train", tmp_path / "train"))
-
-
-def _log_steps(output):
-    path = output / "train_log.jsonl"
-    if not path.is_file():
-        return []
-    return [record["step"] for line in path.read_text().splitlines() if line.endswith("}")
-            for record in [json.loads(line)] if "step" in record]
 
 
 def _wait_for(process, condition, *, timeout=180):

@@ -4,8 +4,6 @@ turntable of one pose and an orbit that starts at the training camera, and the .
 
 import functools
 import http.server
-import os
-import shutil
 import threading
 import time
 
@@ -14,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import small_avatar
+from conftest import CHROMEDRIVER, CHROMIUM, require_browser, small_avatar
 from warpavatar import data
 from warpavatar.cli import animate, render
 from warpavatar.fit.outputs import FLOATER_MARGIN, canonical_floaters, write_canonical_ply
@@ -24,8 +22,6 @@ from warpavatar.model import Avatar
 
 TRAIN = data.demo_subject_path() / "train"
 DANCE = data.demo_subject_path() / "novel_pose" / "dance_cam000"
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-CHROMEDRIVER = shutil.which("chromedriver")
 
 
 @pytest.fixture(scope="module")
@@ -87,16 +83,6 @@ def test_the_video_is_h264_yuv420p_with_even_sides_and_ffmpeg_says_nothing(avata
     assert sizes == [(64, 64)] * 4
 
 
-def _require_browser():
-    """Skip where Chromium or chromedriver is missing, except under CI (the variable CI set), where it fails."""
-    missing = [name for name, found in (("chromium", CHROMIUM), ("chromedriver", CHROMEDRIVER)) if found is None]
-    if missing:
-        message = f"no {' and no '.join(missing)} executable (Debian: apt-get install chromium chromium-driver)"
-        if os.environ.get("CI"):
-            pytest.fail(f"{message}; CI is set, so the browser test must run")
-        pytest.skip(message)
-
-
 PAGE = """<!doctype html><html><body style="background:#000">
 <video id="video" src="orbit.mp4" muted playsinline preload="auto"></video>
 <canvas id="canvas" width="64" height="64"></canvas>
@@ -115,7 +101,7 @@ function draw() {
 
 
 def test_headless_chromium_plays_the_video(avatar_dir, tmp_path):
-    _require_browser()
+    require_browser()
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 

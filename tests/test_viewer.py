@@ -3,7 +3,6 @@ browser (the websocket's origin, the render size), and the page in a real browse
 driven by Selenium through chromedriver; skipped where either is missing, unless CI is set)."""
 
 import math
-import os
 import shutil
 import sys
 import tempfile
@@ -15,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import small_avatar
+from conftest import CHROMEDRIVER, CHROMIUM, require_browser, small_avatar
 from warpavatar import data
 from warpavatar.cli import view
 from warpavatar.fit.outputs import TRAINING_MOTION_NAME, write_training_motion
@@ -25,8 +24,6 @@ from warpavatar.io.motion import load_motion
 from warpavatar.io.viewer import (MAX_RENDER_PIXELS, MAX_RENDER_SIDE, RENDERING_TEXT, opencv_camera, origin_refusal,
                                   render_size, skeleton_segments)
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-CHROMEDRIVER = shutil.which("chromedriver")
 
 
 @pytest.fixture(scope="module")
@@ -299,18 +296,8 @@ def _settled_screen(driver, viewer):
         time.sleep(0.2)
 
 
-def _require_browser():
-    """Skip where Chromium or chromedriver is missing, except under CI (the variable CI set), where it fails."""
-    missing = [name for name, found in (("chromium", CHROMIUM), ("chromedriver", CHROMEDRIVER)) if found is None]
-    if missing:
-        message = f"no {' and no '.join(missing)} executable (Debian: apt-get install chromium chromium-driver)"
-        if os.environ.get("CI"):
-            pytest.fail(f"{message}; CI is set, so the browser test must run")
-        pytest.skip(message)
-
-
 def test_the_page_shows_the_avatar_and_follows_camera_and_timeline(avatar_dir, tmp_path):
-    _require_browser()
+    require_browser()
     from selenium.webdriver.common.action_chains import ActionChains
 
     args = view.build_parser().parse_args([str(avatar_dir), "--port", "0", "--device", "cpu", "--image-size",
