@@ -13,8 +13,14 @@ Families:
     cloth: a cloth substep's edge terms (length-spring rest offsets, edge damping).
     shading: view-dependent colour from spherical harmonics in each Gaussian's canonical frame.
     cloth_frame: a whole cloth substep fused in one kernel (rollouts without gradients).
+    sheet_cloth: a triangle-mesh cloth: membrane, bending and drag forces, a substep, their backward.
     correction: a pose correction's outputs applied to canonical Gaussians in one pass (playback).
     poses: every frame's refined poses down the skeleton, and the priors of the refined motion (pose refinement).
+    texture_bake: triangles rasterized into a UV atlas, points coloured from camera views, nearest points (mesh
+        export).
+    mesh_render: camera rays cast against a triangle mesh's BVH and the hits shaded (no gradients).
+    triangle_binding: Gaussians bound to a triangle mesh posed from its vertices, and points' closest triangles.
+    tsdf: views fused into a truncated signed distance on a voxel grid, with space carving (mesh export).
 
 :mod:`~warpavatar.kernels.quaternion` holds the quaternion ``@wp.func`` helpers the families share, and
 :mod:`~warpavatar.kernels.launch` the launch function every launcher calls (``wp.launch`` with the argument

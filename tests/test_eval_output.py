@@ -81,6 +81,9 @@ def test_eval_prints_render_and_metric_times_apart_at_the_training_resolution(de
     assert len(timings) == 1 and re.fullmatch(r"  20 frames; per frame: render \d+ ms, metrics \d+ ms", timings[0])
     result = json.loads(results_path.read_text())
     assert result["resolution"] == "64x64" and "seconds_per_frame" not in result
+    assert 0.0 <= result["floater_share"] <= 1.0 and all(0.0 <= frame["floater_share"] <= 1.0
+                                                        for frame in result["frames"])
+    assert f"masked SSIM {result['ssim_masked']:.4f}, floaters {100 * result['floater_share']:.2f}%, PSNR" in scores[0]
     assert result["render_seconds_per_frame"] > 0 and result["metric_seconds_per_frame"] > 0
     assert f"{1000 * result['render_seconds_per_frame']:.0f} ms" in timings[0]
     assert f"{1000 * result['metric_seconds_per_frame']:.0f} ms" in timings[0]

@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from scipy import ndimage
 
 from warpavatar import metrics
-from warpavatar.metrics import image_scores, lpips, psnr, ssim, ssim_map
+from warpavatar.metrics import floater_share, image_scores, lpips, psnr, ssim, ssim_map
 
 
 def _random_pair(seed, height=24, width=20, channels=3, noise=0.1):
@@ -304,3 +304,54 @@ def test_ssim_of_a_frame_smaller_than_its_window_is_one_line_naming_the_size(hei
         assert "padding" not in str(caught.value)  # ssim has no padding option to suggest
     # PSNR of such a frame stays defined.
     assert math.isfinite(psnr(pred, target))
+
+
+def _square_mask(height=40, width=40, top=10, left=10, size=12):
+    mask = torch.zeros(height, width)
+    mask[top:top + size, left:left + size] = 1.0
+    return mask
+
+
+def test_floater_share_is_zero_for_opacity_inside_the_mask(device):
+    mask = _square_mask().to(device)
+    alpha = mask * torch.rand(40, 40, device=device)
+    assert floater_share(alpha, mask) == 0.0
+    assert floater_share(torch.zeros(40, 40, device=device), mask) == 0.0  # no opacity: nothing floats
+
+
+def test_floater_share_of_a_blob_far_outside_the_mask_is_its_share(device):
+    mask = _square_mask().to(device)
+    alpha = mask * 0.5  # 144 pixels x 0.5 = 72 inside
+    alpha[10:14, 32:36] = 1.0  # 16 pixels of opacity 10 px right of the mask (its last column is 21)
+    assert floater_share(alpha, mask) == pytest.approx(16.0 / (72.0 + 16.0), abs=1e-6)
+    assert floater_share(alpha.cpu().numpy(), mask.cpu().numpy()[..., None]) == pytest.approx(16.0 / 88.0, abs=1e-6)
+    assert floater_share(alpha[..., None], mask > 0.5) == pytest.approx(16.0 / 88.0, abs=1e-6)
+
+
+def test_floater_share_ignores_opacity_within_the_dilation_disc(device):
+    mask = _square_mask().to(device)
+    alpha = mask.clone()
+    alpha[10:22, 22:25] = 1.0  # 1-3 px right of the mask's right edge (column 21)
+    alpha[22:24, 22:24] = 1.0  # diagonally off the corner: at most sqrt(2^2 + 2^2) = 2.8 px from it
+    assert floater_share(alpha, mask) == 0.0
+    # a disc, not a square: the pixel 3 px right and 3 px below the corner (4.2 px away) counts
+    alpha[24, 24] = 1.0
+    assert floater_share(alpha, mask) == pytest.approx(1.0 / float(alpha.sum()), abs=1e-6)
+    # 4 px right counts at the default radius, and not with a radius of 4
+    alpha = mask.clone()
+    alpha[10:22, 25] = 1.0
+    assert floater_share(alpha, mask) == pytest.approx(12.0 / 156.0, abs=1e-6)
+    assert floater_share(alpha, mask, dilation_px=4) == 0.0
+    assert floater_share(alpha, mask, dilation_px=0) == pytest.approx(12.0 / 156.0, abs=1e-6)
+
+
+def test_floater_share_refuses_bad_input():
+    mask = _square_mask()
+    with pytest.raises(ValueError, match="alpha must have shape"):
+        floater_share(torch.zeros(40, 40, 3), mask)
+    with pytest.raises(ValueError, match=r"mask must have shape \[40, 40\]"):
+        floater_share(torch.zeros(40, 40), mask[:20])
+    with pytest.raises(ValueError, match="dilation_px must be an integer >= 0"):
+        floater_share(torch.zeros(40, 40), mask, dilation_px=-1)
+    with pytest.raises(TypeError, match="floating-point opacity"):
+        floater_share(torch.zeros(40, 40, dtype=torch.uint8), mask)

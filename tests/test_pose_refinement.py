@@ -442,7 +442,7 @@ def test_evaluation_reports_metrics_with_and_without_test_time_refinement(noisy_
                                       max_frames=2)
     result = evaluate_avatar(trainer.avatar, held_out, progress=False, refine_steps=3)
     assert result["refined"]["steps"] == 3
-    for key in ("psnr", "ssim", "psnr_masked", "ssim_masked"):
+    for key in ("psnr", "ssim", "psnr_masked", "ssim_masked", "floater_share"):
         assert math.isfinite(result[key]) and math.isfinite(result["refined"][key])
         assert all(math.isfinite(frame[f"refined_{key}"]) for frame in result["frames"])
     assert "refined" not in evaluate_avatar(trainer.avatar, held_out, progress=False)

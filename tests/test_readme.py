@@ -191,7 +191,15 @@ def test_the_setup_commands_come_first():
     first = parse_block(bash_blocks(README.read_text(encoding="utf-8"))[0])
     assert [command.argv for command in first] == [
         ("pip", "install", "torch==2.13.0", "-e", "."), ("warpavatar-fit", "--demo"),
-        ("pip", "install", "torch==2.13.0", "-e", ".[test]"), ("python3", "-m", "pytest", "-q", "tests")]
+        ("pip", "install", "torch==2.13.0", "-e", ".[test]"),
+        ("python3", "-m", "pytest", "-q", "-n", "auto", "--dist", "loadfile", "tests")]
+
+
+def test_ci_runs_the_readme_test_command():
+    """``.ci/run`` ends with README's test command, word for word (its parallel workers included)."""
+    readme_test = parse_block(bash_blocks(README.read_text(encoding="utf-8"))[0])[-1]
+    ci_commands = parse_block((REPOSITORY / ".ci" / "run").read_text(encoding="utf-8"))
+    assert ci_commands[-1].argv == readme_test.argv, (ci_commands[-1].line, readme_test.line)
 
 
 def test_the_parser_joins_continued_lines_drops_comments_and_splits_at_separators():

@@ -3,7 +3,7 @@
 Modes: ``splat`` (rasterizer, against gsplat when importable), ``knn``, ``springs``, ``skinning``
 (sample_grid and lbs), ``shading`` (view-dependent SH colour, fused kernel against op-by-op torch), ``usd`` (USD animation writing, CPU), ``dynamics`` (SMAD's learned dynamics: rollout
 and training window), ``cloth`` (one frame of the simulated garment, substeps included, and the capsule
-collision), ``avatar`` (a fitted avatar: rasterizer against gsplat on its posed Gaussians at the training size and
+collision), ``sheet_cloth`` (a rollout frame and a training window of the triangle-mesh cloth, a 2k-vertex skirt), ``avatar`` (a fitted avatar: rasterizer against gsplat on its posed Gaussians at the training size and
 1080p, the training step eager and captured with its launches and host reads, playback FPS; ``--avatar``,
 ``--video``, ``--garment``: a garment forced on the fresh avatar, so the step includes the cloth's window),
 ``all``. Each mode lives in ``tools/bench_<mode>.py`` and returns table rows; this script prints them as a
@@ -23,7 +23,7 @@ import torch
 
 from bench_common import markdown_table
 
-MODES = ("splat", "knn", "springs", "skinning", "shading", "usd", "dynamics", "cloth", "avatar")
+MODES = ("splat", "knn", "springs", "skinning", "shading", "usd", "dynamics", "cloth", "sheet_cloth", "avatar")
 
 
 def main(argv=None) -> int:

@@ -2,7 +2,10 @@
 
 Each frame is rendered with the folder's camera and pose over the folder's background and compared with the
 ground truth: PSNR and SSIM over the full frame, and inside the ground-truth mask (the figure that counts:
-the subjects cover a small part of the frame, so full-frame PSNR is dominated by the background).
+the subjects cover a small part of the frame, so full-frame PSNR is dominated by the background), and beside
+them the floater share: the share of the rendered opacity outside the mask dilated by 3 pixels
+(:func:`~warpavatar.metrics.floater_share`), which a blur or a misplaced figure raises while the masked
+scores may not notice.
 
 With test-time pose refinement (``refine_steps``, the protocol of the PeopleSnapshot papers for estimated
 poses) each frame's pose is also optimized against its ground truth with the avatar frozen
@@ -128,7 +131,9 @@ def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = N
             refined renders.
 
     Returns:
-        dict with mean ``psnr``, ``ssim``, ``psnr_masked``, ``ssim_masked`` (and ``lpips`` when weights exist
+        dict with mean ``psnr``, ``ssim``, ``psnr_masked``, ``ssim_masked``, ``floater_share`` (the share of the
+        rendered opacity outside the mask dilated by 3 pixels, :func:`~warpavatar.metrics.floater_share`; None
+        without masks, as the masked scores) (and ``lpips`` when weights exist
         locally, else None, with ``lpips_unavailable`` saying why), ``frame_count``, ``resolution`` (the frames'
         ``"<width>x<height>"``), ``render_seconds_per_frame`` (the render alone, synchronized on CUDA),
         ``metric_seconds_per_frame`` (PSNR, SSIM, LPIPS and their inputs), ``refine_seconds_per_frame`` (with
@@ -162,7 +167,7 @@ def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = N
     for t in tqdm.trange(video.frame_count, disable=not progress, desc=f"eval {Path(video.root).name}"):
         bones = torch.as_tensor(video.bone_transforms[t], dtype=torch.float32, device=device)
         start = time.perf_counter()
-        image, _, _ = avatar.render(video.cameras[t], bones, background=background, grid=grid)
+        image, alpha, _ = avatar.render(video.cameras[t], bones, background=background, grid=grid)
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         seconds["render"] += time.perf_counter() - start
@@ -173,7 +178,8 @@ def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = N
         mask = None
         if video.masks is not None:
             mask = torch.as_tensor(video.masks[t], device=device).float() / 255.0
-        record = {"frame_id": int(video.frame_ids[t]), **metrics.image_scores(pred, gt, mask=mask)}
+        record = {"frame_id": int(video.frame_ids[t]), **metrics.image_scores(pred, gt, mask=mask),
+                  "floater_share": None if mask is None else metrics.floater_share(alpha, mask)}
         if lpips_unavailable is None:
             record["lpips"] = metrics.lpips(pred, gt)
         seconds["metric"] += time.perf_counter() - start
@@ -184,8 +190,8 @@ def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = N
                 target = gt * mask[..., None] + background * (1.0 - mask[..., None])  # compares (not the room)
             pose = refine_frame_pose(avatar, video.cameras[t], bones, target, mask=mask, background=background,
                                      steps=refine_steps, grid=grid)
-            refined, _, _ = avatar.render(video.cameras[t], bones, background=background, grid=grid,
-                                          skeleton_pose=pose)
+            refined, refined_alpha, _ = avatar.render(video.cameras[t], bones, background=background, grid=grid,
+                                                      skeleton_pose=pose)
             pred = refined.clamp(0, 1)
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
@@ -193,6 +199,7 @@ def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = N
             start = time.perf_counter()
             record.update({f"refined_{key}": value
                            for key, value in metrics.image_scores(pred, gt, mask=mask).items()})
+            record["refined_floater_share"] = None if mask is None else metrics.floater_share(refined_alpha, mask)
             seconds["metric"] += time.perf_counter() - start
         frames.append(record)
         if save_renders is not None:
@@ -226,17 +233,20 @@ def evaluate_avatar(avatar, video, *, save_renders: str | os.PathLike | None = N
     return result
 
 
-_METRICS = ("psnr", "ssim", "psnr_masked", "ssim_masked")
+_METRICS = ("psnr", "ssim", "psnr_masked", "ssim_masked", "floater_share")
 
 
 def score_line(label: str, result: dict) -> str:
     """One folder's scores as every command prints them, the resolution they were computed at included:
-    ``"<label>: masked PSNR 22.08 dB, masked SSIM 0.9512, PSNR 30.10 dB, SSIM 0.9801 at 64x64"`` (the masked
-    scores only with a mask, LPIPS when computed). ``result``: :func:`evaluate_avatar`'s (or its ``refined``
+    ``"<label>: masked PSNR 22.08 dB, masked SSIM 0.9512, floaters 1.25%, PSNR 30.10 dB, SSIM 0.9801 at 64x64"``
+    (the masked scores and the floater share, in percent of the rendered opacity, only with a mask; LPIPS when
+    computed). ``result``: :func:`evaluate_avatar`'s (or its ``refined``
     means, with the resolution of the result they belong to)."""
     parts = []
     if result.get("psnr_masked") is not None:
         parts += [f"masked PSNR {result['psnr_masked']:.2f} dB", f"masked SSIM {result['ssim_masked']:.4f}"]
+    if result.get("floater_share") is not None:
+        parts.append(f"floaters {100 * result['floater_share']:.2f}%")
     parts += [f"PSNR {result['psnr']:.2f} dB", f"SSIM {result['ssim']:.4f}"]
     if result.get("lpips") is not None:
         parts.append(f"LPIPS {result['lpips']:.4f}")

@@ -12,6 +12,9 @@ window lies inside the image (as ``skimage.metrics.structural_similarity(..., ga
 sigma=1.5, use_sample_covariance=False, data_range=1)`` does). A frame smaller than the window has no
 such pixel: :func:`ssim` refuses it, naming its size.
 
+:func:`floater_share` measures what masked PSNR cannot see: the share of the rendered opacity that lies outside
+the ground-truth mask dilated by a few pixels (Gaussians floating beside the figure, or a blur that spreads it).
+
 LPIPS runs only from weights already on disk; without them :func:`lpips` returns None and
 :func:`lpips_unavailable_reason` says why, for the caller to report (nothing is printed here).
 """
@@ -28,14 +31,18 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["psnr", "ssim", "image_scores", "ssim_map", "lpips", "lpips_unavailable_reason", "image_loss_terms",
-           "SSIM_WINDOW_SIZE", "SSIM_SIGMA"]
+__all__ = ["psnr", "ssim", "image_scores", "floater_share", "ssim_map", "lpips", "lpips_unavailable_reason",
+           "image_loss_terms", "SSIM_WINDOW_SIZE", "SSIM_SIGMA", "FLOATER_DILATION_PX"]
 
 SSIM_WINDOW_SIZE = 11
 """Taps of SSIM's Gaussian window (per axis)."""
 
 SSIM_SIGMA = 1.5
 """Standard deviation of SSIM's Gaussian window [pixels]."""
+
+FLOATER_DILATION_PX = 3
+"""Radius [pixels] of the disc the ground-truth mask is dilated by before :func:`floater_share` counts opacity
+outside it."""
 
 _SSIM_K1 = 0.01
 _SSIM_K2 = 0.03
@@ -311,6 +318,59 @@ def image_scores(pred, target, *, mask=None) -> dict[str, float | None]:
         scores["psnr_masked"] = _psnr_of_checked(pred, target, selected)
         scores["ssim_masked"] = _masked_ssim(values, selected)
     return scores
+
+
+def floater_share(alpha, mask, *, dilation_px: int = FLOATER_DILATION_PX) -> float:
+    """Share of the rendered opacity outside the ground-truth mask dilated by ``dilation_px`` pixels.
+
+    ``sum(alpha outside the dilated mask) / sum(alpha)``. The mask (``mask > 0.5``) is dilated by a disc of
+    radius ``dilation_px``: a pixel is inside the dilated mask when a mask pixel lies within Euclidean distance
+    ``dilation_px`` of it (pixel centres), so opacity up to ``dilation_px`` pixels beside the silhouette does not
+    count (a mask boundary off by a pixel or two, anti-aliasing). A render whose opacity is all within the
+    figure scores 0; one whose opacity is all elsewhere scores 1. Masked PSNR and SSIM look only inside the mask,
+    so a misplaced or blurred figure that leaves the mask's pixels plausible shows up here instead.
+
+    Args:
+        alpha: rendered opacity, shape [H, W] (or [H, W, 1]), floating point in [0, 1] (numpy or torch).
+        mask: ground-truth mask, shape [H, W] (or [H, W, 1]), as for :func:`psnr`.
+        dilation_px: radius of the dilation disc [pixels], >= 0 (0: the mask itself).
+
+    Returns:
+        The share in [0, 1]; 0 when the render has no opacity at all.
+
+    Raises:
+        TypeError: a non-floating alpha or non-array inputs.
+        ValueError: shape mismatch, non-finite alpha, or a negative ``dilation_px``.
+    """
+    alpha = _as_tensor(alpha, "alpha").detach()
+    if not alpha.is_floating_point():
+        raise TypeError(f"alpha must be a floating-point opacity in [0, 1], got {alpha.dtype}")
+    if alpha.dim() == 3 and alpha.shape[-1] == 1:
+        alpha = alpha[..., 0]
+    if alpha.dim() != 2:
+        raise ValueError(f"alpha must have shape [H, W] (or [H, W, 1]), got {list(alpha.shape)}")
+    if isinstance(dilation_px, bool) or not isinstance(dilation_px, int) or dilation_px < 0:
+        raise ValueError(f"floater_share: dilation_px must be an integer >= 0, got {dilation_px!r}")
+    alpha = alpha.to(torch.float64 if alpha.device.type == "cpu" else torch.promote_types(alpha.dtype, torch.float32))
+    if not bool(torch.isfinite(alpha).all()):
+        raise ValueError("alpha must be finite (no nan or inf)")
+    selected = _check_mask(mask, alpha.shape[0], alpha.shape[1], alpha.device)
+    total = float(alpha.sum())
+    if total <= 0.0:
+        return 0.0
+    dilated = _dilate_disc(selected, dilation_px)
+    return float(alpha[~dilated].sum()) / total
+
+
+def _dilate_disc(selected: torch.Tensor, radius: int) -> torch.Tensor:
+    """The bool mask ``selected`` [H, W] dilated by a disc of ``radius`` pixels (Euclidean distance between pixel
+    centres at most ``radius``): one convolution with the disc's 0/1 taps."""
+    if radius == 0 or not bool(selected.any()):
+        return selected
+    offsets = torch.arange(-radius, radius + 1, device=selected.device, dtype=torch.float32)
+    disc = ((offsets[:, None] ** 2 + offsets[None, :] ** 2) <= radius * radius + 1e-6).float()
+    counts = F.conv2d(selected.float()[None, None], disc[None, None], padding=radius)[0, 0]
+    return counts > 0.5
 
 
 def _valid_ssim_map(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

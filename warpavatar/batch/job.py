@@ -7,6 +7,7 @@ raise: its error comes back as a failed result (Ray must not retry it, and the b
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import time
@@ -27,7 +28,7 @@ TEST_KILL_MARKER = ".fit-many-test-killed"
 
 def fit_subject(subject: BatchSubject, output: str | os.PathLike, *, config, device: str, preset_name: str,
                 evaluate: bool, report: Callable[[str, dict], None] | None = None,
-                kill_at_step: int | None = None) -> dict:
+                kill_at_step: int | None = None, placement: dict | None = None) -> dict:
     """Fit ``subject`` into ``output`` (continuing from its checkpoint when there is one), evaluate it on its
     held-out folders when asked, and write the done marker.
 
@@ -35,7 +36,8 @@ def fit_subject(subject: BatchSubject, output: str | os.PathLike, *, config, dev
         subject: the subject.
         output: its output folder (created).
         config: the :class:`~warpavatar.fit.FitConfig` of every fit of the batch.
-        device: torch device name of the fit (``cuda`` is the GPU Ray gave the task).
+        device: torch device name of the fit (``cpu``, or ``cuda:N``: the GPU Ray gave the task, see
+            :func:`~warpavatar.batch.gpus.task_cuda_device`).
         preset_name: the preset the config started from (recorded in the result).
         evaluate: measure the avatar on the subject's ``novel_view/*`` and ``novel_pose/*`` folders, at the
             fit's image scale.
@@ -43,6 +45,8 @@ def fit_subject(subject: BatchSubject, output: str | os.PathLike, *, config, dev
             ``resume_step``: the checkpoint's step, or 0).
         kill_at_step: test hook: on the first attempt only, kill this process with SIGKILL once the fit has
             done this many steps (as a lost node would), leaving the checkpoints written before.
+        placement: where the task runs, recorded in the result: ``host``, and on a GPU ``gpu`` (the
+            device, its name and UUID, Ray's GPU ids and the task's ``CUDA_VISIBLE_DEVICES``).
 
     A stop signal during the fit (SIGINT, which ``ray.cancel`` sends, SIGTERM or SIGHUP) makes it stop after
     the step under way and write its checkpoint; the result is then ``"interrupted"``, with no done marker, and
@@ -51,14 +55,16 @@ def fit_subject(subject: BatchSubject, output: str | os.PathLike, *, config, dev
     Returns:
         The result: ``subject``, ``status`` (``"done"``, ``"failed"`` or ``"interrupted"``), ``error`` (the
         one-line message of a failed subject, else None), ``output``, ``fit_seconds`` (this attempt),
-        ``resume_step``, ``steps``, ``gaussians``, ``device``, ``preset`` and ``eval``
+        ``resume_step``, ``steps``, ``gaussians``, ``device``, ``host`` and ``gpu`` (of ``placement``; ``gpu`` is
+        None on the CPU), ``preset`` and ``eval``
         (``{"novel_view/<name>": metrics}``, empty without ``evaluate`` or held-out folders). The done marker
         holds a done result and the fit's ``config``.
     """
     output = Path(output)
     result = {"subject": subject.name, "status": "failed", "error": None, "output": str(output),
               "fit_seconds": None, "resume_step": 0, "steps": None, "gaussians": None, "device": device,
-              "preset": preset_name, "eval": {}}
+              "host": (placement or {}).get("host"), "gpu": (placement or {}).get("gpu"), "preset": preset_name,
+              "eval": {}}
     try:
         with output_lock(output):  # one writer per subject: another run of the batch may be fitting it
             _fit(subject, output, config=config, device=device, evaluate=evaluate, report=report,
@@ -74,6 +80,7 @@ def _fit(subject: BatchSubject, output: Path, *, config, device: str, evaluate: 
          result: dict) -> None:
     import torch
 
+    from warpavatar.batch.gpus import device_kind, first_compile_turn, kernel_cache_dir
     from warpavatar.signals import stop_on_signals
     from warpavatar.evaluate import evaluate_held_out, write_json_atomic
     from warpavatar.fit import Trainer, load_training_video
@@ -89,12 +96,17 @@ def _fit(subject: BatchSubject, output: Path, *, config, device: str, evaluate: 
     mark_output_folder(output, "fit")
     video = load_training_video(subject.training_folder, config)
     start = time.time()
-    trainer = Trainer(video, config, output, device=device)
-    if kill_at_step is not None and not (output / TEST_KILL_MARKER).exists():
-        _kill_after(trainer, kill_at_step, output / TEST_KILL_MARKER)
-    # Ray runs a task on its worker's main thread; the worker ignores SIGINT, which ray.cancel sends
-    with stop_on_signals(trainer.request_stop, even_ignored=True) as stop:
-        trainer.fit(resume=True, progress=False)
+    # the fits starting together on a host with a cold kernel cache take turns until the first has set up and
+    # taken its first step (most kernels compiled), then load what it compiled
+    with contextlib.ExitStack() as compile_turn:
+        compile_turn.enter_context(first_compile_turn(kernel_cache_dir(), device_kind(device)))
+        trainer = Trainer(video, config, output, device=device)
+        _after_first_step(trainer, compile_turn.close)
+        if kill_at_step is not None and not (output / TEST_KILL_MARKER).exists():
+            _kill_after(trainer, kill_at_step, output / TEST_KILL_MARKER)
+        # Ray runs a task on its worker's main thread; the worker ignores SIGINT, which ray.cancel sends
+        with stop_on_signals(trainer.request_stop, even_ignored=True) as stop:
+            trainer.fit(resume=True, progress=False)
     result.update(fit_seconds=round(time.time() - start, 2), steps=trainer.step, gaussians=trainer.gaussians.count)
     if stop.signal_number is not None and trainer.stopped_early:
         result["status"] = "interrupted"
@@ -108,6 +120,21 @@ def _fit(subject: BatchSubject, output: Path, *, config, device: str, evaluate: 
     del trainer
     if torch.cuda.is_available():
         torch.cuda.empty_cache()  # the next fit of this worker, or a fit sharing the GPU, gets the memory back
+
+
+def _after_first_step(trainer, action: Callable[[], None]) -> None:
+    """Make ``trainer`` call ``action`` once, after its first training step of this session."""
+    train_step = trainer.train_step
+    done = []
+
+    def train_step_then_act():
+        outcome = train_step()
+        if not done:
+            done.append(True)
+            action()
+        return outcome
+
+    trainer.train_step = train_step_then_act
 
 
 def _kill_after(trainer, step: int, marker: Path) -> None:

@@ -15,7 +15,7 @@ SUMMARY_NAME = "fit-many-summary"
 
 #: the metrics of each held-out folder that the CSV has a column for (``<folder> <metric>``), and the resolution
 #: they were computed at
-_METRICS = ("psnr_masked", "ssim_masked", "psnr", "ssim", "lpips", "resolution")
+_METRICS = ("psnr_masked", "ssim_masked", "floater_share", "psnr", "ssim", "lpips", "resolution")
 
 
 def _mean_masked_psnr(result: dict, kind: str) -> float | None:
@@ -75,14 +75,16 @@ def summary_lines(results: list[dict]) -> list[str]:
 def _csv_text(results: list[dict]) -> str:
     labels = list(dict.fromkeys(label for result in results for label in result.get("eval", {})))
     columns = ["subject", "status", "attempts", "wall_seconds", "fit_seconds", "resume_step", "steps", "gaussians",
-               "device", "preset", "output", "error"]
+               "device", "host", "gpu", "preset", "output", "error"]
     metric_columns = [(label, metric) for label in labels for metric in _METRICS
                       if any(result.get("eval", {}).get(label, {}).get(metric) is not None for result in results)]
     text = io.StringIO()
     writer = csv.writer(text)
     writer.writerow(columns + [f"{label} {metric}" for label, metric in metric_columns])
     for result in results:
-        values = [result.get(column) for column in columns]
+        # the GPU by the UUID nvidia-smi -L prints
+        values = [(result.get("gpu") or {}).get("uuid") if column == "gpu" else result.get(column)
+                  for column in columns]
         values += [result.get("eval", {}).get(label, {}).get(metric) for label, metric in metric_columns]
         writer.writerow(["" if value is None or (isinstance(value, float) and math.isnan(value)) else value
                          for value in values])

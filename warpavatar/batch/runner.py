@@ -16,7 +16,7 @@ from warpavatar.batch.job import fit_subject
 from warpavatar.batch.report import one_line_result
 from warpavatar.batch.subjects import DONE_NAME, BatchSubject, finished_result
 
-__all__ = ["run_batch", "connect_ray", "cluster_gpu_count", "import_ray", "RAY_INSTALL_HINT",
+__all__ = ["run_batch", "connect_ray", "cluster_gpu_count", "import_ray", "task_placement", "RAY_INSTALL_HINT",
            "INFRASTRUCTURE_ERRORS", "STOP_GRACE_SECONDS"]
 
 RAY_INSTALL_HINT = ('warpavatar-fit-many needs Ray, an optional dependency: pip install -e ".[cluster]" '
@@ -74,14 +74,39 @@ def cluster_gpu_count() -> float:
     return float(import_ray().cluster_resources().get("GPU", 0.0))
 
 
+def task_placement(device: str, gpu_ids, *, environ=os.environ) -> dict:
+    """Where this task's fit runs: ``{"device": torch device, "host": ..., "gpu": ...}``.
+
+    On CUDA the device is the GPU Ray gave the task (:func:`~warpavatar.batch.gpus.task_cuda_device` of
+    ``gpu_ids``, ``ray.get_gpu_ids()``), made torch's and Warp's current device; ``gpu`` describes it (name,
+    UUID, Ray's ids, ``CUDA_VISIBLE_DEVICES``). On the CPU ``gpu`` is None."""
+    placement = {"device": device, "host": socket.gethostname(), "gpu": None}
+    if device != "cuda":
+        return placement
+    import torch
+
+    from warpavatar.batch.gpus import describe_cuda_device, task_cuda_device, use_cuda_device
+
+    ids = [str(gpu_id) for gpu_id in gpu_ids]
+    visible = environ.get("CUDA_VISIBLE_DEVICES")
+    placement["device"] = task_cuda_device(ids, visible_devices=visible, device_count=torch.cuda.device_count())
+    use_cuda_device(placement["device"])
+    placement["gpu"] = {**describe_cuda_device(placement["device"]), "ray_gpu_ids": ids,
+                        "cuda_visible_devices": visible}
+    return placement
+
+
 def _subject_task(events, subject: BatchSubject, output: str, options: dict, kill_at_step: int | None) -> dict:
-    """The Ray task of one subject: :func:`~warpavatar.batch.job.fit_subject`, reporting its start."""
-    host = socket.gethostname()
+    """The Ray task of one subject: :func:`~warpavatar.batch.job.fit_subject` on the device Ray gave it
+    (:func:`task_placement`), reporting its start."""
+    placement = task_placement(options["device"], import_ray().get_gpu_ids())
+    where = {"host": placement["host"], "gpu_uuid": (placement["gpu"] or {}).get("uuid")}
 
     def report(event: str, values: dict) -> None:
-        events.put((subject.name, event, {**values, "host": host}))
+        events.put((subject.name, event, {**values, **where}))
 
-    return fit_subject(subject, output, report=report, kill_at_step=kill_at_step, **options)
+    return fit_subject(subject, output, report=report, kill_at_step=kill_at_step,
+                       placement=placement, **{**options, "device": placement["device"]})
 
 
 def _task_error(error: BaseException) -> str:
@@ -122,8 +147,8 @@ def _earlier_results(subjects: list[BatchSubject], out_root: Path, *, config, fo
 def run_batch(subjects: list[BatchSubject], out_root: str | os.PathLike, *, config, device: str, preset_name: str,
               gpus_per_fit: float, cpus_per_fit: float, max_retries: int = 3, evaluate: bool = False,
               force: bool = False, progress: bool = True, test_kill: dict[str, int] | None = None,
-              write: Callable[[str], None] | None = None, stop_requested: Callable[[], bool] | None = None
-              ) -> list[dict]:
+              write: Callable[[str], None] | None = None, stop_requested: Callable[[], bool] | None = None,
+              kernel_cache: str | os.PathLike | None = None) -> list[dict]:
     """Fit every subject in its own Ray task on the connected cluster (see :func:`connect_ray`).
 
     Subjects finished by an earlier run (their done marker) are skipped unless ``force``, which fits them again
@@ -148,6 +173,9 @@ def run_batch(subjects: list[BatchSubject], out_root: str | os.PathLike, *, conf
             worker with SIGKILL after that step.
         write: where the progress lines go (default: printed above the bar).
         stop_requested: asked while the batch runs; true stops it (see above).
+        kernel_cache: Warp's kernel cache directory for every fit (``WARP_CACHE_PATH`` in each worker's
+            environment); None: each worker's own ``WARP_CACHE_PATH`` or Warp's per-user cache directory. The
+            fits of a host share it and compile each kernel once (:func:`~warpavatar.batch.gpus.first_compile_turn`).
 
     Returns:
         One result per subject, in the order given: :func:`~warpavatar.batch.job.fit_subject`'s, with
@@ -181,8 +209,9 @@ def run_batch(subjects: list[BatchSubject], out_root: str | os.PathLike, *, conf
     events = Queue(actor_options={"num_cpus": 0})
     # resources given to ray.remote itself (not .options): a GPU task then gets Ray's default max_calls=1, a fresh
     # worker process per fit, whose GPU memory is freed when it ends
+    environment = {"env_vars": {"WARP_CACHE_PATH": str(Path(kernel_cache).absolute())}} if kernel_cache else None
     task = ray.remote(num_gpus=gpus_per_fit, num_cpus=cpus_per_fit, max_retries=max_retries,
-                      retry_exceptions=list(INFRASTRUCTURE_ERRORS))(_subject_task)
+                      retry_exceptions=list(INFRASTRUCTURE_ERRORS), runtime_env=environment)(_subject_task)
     options = dict(config=config, device=device, preset_name=preset_name, evaluate=evaluate)
     pending = {task.remote(events, subject, str(subject.output(out_root)), options,
                            (test_kill or {}).get(subject.name)): subject for subject in to_fit}
@@ -197,7 +226,8 @@ def run_batch(subjects: list[BatchSubject], out_root: str | os.PathLike, *, conf
                 first_start.setdefault(name, time.time())
                 again = f", attempt {attempts[name]}" if attempts[name] > 1 else ""
                 resume = f", resuming from step {values['resume_step']}" if values["resume_step"] else ""
-                write(f"{name}: started on {values['host']}{again}{resume}")
+                gpu = f" ({values['gpu_uuid']})" if values.get("gpu_uuid") else ""
+                write(f"{name}: started on {values['host']}{gpu}{again}{resume}")
 
     def collect(ready) -> None:
         for reference in ready:

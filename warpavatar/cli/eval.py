@@ -13,8 +13,10 @@ from warpavatar.io.output_files import output_lock, staged_folder
 
 DESCRIPTION = """Render a fitted avatar with the cameras and poses of a video folder and compare with its frames.
 
-Reports PSNR and SSIM over the full frame (on the folder's background) and inside the ground-truth mask, and
-LPIPS when VGG/AlexNet weights are available locally (nothing is downloaded), per frame and as means.
+Reports PSNR and SSIM over the full frame (on the folder's background) and inside the ground-truth mask, the
+floater share (the share of the rendered opacity outside the mask dilated by 3 pixels: floaters, or a blur that
+hides a misplaced figure), and LPIPS when VGG/AlexNet weights are available locally (nothing is downloaded),
+per frame and as means.
 VIDEO_FOLDER may also be a subject folder: then every folder under novel_view/ and novel_pose/ is evaluated.
 Scores are computed at the fit's training resolution (its image_scale, as warpavatar-fit --demo and
 warpavatar-fit-many --eval compute theirs) unless --scale says otherwise, and each line names the resolution.

@@ -76,6 +76,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--max-retries", type=int, default=3, metavar="N",
         help="how many times a fit whose worker died (or hit a disk, network or GPU-memory error) is run again, "
              "continuing from its last checkpoint (default: %(default)s)"))
+    batch.add_argument(
+        "--kernel-cache", type=Path, default=None, metavar="DIR",
+        help="Warp's kernel cache directory for every fit: the fits of a host share it and compile each kernel "
+             "once (default: $WARP_CACHE_PATH where set, else Warp's per-user cache directory of each node)")
     main_option(batch.add_argument(
         "--force", action="store_true",
         help="fit again, from the start, subjects that an earlier run finished (default: off, skip them)"))
@@ -115,6 +119,9 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     _check_batch_options(args)
     check_output_path(args.output, "-o", folder=True)
+    if args.kernel_cache is not None:
+        check_output_path(args.kernel_cache, "--kernel-cache", folder=True)
+    kernel_cache = args.kernel_cache or os.environ.get("WARP_CACHE_PATH") or None
     from warpavatar.batch import read_subjects, run_batch, summary_lines, write_summary
     from warpavatar.batch.runner import cluster_gpu_count, connect_ray, import_ray
     from warpavatar.fit.arguments import config_from_arguments
@@ -147,7 +154,8 @@ def main(argv=None) -> int:
             results = run_batch(subjects, args.output, config=config, device=device, preset_name=preset_name,
                                 gpus_per_fit=gpus_per_fit, cpus_per_fit=args.cpus_per_fit,
                                 max_retries=args.max_retries, evaluate=args.eval, force=args.force,
-                                progress=not args.no_progress, test_kill=kill, stop_requested=lambda: bool(stop))
+                                progress=not args.no_progress, test_kill=kill, stop_requested=lambda: bool(stop),
+                                kernel_cache=kernel_cache)
     except KeyboardInterrupt as interruption:  # a second signal, or Ctrl-C before the handlers were installed
         return _interrupted(interruption_signal(interruption))
     finally:

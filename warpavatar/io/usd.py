@@ -44,7 +44,7 @@ from warpavatar.geometry import SH_C0, quat_from_matrix
 from warpavatar.io.output_files import disk_full_error, temporary_path
 from warpavatar.io.ply import _check_array
 
-__all__ = ["GaussianUsdWriter", "read_gaussian_usd", "gaussian_extent", "LAYOUTS"]
+__all__ = ["GaussianUsdWriter", "read_gaussian_usd", "gaussian_extent", "local_joint_transforms", "LAYOUTS"]
 
 LAYOUTS = ("particlefield", "points")
 """Names of the Gaussians prim layouts :class:`GaussianUsdWriter` can write."""
@@ -157,6 +157,42 @@ def _to_usd_matrices(matrices: np.ndarray) -> Vt.Matrix4dArray:
 
 def _from_usd_matrices(matrices) -> np.ndarray:
     return np.swapaxes(np.asarray(matrices, dtype=np.float64).reshape(-1, 4, 4), -1, -2)
+
+
+def local_joint_transforms(joint_transforms, parents: np.ndarray, bind: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Skinning transforms -> UsdSkel joint-local transforms (what a ``SkelAnimation`` stores).
+
+    Args:
+        joint_transforms: [J,4,4] rigid bone transforms (rest pose -> posed world), column convention.
+        parents: [J] int parent of each joint (-1 for a root), parents before children.
+        bind: [J,4,4] world rest frames of the joints (the Skeleton's ``bindTransforms``), column convention.
+
+    Returns:
+        (translations [J,3], rotations [J,4] (x, y, z, w), USD's order) float32, each joint's posed frame in its
+        parent's posed frame.
+
+    Raises:
+        ValueError: a shape other than [J,4,4], or a transform that is not rigid.
+    """
+    joint_count = parents.shape[0]
+    bones = _check_array("joint_transforms", joint_transforms, (joint_count, 4, 4), dtype=np.float64)
+    rotations = bones[:, :3, :3]
+    error = np.abs(np.einsum("jki,jkl->jil", rotations, rotations) - np.eye(3)).max(axis=(1, 2))
+    bad = np.flatnonzero((error > 1e-3) | (np.linalg.det(rotations) < 0)
+                         | (np.abs(bones[:, 3] - [0, 0, 0, 1]).max(axis=1) > 1e-6))
+    if bad.size:
+        raise ValueError(f"joint_transforms must be rigid (rotation + translation); joint {int(bad[0])} is not")
+    world = bones @ bind  # posed joint frames: the bone transform applied to the rest joint frame
+    parent_world = np.where(parents[:, None, None] >= 0, world[np.maximum(parents, 0)], np.eye(4))
+    # Rigid inverse of the parent frame, then local = parent^-1 @ world.
+    inverse = np.zeros_like(parent_world)
+    inverse[:, :3, :3] = np.swapaxes(parent_world[:, :3, :3], 1, 2)
+    inverse[:, :3, 3] = -np.einsum("jki,jk->ji", parent_world[:, :3, :3], parent_world[:, :3, 3])
+    inverse[:, 3, 3] = 1.0
+    local = inverse @ world
+    quats = quat_from_matrix(np.asarray(local[:, :3, :3], dtype=np.float64))
+    return (np.ascontiguousarray(local[:, :3, 3], dtype=np.float32),
+            np.ascontiguousarray(quats[:, [1, 2, 3, 0]], dtype=np.float32))
 
 
 class GaussianUsdWriter:
@@ -426,26 +462,8 @@ class GaussianUsdWriter:
 
     def _local_joint_transforms(self, joint_transforms) -> tuple[np.ndarray, np.ndarray]:
         """Bone transforms [J,4,4] -> per-joint local (translations [J,3], rotations [J,4] x,y,z,w) float32."""
-        parents, heads, bind = self._skeleton
-        joint_count = parents.shape[0]
-        bones = _check_array("joint_transforms", joint_transforms, (joint_count, 4, 4), dtype=np.float64)
-        rotations = bones[:, :3, :3]
-        error = np.abs(np.einsum("jki,jkl->jil", rotations, rotations) - np.eye(3)).max(axis=(1, 2))
-        bad = np.flatnonzero((error > 1e-3) | (np.linalg.det(rotations) < 0)
-                             | (np.abs(bones[:, 3] - [0, 0, 0, 1]).max(axis=1) > 1e-6))
-        if bad.size:
-            raise ValueError(f"joint_transforms must be rigid (rotation + translation); joint {int(bad[0])} is not")
-        world = bones @ bind  # posed joint frames: the bone transform applied to the rest joint frame
-        parent_world = np.where(parents[:, None, None] >= 0, world[np.maximum(parents, 0)], np.eye(4))
-        # Rigid inverse of the parent frame, then local = parent^-1 @ world.
-        inverse = np.zeros_like(parent_world)
-        inverse[:, :3, :3] = np.swapaxes(parent_world[:, :3, :3], 1, 2)
-        inverse[:, :3, 3] = -np.einsum("jki,jk->ji", parent_world[:, :3, :3], parent_world[:, :3, 3])
-        inverse[:, 3, 3] = 1.0
-        local = inverse @ world
-        quats = quat_from_matrix(np.asarray(local[:, :3, :3], dtype=np.float64))
-        return (np.ascontiguousarray(local[:, :3, 3], dtype=np.float32),
-                np.ascontiguousarray(quats[:, [1, 2, 3, 0]], dtype=np.float32))
+        parents, _, bind = self._skeleton
+        return local_joint_transforms(joint_transforms, parents, bind)
 
     # -- finishing -------------------------------------------------------------------------------
 

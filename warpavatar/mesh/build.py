@@ -1,0 +1,143 @@
+"""The mesh export's stages in order: a fitted avatar in, a textured, skinned :class:`AvatarMesh` out.
+
+renders of the canonical avatar (:func:`~warpavatar.mesh.views.render_canonical_views`) -> a closed surface fused
+from them (:func:`~warpavatar.mesh.surface.extract_surface`) -> UVs (:func:`~warpavatar.mesh.texture.unwrap`) ->
+normals -> texture atlas and vertex colours baked from the renders (:mod:`warpavatar.mesh.texture`) -> skin weights
+(:func:`~warpavatar.mesh.skin.skin_mesh`). A static format skips what it cannot hold (``texture``,
+``vertex_colors``, ``skin`` off). The motion is applied afterwards, by :func:`~warpavatar.mesh.skin.mesh_animation`.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from warpavatar.mesh.mesh_data import AvatarMesh
+
+__all__ = ["DEFAULT_TRIANGLES", "DEFAULT_TEXTURE_SIZE", "DEFAULT_VIEW_COUNT", "DEFAULT_VIEW_SIZE",
+           "build_avatar_mesh"]
+
+DEFAULT_TRIANGLES = 50_000
+"""Triangles of the exported mesh, after decimation."""
+
+DEFAULT_TEXTURE_SIZE = 1024
+"""Width and height of the texture atlas [px]."""
+
+DEFAULT_VIEW_COUNT = 48
+"""Renders of the canonical avatar the surface is fused from and the texture baked from."""
+
+DEFAULT_VIEW_SIZE = 256
+"""Width and height of each render [px]."""
+
+
+def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """[V,3] float32 unit normals: the area-weighted sum of the normals of the faces around each vertex."""
+    corners = vertices[faces].astype(np.float64)
+    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])  # |n| = 2 * area
+    normals = np.zeros((vertices.shape[0], 3))
+    for corner in range(3):
+        np.add.at(normals, faces[:, corner], face_normals)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    fallback = np.array([0.0, 0.0, 1.0])
+    normals = np.where(length > 0, normals / np.maximum(length, 1e-30), fallback)
+    return normals.astype(np.float32)
+
+
+def build_avatar_mesh(avatar, *, triangles: int = DEFAULT_TRIANGLES, texture_size: int = DEFAULT_TEXTURE_SIZE,
+                      view_count: int = DEFAULT_VIEW_COUNT, view_size: int = DEFAULT_VIEW_SIZE, device=None,
+                      texture: bool = True, vertex_colors: bool = True, skin: bool = True, progress: bool = False,
+                      timings: dict[str, float] | None = None) -> AvatarMesh:
+    """The avatar's surface in its canonical pose, as a mesh an engine can texture and skin.
+
+    Args:
+        avatar: a fitted :class:`~warpavatar.model.Avatar`.
+        triangles: triangles of the decimated surface (the result has about as many).
+        texture_size: width and height of the texture atlas [px].
+        view_count: renders of the canonical avatar the surface and colours come from.
+        view_size: width and height of each render [px].
+        device: where to render (default: the avatar's device).
+        texture: unwrap UVs and bake the texture atlas (``uvs``, ``texture``); off: the surface's vertices
+            unsplit, ``uvs`` and ``texture`` None.
+        vertex_colors: bake ``vertex_colors``.
+        skin: add skin weights and the rig (``joint_*``).
+        progress: show a progress bar over the stages, named as they run.
+        timings: a dict to fill with each stage's wall time [s], by stage name, or None.
+
+    Returns:
+        the :class:`AvatarMesh`, with the avatar skeleton's ``up``.
+
+    Raises:
+        ValueError: the avatar has no surface to extract (no Gaussians, or none opaque enough).
+    """
+    import tqdm
+
+    from warpavatar.mesh import skin as skinning
+    from warpavatar.mesh import surface, texture as texturing
+    from warpavatar.mesh.views import render_canonical_views
+
+    stages = ["views", "surface"] + (["uvs"] if texture else []) + (["texture"] if texture else []) \
+        + (["vertex colours"] if vertex_colors else []) + (["skin"] if skin else [])
+    timings = {} if timings is None else timings
+    bar = tqdm.tqdm(total=len(stages), desc="mesh", unit="stage", disable=not progress)
+    clock = [time.perf_counter()]
+
+    def begin(stage: str) -> None:
+        bar.set_postfix_str(stage, refresh=True)
+
+    def end(stage: str) -> None:
+        now = time.perf_counter()
+        timings[stage] = now - clock[0]
+        clock[0] = now
+        bar.update(1)
+
+    try:
+        begin("views")
+        views = render_canonical_views(avatar, count=view_count, size=view_size, device=device)
+        end("views")
+
+        begin("surface")
+        fused = surface.extract_surface(views, triangles=triangles, skeleton=avatar.skeleton, device=device)
+        surface_vertices = np.asarray(fused.vertices, dtype=np.float32)
+        surface_faces = np.asarray(fused.faces, dtype=np.int32)
+        if surface_faces.shape[0] == 0:
+            raise ValueError("the avatar's renders hold no surface to make a mesh of")
+        surface_normals = _vertex_normals(surface_vertices, surface_faces)
+        end("surface")
+
+        if texture:
+            begin("uvs")
+            vertices, faces, uvs, source_vertex = texturing.unwrap(surface_vertices, surface_faces,
+                                                                   size=int(texture_size))
+            vertices = np.asarray(vertices, dtype=np.float32)
+            faces = np.asarray(faces, dtype=np.int32)
+            source_vertex = np.asarray(source_vertex, dtype=np.int64)
+            normals = surface_normals[source_vertex]  # split vertices along a seam keep one normal
+            end("uvs")
+            begin("texture")
+            atlas = texturing.bake_texture(vertices, faces, normals, uvs, views, size=int(texture_size),
+                                           device=device)
+            end("texture")
+        else:
+            vertices, faces, normals, uvs, atlas = surface_vertices, surface_faces, surface_normals, None, None
+            source_vertex = None
+
+        colours = None
+        if vertex_colors:  # on the unsplit surface, so a seam's split vertices get one colour
+            begin("vertex colours")
+            colours = texturing.vertex_colors(surface_vertices, surface_normals, views, device=device)
+            colours = np.asarray(colours, dtype=np.uint8)
+            if source_vertex is not None:
+                colours = colours[source_vertex]
+            end("vertex colours")
+
+        mesh = AvatarMesh(vertices=vertices, faces=faces, normals=normals,
+                          uvs=None if uvs is None else np.asarray(uvs, dtype=np.float32), texture=atlas,
+                          vertex_colors=colours, up=np.asarray(avatar.skeleton.up, dtype=np.float32))
+        if skin:
+            begin("skin")
+            mesh = skinning.skin_mesh(avatar, mesh)
+            end("skin")
+        return mesh
+    finally:
+        bar.close()

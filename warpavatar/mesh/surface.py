@@ -1,0 +1,519 @@
+"""A closed triangle surface fused from renders of the canonical avatar: TSDF fusion with space carving, marching
+cubes, floaters dropped, decimated.
+
+The renders (:func:`warpavatar.mesh.views.render_canonical_views`) are fused into a truncated signed distance on a
+voxel grid by :func:`warpavatar.ops.integrate_tsdf`: a voxel that any view sees as background is carved empty, so
+what remains lies inside every silhouette, and the depths shape it within them (volumetric fusion as in "A
+Volumetric Method for Building Complex Models from Range Images", with the carving of "A Theory of Shape by Space
+Carving"). The grid is fused twice: coarsely over the region every camera frames, to find the visual hull's box,
+then finely over that box. Marching cubes (scikit-image's) on the fine grid, padded with empty voxels, gives a
+closed surface; components that are floaters (:data:`FLOATER_AREA_FRACTION`, :data:`FLOATER_BONE_REACH`) or
+cavities are dropped, the rest is decimated to the triangle budget by quadric edge collapse (fast-simplification)
+and its faces are wound outwards. Colours fused with the depths become vertex colours.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import trimesh
+
+from warpavatar.mesh.mesh_data import CanonicalView
+
+__all__ = ["DEFAULT_TRIANGLES", "VOXELS_PER_PIXEL", "MAX_VOXELS", "TRUNCATION_VOXELS", "ALPHA_THRESHOLD",
+           "RIM_DEPTH_VOXELS", "COARSE_VOXELS",
+           "SPECK_VOXELS", "FLOATER_AREA_FRACTION", "FLOATER_BONE_REACH", "default_voxel_size", "fuse_views", "depth_offset",
+           "extract_surface"]
+
+DEFAULT_TRIANGLES = 50_000
+"""Triangles of the decimated surface."""
+
+VOXELS_PER_PIXEL = 2.0
+"""Default voxel size: the renders' median pixel footprint at the hull's centre [m] divided by this (finer voxels
+than pixels place the surface between pixel centres, from the depths' expected values)."""
+
+MAX_VOXELS = 8_000_000
+"""Most voxels of the fine grid: a larger voxel is taken where the default one would need more (memory, time)."""
+
+TRUNCATION_VOXELS = 4.0
+"""Truncation of the signed distance, in voxels: a view's distance counts up to this far behind its depth."""
+
+ALPHA_THRESHOLD = 0.5
+"""Pixels with less alpha are background (carve); the renders' depth is ``inf`` there."""
+
+RIM_DEPTH_VOXELS = 1.0
+"""How deep [voxels] inside the silhouettes' surface the carved hull's rim voxels lie, for :func:`depth_offset`:
+the surface is between a rim voxel and its carved neighbour, and the hull of many views lies a little inside
+each one's silhouette (1.0 matched the silhouettes of the demo avatar's renders best: 0.5 to 2.5 were tried)."""
+
+COARSE_VOXELS = 64
+"""Voxels along each axis of the coarse pass (the cube every camera frames)."""
+
+SPECK_VOXELS = 8.0
+"""A component enclosing less than this many voxels' volume is dropped (a speck of the fusion's noise)."""
+
+FLOATER_AREA_FRACTION = 0.25
+"""A component whose area is below this fraction of the largest component's is a floater candidate."""
+
+FLOATER_BONE_REACH = 0.1
+"""A floater candidate is dropped when no vertex of it is within this fraction of the skeleton's height (its
+joints' extent along its up axis) of a bone segment; without a skeleton, every candidate is dropped."""
+
+
+def _stack_views(views: list[CanonicalView], device: torch.device) -> dict[str, torch.Tensor]:
+    if not views:
+        raise ValueError("extract_surface: no views to fuse")
+    sizes = {(int(view.width), int(view.height)) for view in views}
+    if len(sizes) != 1:
+        raise ValueError(f"extract_surface: the views must share one image size, got {sorted(sizes)}")
+    width, height = sizes.pop()
+    for index, view in enumerate(views):
+        for name in ("color", "alpha", "depth"):
+            if getattr(view, name) is None:
+                raise ValueError(f"extract_surface: view {index} has no {name} (render it first)")
+        if view.alpha.shape != (height, width) or view.depth.shape != (height, width) \
+                or view.color.shape != (height, width, 3):
+            raise ValueError(f"extract_surface: view {index} holds images of the wrong shape for {width}x{height}")
+
+    def stack(name, dtype=np.float32):
+        return torch.from_numpy(np.ascontiguousarray(np.stack([getattr(v, name) for v in views]), dtype=dtype)).to(device)
+
+    return {"depth": stack("depth"), "alpha": stack("alpha"), "color": stack("color"), "K": stack("K"),
+            "world_to_camera": stack("world_to_camera")}
+
+
+def _framed_cube(views: list[CanonicalView]) -> tuple[np.ndarray, float]:
+    """(centre [3], half side [m]) of a cube around the point the cameras look at, as large as the smallest sphere
+    around it that a view frames whole (its corners may fall outside some images: they stay unknown there)."""
+    rotations = np.stack([np.asarray(v.world_to_camera, np.float64)[:3, :3] for v in views])
+    eyes = np.stack([-r.T @ np.asarray(v.world_to_camera, np.float64)[:3, 3] for r, v in zip(rotations, views)])
+    axes = rotations[:, 2]  # each camera's optical axis in the world
+    # least-squares point closest to every optical axis: sum (I - a a^T) (c - eye) = 0
+    projectors = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]
+    system = projectors.sum(0)
+    if np.linalg.cond(system) > 1e8:  # every camera along one axis: the point halfway along the first's depths
+        finite = np.isfinite(views[0].depth)
+        reach = float(np.median(views[0].depth[finite])) if finite.any() else 1.0
+        centre = eyes[0] + reach * axes[0]
+    else:
+        centre = np.linalg.solve(system, np.einsum("vij,vj->i", projectors, eyes))
+    radius = math.inf
+    for view, eye, axis in zip(views, eyes, axes):
+        K = np.asarray(view.K, np.float64)
+        distance = float(np.linalg.norm(centre - eye))
+        half_x = math.atan(min(K[0, 2] + 0.5, view.width - 0.5 - K[0, 2]) / K[0, 0])
+        half_y = math.atan(min(K[1, 2] + 0.5, view.height - 0.5 - K[1, 2]) / K[1, 1])
+        off_axis = math.acos(min(1.0, max(-1.0, float(axis @ (centre - eye)) / max(distance, 1e-12))))
+        radius = min(radius, distance * math.sin(max(0.0, min(half_x, half_y) - off_axis)))
+    if not radius > 0.0:
+        raise ValueError("extract_surface: the views do not all look at one region")
+    return centre, radius
+
+
+def _pixel_footprint(views: list[CanonicalView], point: np.ndarray) -> float:
+    """Median over the views of the width [m] one pixel covers at ``point``."""
+    footprints = []
+    for view in views:
+        matrix = np.asarray(view.world_to_camera, np.float64)
+        z = float(matrix[2, :3] @ point + matrix[2, 3])
+        focal = math.sqrt(float(view.K[0, 0]) * float(view.K[1, 1]))
+        if z > 0.0:
+            footprints.append(z / focal)
+    if not footprints:
+        raise ValueError("extract_surface: the region to fuse is behind every camera")
+    return float(np.median(footprints))
+
+
+def default_voxel_size(views: list[CanonicalView], low: np.ndarray, high: np.ndarray) -> float:
+    """The fine grid's voxel size [m] over the box ``low``..``high``: the renders' median pixel footprint at the
+    box's centre over :data:`VOXELS_PER_PIXEL`, enlarged where the box would need more than :data:`MAX_VOXELS`."""
+    size = _pixel_footprint(views, 0.5 * (low + high)) / VOXELS_PER_PIXEL
+    volume = float(np.prod(np.maximum(high - low, 1e-9)))
+    return max(size, (volume / MAX_VOXELS) ** (1.0 / 3.0))
+
+
+def fuse_views(views: list[CanonicalView], low, high, voxel_size: float, *, truncation: float | None = None,
+               device=None) -> dict[str, np.ndarray]:
+    """Fuse views into a TSDF on a grid of voxel centres covering the box ``low``..``high`` [m].
+
+    Args:
+        views: renders with colour, alpha and depth, all of one size.
+        low, high: [3] corners of the box [m]; the first voxel centre is ``low``.
+        voxel_size: spacing of the voxel centres [m].
+        truncation: [m]; default :data:`TRUNCATION_VOXELS` voxels.
+        device: where to run the kernel (default CPU).
+
+    Returns:
+        ``{"tsdf": [X,Y,Z], "weight": [X,Y,Z], "color": [X,Y,Z,3], "origin": [3], "voxel_size": float,
+        "truncation": float}``, numpy float32 (see :func:`warpavatar.ops.integrate_tsdf`).
+    """
+    from warpavatar import ops
+
+    device = torch.device("cpu" if device is None else device)
+    low, high = np.asarray(low, np.float64), np.asarray(high, np.float64)
+    truncation = TRUNCATION_VOXELS * voxel_size if truncation is None else float(truncation)
+    shape = tuple(int(n) for n in np.floor((high - low) / voxel_size + 1e-6).astype(np.int64) + 1)
+    stacked = _stack_views(views, device)
+    with torch.no_grad():
+        tsdf, weight, color = ops.integrate_tsdf(
+            stacked["depth"], stacked["alpha"], stacked["color"], stacked["K"], stacked["world_to_camera"],
+            tuple(low), voxel_size, shape, truncation=truncation, alpha_threshold=ALPHA_THRESHOLD)
+    return {"tsdf": tsdf.cpu().numpy(), "weight": weight.cpu().numpy(), "color": color.cpu().numpy(),
+            "origin": low.astype(np.float32), "voxel_size": float(voxel_size), "truncation": truncation}
+
+
+def _hull_box(views: list[CanonicalView], device) -> tuple[np.ndarray, np.ndarray]:
+    """The box [m] of the views' visual hull (voxels of the coarse pass left inside), two coarse voxels wider."""
+    centre, radius = _framed_cube(views)
+    coarse = 2.0 * radius / (COARSE_VOXELS - 1)
+    grid = fuse_views(views, centre - radius, centre + radius, coarse, device=device)
+    inside = np.argwhere(grid["tsdf"] < 0.0)
+    if inside.shape[0] == 0:
+        raise ValueError("extract_surface: the views show nothing to make a surface of (every voxel is carved)")
+    low = centre - radius + coarse * (inside.min(0) - 2)
+    high = centre - radius + coarse * (inside.max(0) + 2)
+    return low, high
+
+
+def _carved_neighbours(carved: np.ndarray) -> np.ndarray:
+    """[X,Y,Z] bool: voxels with a carved voxel among their six face neighbours."""
+    near = np.zeros_like(carved)
+    for axis in range(3):
+        ahead = [slice(None)] * 3
+        behind = [slice(None)] * 3
+        ahead[axis], behind[axis] = slice(1, None), slice(None, -1)
+        near[tuple(behind)] |= carved[tuple(ahead)]
+        near[tuple(ahead)] |= carved[tuple(behind)]
+    return near
+
+
+def depth_offset(grid: dict) -> float:
+    """How far [m] the views' depths lie behind the surface their silhouettes show, from the fused grid.
+
+    The renders' depth is the alpha-weighted mean depth along each ray; through the soft edges of Gaussians that
+    mean lies behind where alpha reaches one half (the silhouettes' surface) by about a Gaussian's size. The rim
+    of the carved hull (voxels fused from the depths with a carved face neighbour) is where the silhouettes put
+    the surface, just outside the rim voxels' centres: the offset is the rim's median signed distance plus
+    :data:`RIM_DEPTH_VOXELS` voxels, within 0 .. truncation - one voxel (0 when no rim voxel was fused).
+    """
+    voxel, truncation = grid["voxel_size"], grid["truncation"]
+    carved = (grid["weight"] == 0.0) & (grid["tsdf"] > 0.0)
+    rim = ~carved & (grid["weight"] > 0.0) & _carved_neighbours(carved)
+    if not rim.any():
+        return 0.0
+    offset = float(np.median(grid["tsdf"][rim])) + RIM_DEPTH_VOXELS * voxel
+    return min(max(offset, 0.0), max(truncation - voxel, 0.0))
+
+
+def _marching_cubes(grid: dict, *, offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices [m] and outward-wound faces of the TSDF's level ``offset`` (the fused distances are moved by it:
+    :func:`depth_offset`), the grid padded with empty voxels so the surface closes at its border."""
+    from skimage.measure import marching_cubes
+
+    tsdf = grid["tsdf"]
+    voxel = grid["voxel_size"]
+    fused = grid["weight"] > 0.0
+    # Carved voxels hold +truncation; next to an inside voxel that would pull the zero crossing inwards by up to
+    # the truncation's share. A carved voxel's centre is just outside a silhouette: half a voxel is its distance.
+    values = np.where(fused, tsdf - np.float32(offset), tsdf)
+    values = np.where(~fused & (tsdf > 0.0), np.float32(min(0.5 * voxel, grid["truncation"])), values)
+    values = np.pad(values, 1, mode="constant", constant_values=np.float32(grid["truncation"]))
+    values[values == 0.0] = np.float32(1e-7 * voxel)  # no vertex exactly on a voxel centre (degenerate faces)
+    if not (values.min() < 0.0 < values.max()):
+        return np.zeros((0, 3), np.float64), np.zeros((0, 3), np.int64)
+    vertices, faces, _, _ = marching_cubes(values, level=0.0, spacing=(voxel, voxel, voxel),
+                                           gradient_direction="descent", allow_degenerate=False)
+    vertices = vertices.astype(np.float64) + (grid["origin"].astype(np.float64) - voxel)
+    return vertices, faces.astype(np.int64)
+
+
+def _bone_segments(skeleton) -> tuple[np.ndarray, np.ndarray, float] | None:
+    if skeleton is None:
+        return None
+    heads = np.asarray(skeleton.heads, np.float64)
+    tails = np.asarray(skeleton.tails, np.float64)
+    up = np.asarray(skeleton.up, np.float64)
+    up = up / max(np.linalg.norm(up), 1e-12)
+    heights = np.concatenate([heads, tails]) @ up
+    return heads, tails, float(heights.max() - heights.min())
+
+
+def _distance_to_bones(points: np.ndarray, heads: np.ndarray, tails: np.ndarray) -> float:
+    """Smallest distance [m] from any of ``points`` [N,3] to any bone segment."""
+    directions = tails - heads
+    lengths = np.maximum((directions * directions).sum(-1), 1e-12)
+    best = math.inf
+    for start in range(0, points.shape[0], 4096):
+        chunk = points[start:start + 4096]
+        along = np.clip(((chunk[:, None] - heads[None]) * directions[None]).sum(-1) / lengths[None], 0.0, 1.0)
+        nearest = heads[None] + along[..., None] * directions[None]
+        best = min(best, float(np.sqrt(((chunk[:, None] - nearest) ** 2).sum(-1).min())))
+    return best
+
+
+def _component_labels(faces: np.ndarray) -> np.ndarray:
+    """[F] int64 label of each face's connected component (faces joined through shared edges)."""
+    if faces.shape[0] == 0:
+        return np.zeros(0, np.int64)
+    adjacency = trimesh.graph.face_adjacency(faces=faces)
+    return np.asarray(trimesh.graph.connected_component_labels(adjacency, node_count=faces.shape[0]), np.int64)
+
+
+def _kept_components(vertices: np.ndarray, faces: np.ndarray, skeleton, voxel_size: float) -> np.ndarray:
+    """[F] bool: faces of the components kept (the rule in :func:`extract_surface`)."""
+    labels = _component_labels(faces)
+    if labels.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    corners = vertices[faces]
+    crossed = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    areas = np.bincount(labels, weights=0.5 * np.linalg.norm(crossed, axis=1))
+    volumes = np.bincount(labels, weights=(corners[:, 0] * crossed).sum(1) / 6.0)
+    # A component wound inwards (negative volume) is the wall of a cavity, unseen from outside; one enclosing
+    # less than a few voxels is a speck (decimation would crush it flat).
+    keep = volumes > SPECK_VOXELS * voxel_size ** 3
+    if not keep.any():
+        return np.zeros(faces.shape[0], dtype=bool)
+    largest = float(areas[keep].max())
+    bones = _bone_segments(skeleton)
+    for component in np.flatnonzero(keep & (areas < FLOATER_AREA_FRACTION * largest)):
+        if bones is None:
+            keep[component] = False
+            continue
+        heads, tails, height = bones
+        component_vertices = vertices[np.unique(faces[labels == component])]
+        keep[component] = _distance_to_bones(component_vertices, heads, tails) <= FLOATER_BONE_REACH * height
+    return keep[labels]
+
+
+def _compacted(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices the faces use, and the faces renumbered to them."""
+    used, inverse = np.unique(faces.reshape(-1), return_inverse=True)
+    return vertices[used], inverse.reshape(faces.shape).astype(np.int64)
+
+
+def _edge_partners(vertices: np.ndarray, faces: np.ndarray, *, turned: np.ndarray | None = None) -> np.ndarray:
+    """[3F] the half-edge across from each half-edge (half-edge ``3 f + k`` runs from corner k of face f to
+    corner k + 1), -1 where none.
+
+    An edge of two faces pairs them. Around an edge of more (two sheets touching where a collapse pinched them),
+    the faces are sorted by angle about the edge; a face's outward normal points towards increasing angle when
+    its half-edge runs along the edge's axis, so it pairs with its neighbour at decreasing angle (the wedge
+    between them is solid), and a face running against the axis with its neighbour at increasing angle. Edges
+    whose half-edges ``turned`` (a [3F] bool, or None) marks pair the other way round (each face with its other
+    neighbour: the pairing that separates a fan which meets itself along the edge). Where the faces do not
+    alternate in direction around the edge (a fold that crosses itself), those along the axis pair with those
+    against it in angular order (shifted by one where ``turned``).
+    """
+    half_from = faces.reshape(-1)
+    half_to = np.roll(faces, -1, axis=1).reshape(-1)
+    low, high = np.minimum(half_from, half_to), np.maximum(half_from, half_to)
+    key = low * np.int64(vertices.shape[0]) + high
+    order = np.argsort(key, kind="stable")
+    ordered = key[order]
+    starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
+    counts = np.diff(np.r_[starts, key.shape[0]])
+    partner = np.full(key.shape[0], -1, np.int64)
+    pairs = starts[counts == 2]
+    first, second = order[pairs], order[pairs + 1]
+    opposite = half_from[first] == half_to[second]  # consistently wound: the two run in opposite directions
+    partner[first[opposite]], partner[second[opposite]] = second[opposite], first[opposite]
+    for start, count in zip(starts[counts > 2], counts[counts > 2]):
+        halves = order[start:start + count]
+        a, b = low[halves[0]], high[halves[0]]
+        axis = vertices[b] - vertices[a]
+        axis = axis / max(np.linalg.norm(axis), 1e-30)
+        helper = np.eye(3)[int(np.argmin(np.abs(axis)))]
+        e1 = np.cross(axis, helper)
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(axis, e1)
+        third = faces[halves // 3, (halves % 3 + 2) % 3]
+        spoke = vertices[third] - vertices[a]
+        angles = np.arctan2(spoke @ e2, spoke @ e1)
+        around = halves[np.argsort(angles)]
+        forward = half_from[around] == a
+        turn = turned is not None and bool(turned[halves].any())
+        if np.all(forward != np.roll(forward, 1)):
+            for position, half in enumerate(around):
+                partner[half] = around[(position + (-1 if forward[position] != turn else 1)) % count]
+        elif 2 * int(forward.sum()) == count:  # folded over itself (not alternating): any pairing closes it
+            along, against = around[forward], np.roll(around[~forward], -int(turn))
+            partner[along], partner[against] = against, along
+    mutual = partner >= 0
+    mutual[mutual] = partner[partner[mutual]] == np.flatnonzero(mutual)
+    partner[~mutual] = -1
+    return partner
+
+
+MANIFOLD_ROUNDS = 4
+"""Pairings tried by :func:`_manifold` before it keeps the one with the fewest edges of more than two faces."""
+
+
+def _without_folds(faces: np.ndarray) -> np.ndarray:
+    """The faces less each pair of one triangle wound both ways (a fold of zero volume that decimation leaves;
+    every edge loses one use in each direction, so what was closed stays closed)."""
+    if faces.shape[0] == 0:
+        return faces
+    key = np.sort(faces, axis=1)
+    # a triangle's winding: even or odd permutation of its sorted corners
+    smallest = np.argmin(faces, axis=1)
+    rolled = np.take_along_axis(faces, (smallest[:, None] + np.arange(3)[None]) % 3, axis=1)
+    parity = (rolled[:, 1] > rolled[:, 2]).astype(np.int64)
+    _, group = np.unique(key, axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    drop = np.zeros(faces.shape[0], dtype=bool)
+    order = np.lexsort((parity, group))
+    ordered_group, ordered_parity = group[order], parity[order]
+    starts = np.flatnonzero(np.r_[True, ordered_group[1:] != ordered_group[:-1]])
+    for start, stop in zip(starts, np.r_[starts[1:], order.shape[0]]):
+        if stop - start < 2:
+            continue
+        members = order[start:stop]
+        even, odd = members[ordered_parity[start:stop] == 0], members[ordered_parity[start:stop] == 1]
+        pairs = min(even.shape[0], odd.shape[0])
+        drop[even[:pairs]] = True
+        drop[odd[:pairs]] = True
+    return faces[~drop]
+
+
+def _split_fans(vertices: np.ndarray, faces: np.ndarray, partner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each vertex split into one copy per fan of faces around it that the half-edge pairs ``partner`` join."""
+    halves = np.flatnonzero(partner >= 0)
+    others = partner[halves]
+    face, corner = halves // 3, halves % 3
+    other_face, other_corner = others // 3, others % 3
+    # half-edge (f, k) runs v0 -> v1 and its partner (g, l) v1 -> v0: corner k of f and corner l + 1 of g are
+    # v0, corner k + 1 of f and corner l of g are v1
+    links = np.concatenate([
+        np.stack([3 * face + corner, 3 * other_face + (other_corner + 1) % 3], axis=1),
+        np.stack([3 * face + (corner + 1) % 3, 3 * other_face + other_corner], axis=1)])
+    # corners of one vertex that no pair joins stay apart; corners of different vertices are never linked
+    labels = np.asarray(trimesh.graph.connected_component_labels(links, node_count=3 * faces.shape[0]), np.int64)
+    _, first_corner, new_faces = np.unique(labels, return_index=True, return_inverse=True)
+    return vertices[faces.reshape(-1)[first_corner]], new_faces.reshape(faces.shape).astype(np.int64)
+
+
+def _crowded_halves(faces: np.ndarray) -> np.ndarray:
+    """[3F] bool: half-edges on an edge of more than two faces."""
+    half_from, half_to = faces.reshape(-1), np.roll(faces, -1, axis=1).reshape(-1)
+    key = np.minimum(half_from, half_to) * np.int64(max(int(faces.max()) + 1, 1)) + np.maximum(half_from, half_to)
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    return counts[inverse.reshape(-1)] > 2
+
+
+def _manifold(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh with every edge between exactly two faces where it can be: faces paired across each edge
+    (:func:`_edge_partners`) and each vertex split into one copy per fan of faces around it that those pairs
+    join (a pinch becomes two coincident vertices, each on its own sheet). Where an edge still has more than two
+    faces (a fan that meets itself along it), its faces are paired the other way round and the split redone, up
+    to :data:`MANIFOLD_ROUNDS` times in all."""
+    if faces.shape[0] == 0:
+        return vertices, faces
+    turned = np.zeros(3 * faces.shape[0], dtype=bool)
+    best = None
+    for _ in range(MANIFOLD_ROUNDS):
+        split_vertices, split_faces = _split_fans(vertices, faces, _edge_partners(vertices, faces, turned=turned))
+        crowded = _crowded_halves(split_faces)
+        if best is None or crowded.sum() < best[0]:
+            best = (int(crowded.sum()), split_vertices, split_faces)
+        if not crowded.any():
+            break
+        turned ^= crowded
+    return best[1], best[2]
+
+
+def _decimated(vertices: np.ndarray, faces: np.ndarray, triangles: int) -> tuple[np.ndarray, np.ndarray]:
+    import fast_simplification
+
+    if faces.shape[0] <= triangles:
+        return vertices, faces
+    vertices, faces = fast_simplification.simplify(vertices, faces, target_count=triangles)
+    return np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+
+
+def _sample_colors(grid: dict, points: np.ndarray) -> np.ndarray:
+    """[N,3] uint8 colours of the fused grid at ``points`` [m]: trilinear over the voxels that views averaged."""
+    weight = (grid["weight"] > 0.0).astype(np.float32)
+    color = grid["color"] * weight[..., None]
+    shape = np.array(weight.shape)
+    cell = (points - grid["origin"]) / grid["voxel_size"]
+    base = np.clip(np.floor(cell).astype(np.int64), 0, np.maximum(shape - 2, 0))
+    fraction = np.clip(cell - base, 0.0, 1.0)
+    total = np.zeros((points.shape[0], 3))
+    mass = np.zeros(points.shape[0])
+    for corner in range(8):
+        offset = np.array([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1])
+        index = np.minimum(base + offset, shape - 1)
+        share = np.prod(np.where(offset == 1, fraction, 1.0 - fraction), axis=1)
+        i, j, k = index.T
+        total += share[:, None] * color[i, j, k]
+        mass += share * weight[i, j, k]
+    rgb = np.where(mass[:, None] > 1e-6, total / np.maximum(mass, 1e-6)[:, None], 0.5)
+    return np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
+
+
+def extract_surface(views: list[CanonicalView], *, triangles: int = DEFAULT_TRIANGLES, skeleton=None,
+                    box: tuple | None = None, voxel_size: float | None = None, device=None) -> trimesh.Trimesh:
+    """A closed, decimated surface of the object the views show, floaters dropped, normals outwards.
+
+    Steps: fuse the views into a TSDF with space carving (:func:`warpavatar.ops.integrate_tsdf`), over ``box`` or
+    else over the visual hull's box (a coarse pass of :data:`COARSE_VOXELS` per axis over the region every camera
+    frames); marching cubes on the fine grid padded with empty voxels (so the surface is closed, watertight);
+    drop components that are cavities (wound inwards: the inner wall of a hollow) or floaters; decimate the rest
+    to ``triangles`` (quadric edge collapse, fast-simplification); wind the faces outwards (trimesh).
+
+    The floater rule: a component whose area is below :data:`FLOATER_AREA_FRACTION` of the largest kept
+    component's, and none of whose vertices is within :data:`FLOATER_BONE_REACH` times the skeleton's height of
+    one of its bones (segment head to tail), is dropped; without a ``skeleton`` every such small component is.
+
+    Args:
+        views: renders of the canonical avatar (:func:`warpavatar.mesh.views.render_canonical_views`), all of one
+            size, with colour, alpha and expected depth.
+        triangles: most triangles of the result (decimated to about this many when the fused surface has more).
+        skeleton: the avatar's :class:`~warpavatar.data.Skeleton` (``heads``, ``tails``, ``up``) for the floater
+            rule, or None.
+        box: ``(low [3], high [3])`` [m] to fuse over (e.g. :func:`warpavatar.mesh.views.canonical_box`), or None
+            for the visual hull's box.
+        voxel_size: voxel size [m] of the fine grid; default :func:`default_voxel_size` (the renders' pixel
+            footprint over :data:`VOXELS_PER_PIXEL`, at most :data:`MAX_VOXELS` voxels).
+        device: where to run the fusion kernel (default CPU).
+
+    Returns:
+        a ``trimesh.Trimesh`` in the views' world frame [m]: watertight (each kept component is closed), faces
+        counter-clockwise seen from outside, vertex colours (RGBA uint8) from the fused renders (un-premultiplied
+        by alpha), at most ``triangles`` faces.
+
+    Raises:
+        ValueError: no views, views of different sizes, ``triangles`` < 4, or nothing left to make a surface of.
+    """
+    if int(triangles) < 4:
+        raise ValueError(f"extract_surface: triangles must be at least 4, got {triangles}")
+    triangles = int(triangles)
+    _stack_views(views, torch.device("cpu"))  # checks the views before any work
+    if box is None:
+        low, high = _hull_box(views, device)
+    else:
+        low, high = (np.asarray(corner, np.float64).reshape(3) for corner in box)
+        if not np.all(high > low):
+            raise ValueError(f"extract_surface: box must have high > low on every axis, got {low} and {high}")
+    voxel_size = default_voxel_size(views, low, high) if voxel_size is None else float(voxel_size)
+    if not voxel_size > 0.0:
+        raise ValueError(f"extract_surface: voxel_size must be positive, got {voxel_size}")
+    grid = fuse_views(views, low, high, voxel_size, device=device)
+    vertices, faces = _marching_cubes(grid, offset=depth_offset(grid))
+    if faces.shape[0] == 0:
+        raise ValueError("extract_surface: the views show nothing to make a surface of")
+    vertices, faces = _compacted(vertices, faces[_kept_components(vertices, faces, skeleton, voxel_size)])
+    if faces.shape[0] == 0:
+        raise ValueError("extract_surface: no component of the fused surface is left (all floaters)")
+    vertices, faces = _decimated(vertices, faces, triangles)
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
+    vertices, faces = _manifold(*_compacted(vertices, _without_folds(faces)))
+    # decimation may flatten a small component into a sliver: the rule again drops what no longer encloses much
+    vertices, faces = _compacted(vertices, faces[_kept_components(vertices, faces, skeleton, voxel_size)])
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    colors = _sample_colors(grid, vertices)
+    mesh.visual = trimesh.visual.ColorVisuals(
+        mesh, vertex_colors=np.concatenate([colors, np.full((colors.shape[0], 1), 255, np.uint8)], axis=1))
+    return mesh

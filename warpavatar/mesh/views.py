@@ -1,0 +1,136 @@
+"""Renders of the canonical avatar from cameras all around it: what the surface is fused from and the texture
+baked from.
+
+The cameras sit on a sphere (a Fibonacci lattice: near-uniform directions, none twice) around the box of the
+canonical Gaussians, look at its centre with the world's up kept upright, and frame the whole box. The avatar is
+posed at rest (identity bone transforms) through :meth:`warpavatar.model.Avatar.render`, so every part acts as
+it does in a fit, and its colours are evaluated at SH degree 0 (the diffuse colour: a texture has no view
+direction).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from warpavatar.mesh.mesh_data import CanonicalView
+
+__all__ = ["body_gaussians", "canonical_box", "view_cameras", "render_canonical_views"]
+
+
+def body_gaussians(avatar) -> torch.Tensor:
+    """[N] bool: the canonical Gaussians that make the body, all but the floaters that ``canonical.ply`` leaves out
+    (:func:`warpavatar.fit.outputs.canonical_floaters`: centres far from every bone, or an opacity that changes
+    no 8-bit pixel). Only these are rendered and framed, so stray Gaussians neither widen the views' box nor
+    become stray geometry."""
+    from warpavatar.fit.outputs import canonical_floaters
+
+    gaussians = avatar.gaussians
+    with torch.no_grad():
+        floaters = canonical_floaters(gaussians.means.detach(), gaussians.opacities.detach(), avatar.skeleton)
+    return ~floaters.to(gaussians.means.device)
+
+
+def canonical_box(avatar, *, quantile: float = 0.002, keep: torch.Tensor | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(low [3], high [3]) corners [m] of the box of the body's canonical Gaussians (``keep`` [N] bool, by default
+    :func:`body_gaussians`): their centres' ``quantile`` and ``1 - quantile`` along each axis (a few stray centres
+    do not widen it), padded by three times the median largest scale."""
+    gaussians = avatar.gaussians
+    keep = body_gaussians(avatar) if keep is None else keep
+    with torch.no_grad():
+        means = gaussians.means.detach()[keep].float().cpu()
+        scales = gaussians.scales.detach()[keep].float().cpu()
+    if means.shape[0] == 0:
+        raise ValueError("the avatar has no Gaussians near its bones to make a mesh of")
+    low = torch.quantile(means, quantile, dim=0) if means.shape[0] > 1 else means[0]
+    high = torch.quantile(means, 1.0 - quantile, dim=0) if means.shape[0] > 1 else means[0]
+    pad = 3.0 * float(scales.max(dim=1).values.median())
+    return (low - pad).numpy().astype(np.float64), (high + pad).numpy().astype(np.float64)
+
+
+def _look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    forward = target - eye
+    forward = forward / np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    if np.linalg.norm(right) < 1e-6:  # looking along the up axis
+        helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        right = np.cross(forward, helper)
+    right = right / np.linalg.norm(right)
+    down = np.cross(forward, right)
+    rotation = np.stack([right, down, forward])
+    matrix = np.eye(4)
+    matrix[:3, :3] = rotation
+    matrix[:3, 3] = -rotation @ eye
+    return matrix
+
+
+def view_cameras(low: np.ndarray, high: np.ndarray, up: np.ndarray, *, count: int, size: int,
+                 field_of_view_degrees: float = 40.0) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``count`` cameras ``(K [3,3], world_to_camera [4,4])`` on a Fibonacci sphere around the box ``low``..``high``
+    [m], each seeing the whole box in a ``size`` x ``size`` image with the given vertical field of view."""
+    if count < 1 or size < 8:
+        raise ValueError(f"view_cameras: count must be >= 1 and size >= 8, got {count} and {size}")
+    up = np.asarray(up, dtype=np.float64)
+    up = up / np.linalg.norm(up)
+    centre = 0.5 * (low + high)
+    radius = 0.5 * float(np.linalg.norm(high - low))
+    half = math.radians(field_of_view_degrees) * 0.5
+    distance = radius / math.sin(half) * 1.05
+    focal = 0.5 * size / math.tan(half)
+    K = np.array([[focal, 0.0, (size - 1) * 0.5], [0.0, focal, (size - 1) * 0.5], [0.0, 0.0, 1.0]])
+    side = np.cross(up, [1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.cross(up, [0.0, 1.0, 0.0])
+    side = side / np.linalg.norm(side)
+    other = np.cross(up, side)
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    cameras = []
+    for index in range(count):
+        height = 1.0 - 2.0 * (index + 0.5) / count  # along up, in -1..1
+        ring = math.sqrt(max(0.0, 1.0 - height * height))
+        angle = golden * index
+        direction = ring * (math.cos(angle) * side + math.sin(angle) * other) + height * up
+        cameras.append((K.copy(), _look_at(centre + distance * direction, centre, up)))
+    return cameras
+
+
+def render_canonical_views(avatar, *, count: int = 64, size: int = 256, device=None) -> list[CanonicalView]:
+    """Render the avatar at rest from ``count`` cameras around it (:func:`view_cameras`).
+
+    Args:
+        avatar: a :class:`~warpavatar.model.Avatar`.
+        count: number of views.
+        size: width and height of each image [px].
+        device: where to render (default: the avatar's device).
+
+    Returns:
+        the views, with colour at SH degree 0, alpha and expected depth (:class:`CanonicalView`).
+    """
+    device = avatar.gaussians.means.device if device is None else torch.device(device)
+    keep = body_gaussians(avatar)
+    low, high = canonical_box(avatar, keep=keep)
+    up = np.asarray(avatar.skeleton.up, dtype=np.float64)
+    rest = torch.eye(4, device=device).expand(avatar.joint_count, 4, 4).contiguous()
+    views = []
+    with torch.no_grad():
+        posed = avatar.pose(rest, sh_degree=0)
+        if not bool(keep.all()):  # the body only: every per-Gaussian entry indexed, the rest kept
+            count_all = int(keep.numel())
+            posed = type(posed)({key: value[keep] if torch.is_tensor(value) and value.dim() > 0
+                                 and value.shape[0] == count_all and key != "bone_transforms" else value
+                                 for key, value in posed.items()})
+        for K, world_to_camera in view_cameras(low, high, up, count=count, size=size):
+            camera = CanonicalView(K.astype(np.float32), world_to_camera.astype(np.float32), size, size,
+                                   None, None, None)
+            image, alpha, depth = avatar.rasterize(posed, camera)
+            alpha = alpha.float().cpu().numpy()
+            depth = depth.float().cpu().numpy()
+            expected = np.full_like(depth, np.inf)
+            covered = alpha >= 0.5
+            expected[covered] = depth[covered] / alpha[covered]
+            camera.color = image.float().clamp(0.0, 1.0).cpu().numpy()
+            camera.alpha = alpha
+            camera.depth = expected
+            views.append(camera)
+    return views
