@@ -120,3 +120,89 @@ def require_browser():
         if os.environ.get("CI"):
             pytest.fail(f"{message}; CI is set, so the browser test must run")
         pytest.skip(message)
+
+
+# ------------------------------------------------------------------------- the mesh export's test avatar
+def body_mesh(skeleton):
+    """An ellipsoid around ``skeleton``'s bones (an icosphere, 642 vertices) with spherical UVs, a random 32x32
+    texture and random vertex colours: an :class:`~warpavatar.mesh.AvatarMesh` without skin weights [m]."""
+    import numpy as np
+    import trimesh
+
+    from warpavatar.mesh import AvatarMesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    points = np.concatenate([skeleton.heads, skeleton.tails])
+    centre, half = (points.max(0) + points.min(0)) / 2, (points.max(0) - points.min(0)) / 2 + 0.05
+    unit = np.asarray(sphere.vertices)
+    normals = unit / half
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    uvs = np.stack([0.5 + np.arctan2(unit[:, 1], unit[:, 0]) / (2 * np.pi), np.arccos(unit[:, 2]) / np.pi], 1)
+    rng = np.random.default_rng(3)
+    return AvatarMesh(vertices=(centre + unit * half).astype(np.float32),
+                      faces=np.asarray(sphere.faces, dtype=np.int32), normals=normals.astype(np.float32),
+                      uvs=uvs.astype(np.float32), texture=rng.integers(0, 256, (32, 32, 3), dtype=np.uint8),
+                      vertex_colors=rng.integers(0, 256, (len(unit), 3), dtype=np.uint8))
+
+
+def sway_part(displacements: torch.Tensor):
+    """An avatar part that moves every posed Gaussian by ``displacements[frame]`` [T,3] [m]: motion that skinning
+    cannot make (a stand-in for cloth)."""
+    from warpavatar.model.parts import AvatarPart
+
+    class Sway(AvatarPart):
+        name = "sway"
+
+        def __init__(self):
+            super().__init__()
+            self.displacements = displacements
+
+        def deform_posed(self, posed, frame):
+            posed = type(posed)(posed)
+            posed["means"] = posed["means"] + self.displacements[frame.frame_index]
+            return posed
+
+    return Sway()
+
+
+@pytest.fixture(scope="module")
+def export_avatar(avatar_dir):
+    """The test module's small avatar (``avatar_dir``), loaded once: do not add parts to it."""
+    from warpavatar.model import Avatar
+
+    return Avatar.load(avatar_dir / "avatar.pt")
+
+
+@pytest.fixture(scope="module")
+def export_motion(export_avatar):
+    """The first 5 frames of the demo's dance as an ExportMotion; its frame ids step by 3, so that times and time
+    codes differ from row numbers."""
+    from warpavatar.io.exporters import ExportMotion
+    from warpavatar.io.motion import load_motion
+
+    loaded = load_motion(data.demo_subject_path() / "novel_pose" / "dance_cam000", export_avatar.skeleton,
+                         frames=slice(0, 5))
+    return ExportMotion(loaded.bone_transforms, loaded.frame_ids, loaded.fps, loaded.fps)
+
+
+@pytest.fixture(scope="module")
+def skinned_body(export_avatar):
+    """:func:`body_mesh` around the avatar's skeleton with the avatar's skin weights."""
+    from warpavatar.mesh.skin import skin_mesh
+
+    return skin_mesh(export_avatar, body_mesh(export_avatar.skeleton))
+
+
+@pytest.fixture(scope="module")
+def swaying_body(avatar_dir, skinned_body, export_motion):
+    """(:func:`body_mesh` skinned, its animation by ``export_motion`` with vertex offsets) of a fresh copy of the
+    avatar with a :func:`sway_part`: motion that the file's skinning alone cannot reproduce."""
+    from warpavatar.mesh.skin import mesh_animation
+    from warpavatar.model import Avatar
+
+    avatar = Avatar.load(avatar_dir / "avatar.pt")
+    displacements = 0.02 * torch.randn(export_motion.frame_count, 3, generator=torch.Generator().manual_seed(2))
+    avatar.add_part(sway_part(displacements))
+    animation = mesh_animation(avatar, skinned_body, export_motion)
+    assert animation.vertex_offsets is not None
+    return skinned_body, animation

@@ -23,17 +23,12 @@ import numpy as np
 import pytest
 import torch
 
-from warpavatar import data
-from warpavatar.io.exporters import ExportMotion
 from warpavatar.io.gltf import write_gltf
-from warpavatar.io.motion import load_motion
 from warpavatar.io.usd import _joint_paths
 from warpavatar.io.usd_mesh import write_usd_mesh
-from warpavatar.mesh.skin import lbs_vertices, mesh_animation, skin_mesh
-from warpavatar.model import Avatar
+from warpavatar.mesh.skin import lbs_vertices
 
 from test_gltf_export import garment_offsets
-from test_usd_mesh_export import Sway, body_mesh
 
 HERE = Path(__file__).resolve().parent
 BLENDER_TOLERANCE = 1e-3  # [m]
@@ -57,20 +52,12 @@ def blender_python() -> str:
 
 
 @pytest.fixture(scope="module")
-def exported(avatar_dir, tmp_path_factory):
+def exported(tmp_path_factory, request):
     """A skinned mesh with a motion that has vertex offsets, written as .glb and .usdc, as a .glb of the
     skinning alone (the motion without its offsets), and as a .glb whose offsets move a skirt (a third of the
     vertices: sparse morph targets)."""
     blender_python()  # skip (or fail under CI) before the work
-    avatar = Avatar.load(avatar_dir / "avatar.pt")
-    # the dance's frame ids step by 3, so that frames differ from row numbers
-    loaded = load_motion(data.demo_subject_path() / "novel_pose" / "dance_cam000", avatar.skeleton,
-                         frames=slice(0, 5))
-    motion = ExportMotion(loaded.bone_transforms, loaded.frame_ids, loaded.fps, loaded.fps)
-    mesh = skin_mesh(avatar, body_mesh(avatar.skeleton))
-    displacements = 0.02 * torch.randn(motion.frame_count, 3, generator=torch.Generator().manual_seed(2))
-    avatar.add_part(Sway(displacements))
-    animation = mesh_animation(avatar, mesh, motion)
+    mesh, animation = request.getfixturevalue("swaying_body")  # frame ids step by 3: frames differ from rows
     folder = tmp_path_factory.mktemp("blender")
     files = {"glb": write_gltf(folder / "avatar.glb", mesh, animation).path,
              "usdc": write_usd_mesh(folder / "avatar.usdc", mesh, animation).path,

@@ -246,7 +246,7 @@ def test_the_ply_format_writes_the_canonical_ply_of_a_fit(tmp_path, capsys):
     avatar = Avatar.load(folder)
     # both leave out the same floaters (far from every bone, or nearly transparent); the avatar keeps them all
     kept = avatar.gaussians.count - int(canonical_floaters(avatar.gaussians.means, avatar.gaussians.opacities,
-                                                           avatar.skeleton).sum())
+                                                           avatar.skeleton, scales=avatar.gaussians.scales).sum())
     output = tmp_path / "out" / "rest.PLY"
     code, out, err = _run([folder, "-o", output, "--no-progress", "--device", "cpu"], capsys)
     assert code == 0, err

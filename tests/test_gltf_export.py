@@ -16,17 +16,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-import trimesh
 
-from warpavatar import data
-from warpavatar.io.exporters import ExportMotion
-from warpavatar.io.gltf import (GENERATOR, MORPH_TOLERANCE, SPARSE_SHARE, morph_targets, rotation_quaternions,
+from warpavatar.io.gltf import (GENERATOR, MORPH_TOLERANCE, morph_targets, rotation_quaternions,
                                 up_to_y_rotation, write_gltf)
-from warpavatar.io.motion import load_motion
 from warpavatar.mesh import AvatarMesh, MeshAnimation
 from warpavatar.mesh.skin import OFFSET_TOLERANCE, lbs_vertices, mesh_animation, skin_mesh, top_influences
 from warpavatar.model import Avatar
-from warpavatar.model.parts import AvatarPart
+
+from conftest import body_mesh, sway_part
 
 NODE_MODULES = Path(os.environ.get("WARPAVATAR_NODE_MODULES",
                                    Path.home() / ".cache" / "warpavatar-node" / "node_modules"))
@@ -34,41 +31,6 @@ POSE_TOLERANCE = 1e-4  # [m]
 
 
 # --------------------------------------------------------------------------------------------------- fixtures
-def body_mesh(skeleton) -> AvatarMesh:
-    """An ellipsoid around the skeleton with spherical UVs, a random texture and vertex colours."""
-    sphere = trimesh.creation.icosphere(subdivisions=3)
-    points = np.concatenate([skeleton.heads, skeleton.tails])
-    centre, half = (points.max(0) + points.min(0)) / 2, (points.max(0) - points.min(0)) / 2 + 0.05
-    unit = np.asarray(sphere.vertices)
-    vertices = (centre + unit * half).astype(np.float32)
-    normals = unit / half
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    uvs = np.stack([0.5 + np.arctan2(unit[:, 1], unit[:, 0]) / (2 * np.pi), np.arccos(unit[:, 2]) / np.pi], 1)
-    rng = np.random.default_rng(3)
-    return AvatarMesh(vertices=vertices, faces=np.asarray(sphere.faces, dtype=np.int32),
-                      normals=normals.astype(np.float32), uvs=uvs.astype(np.float32),
-                      texture=rng.integers(0, 256, (32, 32, 3), dtype=np.uint8),
-                      vertex_colors=rng.integers(0, 256, (len(vertices), 3), dtype=np.uint8))
-
-
-@pytest.fixture(scope="module")
-def avatar(avatar_dir):
-    return Avatar.load(avatar_dir / "avatar.pt")
-
-
-@pytest.fixture(scope="module")
-def motion(avatar):
-    # the dance's frame ids step by 3, so that times differ from row numbers
-    loaded = load_motion(data.demo_subject_path() / "novel_pose" / "dance_cam000", avatar.skeleton,
-                         frames=slice(0, 5))
-    return ExportMotion(loaded.bone_transforms, loaded.frame_ids, loaded.fps, loaded.fps)
-
-
-@pytest.fixture(scope="module")
-def skinned(avatar):
-    return skin_mesh(avatar, body_mesh(avatar.skeleton))
-
-
 def garment_offsets(mesh: AvatarMesh, frame_count: int) -> np.ndarray:
     """Offsets [T,V,3] [m] of a skirt: the lowest 30 % of the vertices along the mesh's up, two smooth patterns
     (a swirl and a flare, growing towards the hem) with amplitudes of both signs over the frames."""
@@ -104,21 +66,6 @@ def grown_avatar(avatar_dir, motion) -> Avatar:
     avatar.field.add_joints(parents)
     avatar.add_part(part)
     return avatar
-
-
-class Breeze(AvatarPart):
-    """Moves every posed Gaussian by one displacement per frame (a stand-in for cloth that skinning cannot make)."""
-
-    name = "breeze"
-
-    def __init__(self, displacements: torch.Tensor):
-        super().__init__()
-        self.displacements = displacements
-
-    def deform_posed(self, posed, frame):
-        posed = type(posed)(posed)
-        posed["means"] = posed["means"] + self.displacements[frame.frame_index]
-        return posed
 
 
 # ------------------------------------------------------------------------------------------- reading a file
@@ -260,16 +207,17 @@ const validator = require(process.argv[1]);
 
 
 # ------------------------------------------------------------------------------------------------------ tests
-def test_skin_weights_are_the_fields_top_four(avatar, skinned):
-    assert skinned.joint_names == avatar.rig().names
-    assert skinned.joint_indices.shape == (skinned.vertex_count, 4) and skinned.joint_indices.dtype == np.int32
-    np.testing.assert_allclose(skinned.joint_weights.sum(1), 1.0, atol=1e-6)
-    assert (np.diff(skinned.joint_weights, axis=1) <= 0).all()
+def test_skin_weights_are_the_fields_top_four(export_avatar, skinned_body):
+    assert skinned_body.joint_names == export_avatar.rig().names
+    assert skinned_body.joint_indices.shape == (skinned_body.vertex_count, 4)
+    assert skinned_body.joint_indices.dtype == np.int32
+    np.testing.assert_allclose(skinned_body.joint_weights.sum(1), 1.0, atol=1e-6)
+    assert (np.diff(skinned_body.joint_weights, axis=1) <= 0).all()
     with torch.no_grad():
-        field = avatar.field.weights(torch.as_tensor(skinned.vertices)).numpy()
+        field = export_avatar.field.weights(torch.as_tensor(skinned_body.vertices)).numpy()
     top = np.sort(field, axis=1)[:, ::-1][:, :4]
-    np.testing.assert_allclose(skinned.joint_weights, top / top.sum(1, keepdims=True), atol=1e-6)
-    np.testing.assert_array_equal(np.take_along_axis(field, skinned.joint_indices, 1), top)
+    np.testing.assert_allclose(skinned_body.joint_weights, top / top.sum(1, keepdims=True), atol=1e-6)
+    np.testing.assert_array_equal(np.take_along_axis(field, skinned_body.joint_indices, 1), top)
 
 
 def test_top_influences_pad_and_normalise():
@@ -278,62 +226,63 @@ def test_top_influences_pad_and_normalise():
     np.testing.assert_allclose(weights, [[0.75, 0.25, 0, 0], [1, 0, 0, 0]], atol=1e-7)
 
 
-def test_animation_has_the_avatars_skinning_transforms(avatar, skinned, motion):
-    animation = mesh_animation(avatar, skinned, motion)
-    np.testing.assert_array_equal(animation.frame_ids, motion.frame_ids)
-    assert animation.fps == motion.fps and animation.vertex_offsets is None
-    for t in range(motion.frame_count):
-        expected = avatar.pose_bones(torch.as_tensor(motion.bone_transforms[t])).numpy()
+def test_animation_has_the_avatars_skinning_transforms(export_avatar, skinned_body, export_motion):
+    animation = mesh_animation(export_avatar, skinned_body, export_motion)
+    np.testing.assert_array_equal(animation.frame_ids, export_motion.frame_ids)
+    assert animation.fps == export_motion.fps and animation.vertex_offsets is None
+    for t in range(export_motion.frame_count):
+        expected = export_avatar.pose_bones(torch.as_tensor(export_motion.bone_transforms[t])).numpy()
         np.testing.assert_allclose(animation.joint_transforms[t], expected, atol=1e-6)
 
 
 @pytest.mark.parametrize("suffix", [".glb", ".gltf"])
-def test_file_poses_the_mesh_as_the_project_does(tmp_path, avatar, skinned, motion, suffix):
-    animation = mesh_animation(avatar, skinned, motion)
-    written = write_gltf(tmp_path / f"avatar{suffix}", skinned, animation)
+def test_file_poses_the_mesh_as_the_project_does(tmp_path, export_avatar, skinned_body, export_motion, suffix):
+    animation = mesh_animation(export_avatar, skinned_body, export_motion)
+    written = write_gltf(tmp_path / f"avatar{suffix}", skinned_body, animation)
     assert written.binary == (suffix == ".glb") and written.byte_count == written.path.stat().st_size
-    assert written.frame_count == motion.frame_count and written.morph_target_count == 0
-    doc = assert_file_poses_like_the_project(written.path, skinned, animation)
+    assert written.frame_count == export_motion.frame_count and written.morph_target_count == 0
+    doc = assert_file_poses_like_the_project(written.path, skinned_body, animation)
     doc, blob = read_gltf(written.path)
     assert doc["asset"] == {"version": "2.0", "generator": GENERATOR}
     primitive = doc["meshes"][0]["primitives"][0]
     attributes = primitive["attributes"]
     # with a texture, COLOR_0 (which glTF multiplies into the base colour) is left out
     assert set(attributes) == {"POSITION", "NORMAL", "TEXCOORD_0", "JOINTS_0", "WEIGHTS_0"}
-    assert doc["accessors"][attributes["POSITION"]]["count"] == skinned.vertex_count
-    assert doc["accessors"][primitive["indices"]]["count"] == 3 * skinned.face_count
+    assert doc["accessors"][attributes["POSITION"]]["count"] == skinned_body.vertex_count
+    assert doc["accessors"][primitive["indices"]]["count"] == 3 * skinned_body.face_count
     np.testing.assert_allclose(accessor(doc, blob, attributes["WEIGHTS_0"]).sum(1), 1.0, atol=1e-6)
-    np.testing.assert_allclose(accessor(doc, blob, attributes["NORMAL"]), skinned.normals @ up_to_y_rotation(
-        skinned.up).T, atol=1e-6)
-    assert len(doc["skins"][0]["joints"]) == len(skinned.joint_names)
+    np.testing.assert_allclose(accessor(doc, blob, attributes["NORMAL"]), skinned_body.normals @ up_to_y_rotation(
+        skinned_body.up).T, atol=1e-6)
+    assert len(doc["skins"][0]["joints"]) == len(skinned_body.joint_names)
     assert "translation" not in doc["nodes"][0] and "rotation" not in doc["nodes"][0]
     times = accessor(doc, blob, doc["animations"][0]["samplers"][0]["input"])
-    np.testing.assert_allclose(times, (motion.frame_ids - motion.frame_ids[0]) / motion.fps, atol=1e-6)
+    np.testing.assert_allclose(times, (export_motion.frame_ids - export_motion.frame_ids[0]) / export_motion.fps,
+                               atol=1e-6)
     material = doc["materials"][0]["pbrMetallicRoughness"]
     assert material["metallicFactor"] == 0 and material["roughnessFactor"] == 1 and "baseColorTexture" in material
     validate([written.path])
 
 
-def test_rest_pose_file_and_vertex_colours(tmp_path, skinned):
-    untextured = dataclasses.replace(skinned, texture=None)
+def test_rest_pose_file_and_vertex_colours(tmp_path, skinned_body):
+    untextured = dataclasses.replace(skinned_body, texture=None)
     written = write_gltf(tmp_path / "rest.glb", untextured)
     doc, blob = read_gltf(written.path)
     colours = accessor(doc, blob, doc["meshes"][0]["primitives"][0]["attributes"]["COLOR_0"])
-    np.testing.assert_allclose(colours[:, :3] * 255, skinned.vertex_colors, atol=1e-4)
+    np.testing.assert_allclose(colours[:, :3] * 255, skinned_body.vertex_colors, atol=1e-4)
     assert "animations" not in doc and written.frame_count == 0
-    static = write_gltf(tmp_path / "static.gltf", dataclasses.replace(skinned, joint_indices=None))
+    static = write_gltf(tmp_path / "static.gltf", dataclasses.replace(skinned_body, joint_indices=None))
     assert "skins" not in read_gltf(static.path)[0]
     validate([written.path, static.path])
 
 
-def test_grown_joints_are_written_and_animated(tmp_path, avatar_dir, motion):
-    avatar = grown_avatar(avatar_dir, motion)
+def test_grown_joints_are_written_and_animated(tmp_path, avatar_dir, export_motion):
+    avatar = grown_avatar(avatar_dir, export_motion)
     mesh = skin_mesh(avatar, body_mesh(avatar.skeleton))
     assert mesh.joint_names[-2:] == ["grown_Hips_0", "grown_LowerArmL_1"]
-    angles = np.linspace(0.0, 1.0, motion.frame_count)
-    rotations = np.zeros((motion.frame_count, 2, 4), np.float32)
+    angles = np.linspace(0.0, 1.0, export_motion.frame_count)
+    rotations = np.zeros((export_motion.frame_count, 2, 4), np.float32)
     rotations[:, :, 0], rotations[:, :, 1] = np.cos(angles / 2)[:, None], np.sin(angles / 2)[:, None]
-    turning = dataclasses.replace(motion, part_inputs={"joint_growth": rotations})
+    turning = dataclasses.replace(export_motion, part_inputs={"joint_growth": rotations})
     animation = mesh_animation(avatar, mesh, turning)
     assert animation.joint_transforms.shape[1] == avatar.joint_count + 2
     written = write_gltf(tmp_path / "grown.glb", mesh, animation)
@@ -341,14 +290,14 @@ def test_grown_joints_are_written_and_animated(tmp_path, avatar_dir, motion):
     validate([written.path])
 
 
-def test_offsets_carry_what_parts_move_beyond_skinning(avatar_dir, motion):
+def test_offsets_carry_what_parts_move_beyond_skinning(avatar_dir, export_motion):
     avatar = Avatar.load(avatar_dir / "avatar.pt")
     mesh = skin_mesh(avatar, body_mesh(avatar.skeleton))
-    displacements = torch.randn(motion.frame_count, 3) * 0.02
-    avatar.add_part(Breeze(displacements))
-    animation = mesh_animation(avatar, mesh, motion)
-    assert animation.vertex_offsets.shape == (motion.frame_count, mesh.vertex_count, 3)
-    for t in range(motion.frame_count):
+    displacements = torch.randn(export_motion.frame_count, 3) * 0.02
+    avatar.add_part(sway_part(displacements))
+    animation = mesh_animation(avatar, mesh, export_motion)
+    assert animation.vertex_offsets.shape == (export_motion.frame_count, mesh.vertex_count, 3)
+    for t in range(export_motion.frame_count):
         moved = lbs_vertices(mesh, animation.joint_transforms[t], animation.vertex_offsets[t])
         still = lbs_vertices(mesh, animation.joint_transforms[t])
         # exact where the blended 3x3 is well conditioned; damped (never larger than 5x) in LBS's folds
@@ -360,8 +309,8 @@ def test_offsets_carry_what_parts_move_beyond_skinning(avatar_dir, motion):
         np.testing.assert_allclose((moved - still)[clear], expected[clear], atol=1e-5)
         bound = 5.0 * np.linalg.norm(expected, axis=1) + 1e-6
         assert (np.linalg.norm(animation.vertex_offsets[t], axis=1) <= bound).all()
-    avatar.add_part(Breeze(torch.full((motion.frame_count, 3), OFFSET_TOLERANCE / 4)))
-    assert mesh_animation(avatar, mesh, motion).vertex_offsets is None
+    avatar.add_part(sway_part(torch.full((export_motion.frame_count, 3), OFFSET_TOLERANCE / 4)))
+    assert mesh_animation(avatar, mesh, export_motion).vertex_offsets is None
 
 
 def three_reading(path: Path) -> dict:
@@ -407,36 +356,37 @@ def morph_arrays(doc: dict, blob: bytes) -> tuple[np.ndarray, np.ndarray]:
 
 
 @pytest.mark.parametrize("suffix", [".glb", ".gltf"])
-def test_morph_targets_reproduce_the_offsets(tmp_path, avatar, skinned, motion, suffix):
-    base = mesh_animation(avatar, skinned, motion)
+def test_morph_targets_reproduce_the_offsets(tmp_path, export_avatar, skinned_body, export_motion, suffix):
+    base = mesh_animation(export_avatar, skinned_body, export_motion)
     rng = np.random.default_rng(0)
     # two spatial patterns whose amplitudes over the 5 frames take both signs: two principal components, each
     # split into a positive and a negative target (4 targets, fewer than one a frame)
-    patterns = rng.normal(0.0, 0.01, (2, skinned.vertex_count, 3))
+    patterns = rng.normal(0.0, 0.01, (2, skinned_body.vertex_count, 3))
     amplitudes = np.array([[1.0, -1.0, 1.0, -1.0, 0.0], [1.0, 1.0, -1.0, -1.0, 0.5]]).T * [2.0, 1.0]
     offsets = np.einsum("tk,kvc->tvc", amplitudes, patterns).astype(np.float32)
     animation = dataclasses.replace(base, vertex_offsets=offsets)
-    written = write_gltf(tmp_path / f"morph{suffix}", skinned, animation)
+    written = write_gltf(tmp_path / f"morph{suffix}", skinned_body, animation)
     assert written.morph_target_count == 4 and written.morph_error_max < 1e-5 and written.morph_within_tolerance
     assert written.morph_sparse_count == 0  # every vertex moves
-    doc = assert_file_poses_like_the_project(written.path, skinned, animation)
+    doc = assert_file_poses_like_the_project(written.path, skinned_body, animation)
     assert doc["meshes"][0]["extras"]["targetNames"] == [f"offset_component_{k}_{side}" for k in range(2)
                                                          for side in ("positive", "negative")]
     targets, weights = morph_arrays(*read_gltf(written.path))
-    assert targets.shape == (4, skinned.vertex_count, 3) and weights.min() >= 0.0 and weights.max() == 1.0
+    assert targets.shape == (4, skinned_body.vertex_count, 3) and weights.min() >= 0.0 and weights.max() == 1.0
     validate([written.path])
 
 
-def test_garment_targets_are_sparse_and_three_reads_them(tmp_path, avatar, skinned, motion, monkeypatch):
-    skinned = dataclasses.replace(skinned, texture=None)  # GLTFLoader decodes images only in a browser
-    animation = dataclasses.replace(mesh_animation(avatar, skinned, motion),
-                                    vertex_offsets=garment_offsets(skinned, motion.frame_count))
+def test_garment_targets_are_sparse_and_three_reads_them(tmp_path, export_avatar, skinned_body, export_motion,
+                                                         monkeypatch):
+    skinned_body = dataclasses.replace(skinned_body, texture=None)  # GLTFLoader decodes images only in a browser
+    animation = dataclasses.replace(mesh_animation(export_avatar, skinned_body, export_motion),
+                                    vertex_offsets=garment_offsets(skinned_body, export_motion.frame_count))
     moving = int((np.abs(animation.vertex_offsets).max((0, 2)) > 0).sum())
-    assert 0.25 < moving / skinned.vertex_count < 0.35
-    written = write_gltf(tmp_path / "garment.glb", skinned, animation)
-    assert 0 < written.morph_target_count < motion.frame_count and written.morph_within_tolerance
+    assert 0.25 < moving / skinned_body.vertex_count < 0.35
+    written = write_gltf(tmp_path / "garment.glb", skinned_body, animation)
+    assert 0 < written.morph_target_count < export_motion.frame_count and written.morph_within_tolerance
     assert written.morph_sparse_count == written.morph_target_count
-    doc = assert_file_poses_like_the_project(written.path, skinned, animation)
+    doc = assert_file_poses_like_the_project(written.path, skinned_body, animation)
     for target in doc["meshes"][0]["primitives"][0]["targets"]:
         entry = doc["accessors"][target["POSITION"]]
         assert "bufferView" not in entry and entry["sparse"]["count"] <= moving
@@ -446,7 +396,7 @@ def test_garment_targets_are_sparse_and_three_reads_them(tmp_path, avatar, skinn
     np.testing.assert_array_equal(three["targets"], targets)
     np.testing.assert_array_equal(three["weights"], weights)
     monkeypatch.setattr("warpavatar.io.gltf.SPARSE_SHARE", -1.0)  # every target dense
-    dense = write_gltf(tmp_path / "dense.glb", skinned, animation)
+    dense = write_gltf(tmp_path / "dense.glb", skinned_body, animation)
     assert dense.morph_sparse_count == 0 and written.byte_count < dense.byte_count
     np.testing.assert_array_equal(morph_arrays(*read_gltf(dense.path))[0], targets)
     validate([written.path, dense.path])
@@ -486,7 +436,7 @@ def test_morph_targets_keep_the_largest_error_within_the_tolerance():
     assert np.linalg.norm(halfway - 0.5 * (offsets[1:] + offsets[:-1]), axis=-1).max() <= MORPH_TOLERANCE
 
 
-def test_morph_targets_one_a_frame_or_capped(tmp_path, skinned, avatar, motion):
+def test_morph_targets_one_a_frame_or_capped(tmp_path, skinned_body, export_avatar, export_motion):
     rng = np.random.default_rng(2)
     noise = rng.normal(0.0, 0.01, (12, 100, 3)).astype(np.float32)  # every frame its own pattern
     noise[4] = 0.0  # a frame without offsets needs no target
@@ -497,14 +447,14 @@ def test_morph_targets_one_a_frame_or_capped(tmp_path, skinned, avatar, motion):
     capped = morph_targets(noise, max_targets=4)
     assert capped.count <= 4 and not capped.within_tolerance and capped.error_max > MORPH_TOLERANCE
     assert capped.weights.min() >= 0.0 and capped.weights.max() <= 1.0
-    animation = dataclasses.replace(mesh_animation(avatar, skinned, motion), vertex_offsets=rng.normal(
-        0.0, 0.01, (motion.frame_count, skinned.vertex_count, 3)).astype(np.float32))
+    offsets = rng.normal(0.0, 0.01, (export_motion.frame_count, skinned_body.vertex_count, 3)).astype(np.float32)
+    animation = dataclasses.replace(mesh_animation(export_avatar, skinned_body, export_motion), vertex_offsets=offsets)
     with pytest.warns(UserWarning, match="more than the 0.20 mm tolerance") as caught:
-        written = write_gltf(tmp_path / "capped.glb", skinned, animation, max_morph_targets=2)
+        written = write_gltf(tmp_path / "capped.glb", skinned_body, animation, max_morph_targets=2)
     assert len(caught) == 1 and not written.morph_within_tolerance and written.morph_target_count <= 2
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert write_gltf(tmp_path / "exact.glb", skinned, animation).morph_within_tolerance
+        assert write_gltf(tmp_path / "exact.glb", skinned_body, animation).morph_within_tolerance
 
 
 def test_morph_targets_of_one_sign_still_vertices_and_bad_input():
@@ -534,10 +484,11 @@ def test_axes_and_quaternions():
     assert (quats[:, 3] >= 0).all()
 
 
-def test_bad_input_is_refused(tmp_path, skinned, avatar, motion):
-    animation = mesh_animation(avatar, skinned, motion)
+def test_bad_input_is_refused(tmp_path, skinned_body, export_avatar, export_motion):
+    animation = mesh_animation(export_avatar, skinned_body, export_motion)
     with pytest.raises(ValueError, match="needs a skinned mesh"):
-        write_gltf(tmp_path / "x.glb", dataclasses.replace(skinned, joint_indices=None), animation)
+        write_gltf(tmp_path / "x.glb", dataclasses.replace(skinned_body, joint_indices=None), animation)
     with pytest.raises(ValueError, match="strictly increasing"):
-        write_gltf(tmp_path / "x.glb", skinned, dataclasses.replace(animation, frame_ids=animation.frame_ids[::-1]))
+        write_gltf(tmp_path / "x.glb", skinned_body,
+                   dataclasses.replace(animation, frame_ids=animation.frame_ids[::-1]))
     assert not (tmp_path / "x.glb").exists()

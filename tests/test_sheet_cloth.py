@@ -186,7 +186,8 @@ def test_rollout_and_its_gradients_match_the_reference(device, capsules):
         plain = call_rollout(ops.sheet_rollout, mesh, inputs, substeps)
     exact = torch.device(device).type == "cpu"
     for value_plain, value_ours in zip(plain, ours):
-        torch.testing.assert_close(value_plain, value_ours, rtol=0 if exact else 1e-5, atol=0 if exact else 1e-6)
+        torch.testing.assert_close(value_plain, value_ours, rtol=0 if exact else 1e-5,
+                                   atol=0 if exact else 1e-5 * value_ours.abs().max().item())
 
 
 def hanging_skirt(device, *, fraction=NEAR_ONE, **options):

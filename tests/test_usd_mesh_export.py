@@ -3,87 +3,19 @@ skinning does, at the motion's time codes, and OpenUSD's validators find no erro
 
 import dataclasses
 import os
-import re
 
 import numpy as np
 import pytest
-import torch
-import trimesh
 from pxr import Sdf, Tf, Usd, UsdGeom, UsdShade, UsdSkel, UsdUtils, UsdValidation
 
-from warpavatar import data
-from warpavatar.io.exporters import ExportMotion
-from warpavatar.io.motion import load_motion
 from warpavatar.io.usd_mesh import srgb_to_linear, texture_path_for, write_usd_mesh
-from warpavatar.mesh import AvatarMesh, MeshAnimation
-from warpavatar.mesh.skin import lbs_vertices, mesh_animation, skin_mesh
-from warpavatar.model import Avatar
-from warpavatar.model.parts import AvatarPart
+from warpavatar.mesh import MeshAnimation
+from warpavatar.mesh.skin import lbs_vertices
 
 POSE_TOLERANCE = 1e-4  # [m]
 
 
-# --------------------------------------------------------------------------------------------------- fixtures
-def body_mesh(skeleton) -> AvatarMesh:
-    """An ellipsoid around the skeleton, with spherical UVs, a random texture and vertex colours."""
-    sphere = trimesh.creation.icosphere(subdivisions=3)
-    points = np.concatenate([skeleton.heads, skeleton.tails])
-    centre, half = (points.max(0) + points.min(0)) / 2, (points.max(0) - points.min(0)) / 2 + 0.05
-    unit = np.asarray(sphere.vertices)
-    normals = unit / half
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    uvs = np.stack([0.5 + np.arctan2(unit[:, 1], unit[:, 0]) / (2 * np.pi), np.arccos(unit[:, 2]) / np.pi], 1)
-    rng = np.random.default_rng(7)
-    return AvatarMesh(vertices=(centre + unit * half).astype(np.float32),
-                      faces=np.asarray(sphere.faces, dtype=np.int32), normals=normals.astype(np.float32),
-                      uvs=uvs.astype(np.float32), texture=rng.integers(0, 256, (32, 32, 3), dtype=np.uint8),
-                      vertex_colors=rng.integers(0, 256, (len(unit), 3), dtype=np.uint8))
-
-
-class Sway(AvatarPart):
-    """Moves every posed Gaussian by one displacement per frame: motion that skinning cannot make (as cloth)."""
-
-    name = "sway"
-
-    def __init__(self, displacements: torch.Tensor):
-        super().__init__()
-        self.displacements = displacements
-
-    def deform_posed(self, posed, frame):
-        posed = type(posed)(posed)
-        posed["means"] = posed["means"] + self.displacements[frame.frame_index]
-        return posed
-
-
-@pytest.fixture(scope="module")
-def avatar(avatar_dir):
-    return Avatar.load(avatar_dir / "avatar.pt")
-
-
-@pytest.fixture(scope="module")
-def motion(avatar):
-    # the dance's frame ids step by 3, so that time codes differ from row numbers
-    loaded = load_motion(data.demo_subject_path() / "novel_pose" / "dance_cam000", avatar.skeleton,
-                         frames=slice(0, 5))
-    return ExportMotion(loaded.bone_transforms, loaded.frame_ids, loaded.fps, loaded.fps)
-
-
-@pytest.fixture(scope="module")
-def skinned(avatar):
-    return skin_mesh(avatar, body_mesh(avatar.skeleton))
-
-
-@pytest.fixture(scope="module")
-def swaying(avatar_dir, skinned, motion):
-    """(mesh, animation with vertex offsets) of the avatar with a part that moves it beyond skinning."""
-    avatar = Avatar.load(avatar_dir / "avatar.pt")
-    displacements = 0.02 * torch.randn(motion.frame_count, 3, generator=torch.Generator().manual_seed(2))
-    avatar.add_part(Sway(displacements))
-    animation = mesh_animation(avatar, skinned, motion)
-    assert animation.vertex_offsets is not None
-    return skinned, animation
-
-
+# ---------------------------------------------------------------------------------------------------- helpers
 def skinned_points(path, time_codes) -> tuple[list[str], np.ndarray]:
     """(the skinned mesh's prim paths, its points [T,V,3] as usd-core's UsdSkel skins them at ``time_codes``)."""
     stage = Usd.Stage.Open(os.fspath(path))
@@ -116,8 +48,8 @@ def validation_errors(path) -> list[str]:
 
 # ------------------------------------------------------------------------------------------------------ tests
 @pytest.mark.parametrize("suffix", [".usdc", ".usdz"])
-def test_usd_skel_poses_the_mesh_as_the_project_does(tmp_path, swaying, suffix):
-    mesh, animation = swaying
+def test_usd_skel_poses_the_mesh_as_the_project_does(tmp_path, swaying_body, suffix):
+    mesh, animation = swaying_body
     written = write_usd_mesh(tmp_path / f"avatar{suffix}", mesh, animation)
     expected_codes = animation.frame_ids - animation.frame_ids[0]
     np.testing.assert_array_equal(written.time_codes, expected_codes)
@@ -137,8 +69,8 @@ def test_usd_skel_poses_the_mesh_as_the_project_does(tmp_path, swaying, suffix):
     assert list(motion.GetRotationsAttr().GetTimeSamples()) == expected_codes.tolist()
 
 
-def test_stage_layout(tmp_path, swaying):
-    mesh, animation = swaying
+def test_stage_layout(tmp_path, swaying_body):
+    mesh, animation = swaying_body
     written = write_usd_mesh(tmp_path / "avatar.usd", mesh, animation)
     assert written.texture_path == tmp_path / "avatar.texture.png" == texture_path_for(written.path)
     assert sorted(os.listdir(tmp_path)) == ["avatar.texture.png", "avatar.usd"]
@@ -187,8 +119,8 @@ def test_stage_layout(tmp_path, swaying):
     assert texture.GetInput("file").Get().resolvedPath == os.fspath(written.texture_path)
 
 
-def test_validators_report_no_errors(tmp_path, swaying):
-    mesh, animation = swaying
+def test_validators_report_no_errors(tmp_path, swaying_body):
+    mesh, animation = swaying_body
     for suffix in (".usdc", ".usdz"):
         written = write_usd_mesh(tmp_path / f"avatar{suffix}", mesh, animation)
         assert validation_errors(written.path) == [], suffix
@@ -209,13 +141,13 @@ def test_validators_report_no_errors(tmp_path, swaying):
     assert file.resolvedPath.endswith("moved.usdz[avatar.texture.png]")
 
 
-def test_rest_pose_static_and_unskinned_meshes(tmp_path, skinned):
-    written = write_usd_mesh(tmp_path / "rest.usda", skinned)
+def test_rest_pose_static_and_unskinned_meshes(tmp_path, skinned_body):
+    written = write_usd_mesh(tmp_path / "rest.usda", skinned_body)
     assert written.frame_count == 0 and not written.vertex_cache
     _, posed = skinned_points(written.path, [Usd.TimeCode.Default()])
-    np.testing.assert_allclose(posed[0], skinned.vertices, atol=1e-6)  # no animation: the rest pose
+    np.testing.assert_allclose(posed[0], skinned_body.vertices, atol=1e-6)  # no animation: the rest pose
     assert validation_errors(written.path) == []
-    plain = dataclasses.replace(skinned, joint_indices=None, joint_weights=None, texture=None, uvs=None,
+    plain = dataclasses.replace(skinned_body, joint_indices=None, joint_weights=None, texture=None, uvs=None,
                                 up=np.array([0.0, 1.0, 0.0], np.float32))
     written = write_usd_mesh(tmp_path / "plain.usdc", plain)
     assert written.texture_path is None
@@ -226,7 +158,7 @@ def test_rest_pose_static_and_unskinned_meshes(tmp_path, skinned):
     assert reader.GetInput("varname").Get() == "displayColor"
     assert validation_errors(written.path) == []
     # an up that is neither +Z nor +Y: a Z-up stage whose root turns the avatar's up to +Z
-    tilted = dataclasses.replace(skinned, up=np.array([1.0, 0.0, 1.0], np.float32))
+    tilted = dataclasses.replace(skinned_body, up=np.array([1.0, 0.0, 1.0], np.float32))
     written = write_usd_mesh(tmp_path / "tilted.usda", tilted)
     stage = Usd.Stage.Open(os.fspath(written.path))
     to_world = np.asarray(UsdGeom.Xformable(stage.GetDefaultPrim()).ComputeLocalToWorldTransform(0)).T
@@ -235,15 +167,17 @@ def test_rest_pose_static_and_unskinned_meshes(tmp_path, skinned):
     assert validation_errors(written.path) == []
 
 
-def test_grown_joints_are_joints_of_the_skeleton(tmp_path, skinned, motion):
-    names = list(skinned.joint_names)
-    parents = np.concatenate([skinned.joint_parents, [names.index("Hips"), names.index("LowerArmL")]]).astype(np.int32)
-    heads = np.concatenate([skinned.joint_heads, skinned.joint_heads[parents[-2:]] + 0.05]).astype(np.float32)
-    mesh = dataclasses.replace(skinned, joint_names=names + ["Hips grown", "LowerArmL grown"], joint_parents=parents,
-                               joint_heads=heads, joint_indices=np.where(skinned.joint_indices == 3, len(names),
-                                                                         skinned.joint_indices).astype(np.int32))
+def test_grown_joints_are_joints_of_the_skeleton(tmp_path, skinned_body, export_motion):
+    names = list(skinned_body.joint_names)
+    grown_parents = [names.index("Hips"), names.index("LowerArmL")]
+    parents = np.concatenate([skinned_body.joint_parents, grown_parents]).astype(np.int32)
+    heads = np.concatenate([skinned_body.joint_heads, skinned_body.joint_heads[parents[-2:]] + 0.05]).astype(np.float32)
+    mesh = dataclasses.replace(skinned_body, joint_names=names + ["Hips grown", "LowerArmL grown"],
+                               joint_parents=parents, joint_heads=heads,
+                               joint_indices=np.where(skinned_body.joint_indices == 3, len(names),
+                                                      skinned_body.joint_indices).astype(np.int32))
     rng = np.random.default_rng(4)
-    base = np.asarray(motion.bone_transforms, dtype=np.float64)
+    base = np.asarray(export_motion.bone_transforms, dtype=np.float64)
     grown = base[:, parents[-2:]].copy()
     angle = rng.uniform(-0.5, 0.5, size=(len(base), 2))
     turn = np.zeros((len(base), 2, 4, 4))
@@ -254,7 +188,7 @@ def test_grown_joints_are_joints_of_the_skeleton(tmp_path, skinned, motion):
     pivot[..., :3, 3] = heads[-2:]
     grown = grown @ pivot @ turn @ np.linalg.inv(pivot)
     animation = MeshAnimation(joint_transforms=np.concatenate([base, grown], 1).astype(np.float32),
-                              frame_ids=motion.frame_ids, fps=motion.fps)
+                              frame_ids=export_motion.frame_ids, fps=export_motion.fps)
     written = write_usd_mesh(tmp_path / "grown.usdc", mesh, animation)
     assert not written.vertex_cache
     _, posed = skinned_points(written.path, written.time_codes)
@@ -265,8 +199,8 @@ def test_grown_joints_are_joints_of_the_skeleton(tmp_path, skinned, motion):
     assert joints[-1].endswith("/LowerArmL/LowerArmL_grown") and joints[-2].endswith("/Hips/Hips_grown")
 
 
-def test_bad_input_and_atomic_writes(tmp_path, monkeypatch, swaying):
-    mesh, animation = swaying
+def test_bad_input_and_atomic_writes(tmp_path, monkeypatch, swaying_body):
+    mesh, animation = swaying_body
     with pytest.raises(ValueError, match=r"must end in one of \.usd, \.usdc, \.usda, \.usdz"):
         write_usd_mesh(tmp_path / "avatar.fbx", mesh, animation)
     with pytest.raises(ValueError, match="an animation needs a skinned mesh"):

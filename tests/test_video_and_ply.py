@@ -15,7 +15,7 @@ import torch
 from conftest import CHROMEDRIVER, CHROMIUM, require_browser, small_avatar
 from warpavatar import data
 from warpavatar.cli import animate, render
-from warpavatar.fit.outputs import FLOATER_MARGIN, canonical_floaters, write_canonical_ply
+from warpavatar.fit.outputs import FLOATER_LINK, FLOATER_MARGIN, canonical_floaters, write_canonical_ply
 from warpavatar.io.animation import orbit_cameras
 from warpavatar.io.ply import read_gaussian_ply
 from warpavatar.model import Avatar
@@ -246,10 +246,24 @@ def test_the_floater_rule_drops_far_and_transparent_gaussians(skeleton):
     points = np.concatenate([skeleton.heads, skeleton.tails]).astype(np.float64)
     height = float(np.ptp(points @ up))
     top = points[np.argmax(points @ up)]
+    # just inside the margin, just past it but linked to that one, far past it alone, transparent
     means = torch.as_tensor(np.stack([top, top + (FLOATER_MARGIN - 0.01) * height * up,
-                                      top + (FLOATER_MARGIN + 0.01) * height * up, top]))
-    opacities = torch.tensor([1.0, 1.0, 1.0, 0.5 / 255])
-    assert canonical_floaters(means, opacities, skeleton).tolist() == [False, False, True, True]
+                                      top + (FLOATER_MARGIN + 0.01) * height * up,
+                                      top + (FLOATER_MARGIN + 0.2) * height * up, top]))
+    opacities = torch.tensor([1.0, 1.0, 1.0, 1.0, 0.5 / 255])
+    assert canonical_floaters(means, opacities, skeleton).tolist() == [False, False, False, True, True]
+    # a chain of close Gaussians (a big head, a long coat) reaches far past the margin and stays; the gap at its
+    # end cuts off what lies beyond
+    steps = np.arange(0.0, FLOATER_MARGIN + 0.5, 0.5 * FLOATER_LINK)
+    chain = np.concatenate([top + steps[:, None] * height * up, [top + (steps[-1] + 0.1) * height * up]])
+    floaters = canonical_floaters(torch.as_tensor(chain), torch.ones(len(chain)), skeleton)
+    assert not floaters[:-1].any() and floaters[-1]
+    # with scales, Gaussians whose 3-sigma bodies touch are linked across a wider gap
+    pair = torch.as_tensor(np.stack([top + (FLOATER_MARGIN - 0.01) * height * up,
+                                     top + (FLOATER_MARGIN + 0.09) * height * up]))
+    assert canonical_floaters(pair, torch.ones(2), skeleton).tolist() == [False, True]
+    wide = torch.full((2, 3), 1.2 * 0.1 * height / 6.0, dtype=torch.float64)  # 3 sigma each: 0.06 h, together 0.12 h
+    assert canonical_floaters(pair, torch.ones(2), skeleton, scales=wide).tolist() == [False, False]
 
 
 def test_ply_export_leaves_floaters_out_and_keep_floaters_keeps_them(floater_avatar_dir, tmp_path, capsys):

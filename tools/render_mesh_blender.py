@@ -22,11 +22,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import struct
 import sys
 import time
+
+from blender_scene import add_camera_and_lights, render_still, set_scene_frame_rate
 
 USD_SUFFIXES = (".usd", ".usdc", ".usda", ".usdz")
 GLTF_SUFFIXES = (".glb", ".gltf")
@@ -44,12 +45,6 @@ def gltf_fps(path: str, default: float = 30.0) -> float:
     animations = document.get("animations") or [{}]
     fps = (animations[0].get("extras") or {}).get("fps")
     return float(fps) if isinstance(fps, (int, float)) and fps > 0 else default
-
-
-def set_scene_frame_rate(scene, fps: float) -> None:
-    """Blender keeps the rate as an integer over a base: 29.97 becomes 30 / 1.001."""
-    scene.render.fps = max(1, round(fps))
-    scene.render.fps_base = scene.render.fps / fps
 
 
 def skinned_meshes(scene) -> list:
@@ -77,38 +72,15 @@ def mesh_bounds(bpy, objects) -> tuple[list[float], list[float]]:
     return positions.min(axis=0).tolist(), positions.max(axis=0).tolist()
 
 
-def add_camera_and_lights(bpy, low, high, *, azimuth_deg: float, width: int, height: int) -> None:
-    """A 50 mm camera framing the box from the front (-Y, turned by ``azimuth_deg``), a sun and a sky light."""
-    import mathutils
-
-    centre = mathutils.Vector([(a + b) / 2 for a, b in zip(low, high)])
-    size = mathutils.Vector([b - a for a, b in zip(low, high)])
-    camera_data = bpy.data.cameras.new("Camera")
-    camera_data.lens = 50.0
-    camera_data.sensor_fit = "VERTICAL"
-    half_fov = 0.5 * camera_data.angle_y
-    extent = max(size.z, max(size.x, size.y) * height / width)  # the taller of the box's height and its width
-    distance = 0.6 * extent / math.tan(half_fov) + max(size.x, size.y) / 2
-    angle = math.radians(azimuth_deg)
-    direction = mathutils.Vector((math.sin(angle), -math.cos(angle), 0.12)).normalized()
-    camera = bpy.data.objects.new("Camera", camera_data)
-    camera.location = centre + distance * direction
-    camera.rotation_euler = (centre - camera.location).to_track_quat("-Z", "Y").to_euler()
-    scene = bpy.context.scene
-    scene.collection.objects.link(camera)
-    scene.camera = camera
-    sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", "SUN"))
-    sun.data.energy = 3.0
-    sun.rotation_euler = (math.radians(50), 0.0, math.radians(azimuth_deg - 35))
-    scene.collection.objects.link(sun)
-    world = bpy.data.worlds.new("World")
-    world.use_nodes = True
-    background = world.node_tree.nodes["Background"]
-    background.inputs["Color"].default_value = (0.35, 0.38, 0.42, 1.0)
-    background.inputs["Strength"].default_value = 0.8
-    scene.world = world
-    scene.render.resolution_x, scene.render.resolution_y = width, height
-    scene.render.resolution_percentage = 100
+def frame_mesh(bpy, low, high, *, azimuth_deg: float, width: int, height: int) -> None:
+    """A 50 mm camera framing the box from the front (-Y, turned by ``azimuth_deg``), a sun and a grey sky light."""
+    size = [b - a for a, b in zip(low, high)]
+    across = max(size[0], size[1])
+    add_camera_and_lights(bpy, [(a + b) / 2 for a, b in zip(low, high)],
+                          extent=max(size[2], across * height / width),  # the taller of the box's height and width
+                          depth=across / 2, width=width, height=height, azimuth_deg=azimuth_deg, lens_mm=50.0,
+                          sensor_fit="VERTICAL", fill=0.6, elevation=0.12, sun_elevation_deg=50.0,
+                          sun_azimuth_offset_deg=-35.0, background=(0.35, 0.38, 0.42), background_strength=0.8)
 
 
 def main(argv=None) -> int:
@@ -152,14 +124,8 @@ def main(argv=None) -> int:
         raise SystemExit(f"error: {args.mesh}: no mesh imported")
     scene.frame_set(args.frame)
     low, high = mesh_bounds(bpy, meshes)
-    add_camera_and_lights(bpy, low, high, azimuth_deg=args.azimuth, width=args.width, height=args.height)
-    scene.render.engine = "CYCLES"
-    scene.cycles.device = "CPU"
-    scene.cycles.samples = args.samples
-    scene.cycles.use_denoising = True
-    scene.render.image_settings.file_format = "PNG"
-    scene.render.filepath = os.path.abspath(args.output)
-    bpy.ops.render.render(write_still=True)
+    frame_mesh(bpy, low, high, azimuth_deg=args.azimuth, width=args.width, height=args.height)
+    render_still(bpy, scene, args.output, samples=args.samples)
     armatures = [obj for obj in scene.objects if obj.type == "ARMATURE"]
     bones = sum(len(obj.data.bones) for obj in armatures)
     vertices = sum(len(obj.data.vertices) for obj in meshes)

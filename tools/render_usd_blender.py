@@ -20,10 +20,11 @@ Blender bundles) and prints it; in Blender's interface, set Output Properties > 
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 import time
+
+from blender_scene import add_camera_and_lights, render_still, set_scene_frame_rate
 
 
 def _blender_pxr():
@@ -48,12 +49,6 @@ def stage_frame_rate(path: str) -> float:
     if stage is None:
         raise SystemExit(f"error: {path}: OpenUSD cannot open it")
     return float(stage.GetFramesPerSecond())
-
-
-def set_scene_frame_rate(scene, fps: float) -> None:
-    """Blender keeps the rate as an integer over a base: 29.97 becomes 30 / 1.001."""
-    scene.render.fps = max(1, round(fps))
-    scene.render.fps_base = scene.render.fps / fps
 
 
 def display_colour_material(bpy):
@@ -91,35 +86,13 @@ def point_bounds(bpy, objects) -> tuple[list[float], list[float]]:
     return np.percentile(positions, 0.5, axis=0).tolist(), np.percentile(positions, 99.5, axis=0).tolist()
 
 
-def add_camera_and_lights(bpy, low, high, *, azimuth_deg: float, size: int):
+def frame_points(bpy, low, high, *, azimuth_deg: float, size: int) -> None:
     """A 35 mm camera framing the box from the front (-Y, Blender's front view, turned by ``azimuth_deg``), a sun."""
-    import mathutils
-
-    centre = mathutils.Vector([(a + b) / 2 for a, b in zip(low, high)])
     extent = max(b - a for a, b in zip(low, high))
-    camera_data = bpy.data.cameras.new("Camera")
-    camera_data.lens = 35.0
-    half_fov = 0.5 * camera_data.angle
-    distance = 0.55 * extent / math.tan(half_fov) + extent / 2
-    angle = math.radians(azimuth_deg)
-    direction = mathutils.Vector((math.sin(angle), -math.cos(angle), 0.15)).normalized()
-    camera = bpy.data.objects.new("Camera", camera_data)
-    camera.location = centre + distance * direction
-    camera.rotation_euler = (centre - camera.location).to_track_quat("-Z", "Y").to_euler()
-    scene = bpy.context.scene
-    scene.collection.objects.link(camera)
-    scene.camera = camera
-    sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", "SUN"))
-    sun.data.energy = 3.0
-    sun.rotation_euler = (math.radians(40), 0.0, math.radians(azimuth_deg - 30))
-    scene.collection.objects.link(sun)
-    world = bpy.data.worlds.new("World")
-    world.use_nodes = True
-    world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.05, 0.06, 0.08, 1.0)
-    world.node_tree.nodes["Background"].inputs["Strength"].default_value = 1.0
-    scene.world = world
-    scene.render.resolution_x = scene.render.resolution_y = size
-    scene.render.resolution_percentage = 100
+    add_camera_and_lights(bpy, [(a + b) / 2 for a, b in zip(low, high)], extent=extent, depth=extent / 2,
+                          width=size, height=size, azimuth_deg=azimuth_deg, lens_mm=35.0, fill=0.55, elevation=0.15,
+                          sun_elevation_deg=40.0, sun_azimuth_offset_deg=-30.0, background=(0.05, 0.06, 0.08),
+                          background_strength=1.0)
 
 
 def main(argv=None) -> int:
@@ -159,14 +132,8 @@ def main(argv=None) -> int:
     for cloud in clouds:
         cloud.data.materials.append(material)
     low, high = point_bounds(bpy, clouds)
-    add_camera_and_lights(bpy, low, high, azimuth_deg=args.azimuth, size=args.size)
-    scene.render.engine = "CYCLES"
-    scene.cycles.device = "CPU"
-    scene.cycles.samples = args.samples
-    scene.cycles.use_denoising = True
-    scene.render.image_settings.file_format = "PNG"
-    scene.render.filepath = os.path.abspath(args.output)
-    bpy.ops.render.render(write_still=True)
+    frame_points(bpy, low, high, azimuth_deg=args.azimuth, size=args.size)
+    render_still(bpy, scene, args.output, samples=args.samples)
     count = sum(len(cloud.data.points) for cloud in clouds)
     armatures = [obj.name for obj in scene.objects if obj.type == "ARMATURE"]
     print(f"{args.usd}: {count} points in {len(clouds)} point cloud(s), armature(s) {armatures or 'none'}; "

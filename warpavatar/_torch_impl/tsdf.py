@@ -43,7 +43,8 @@ def integrate_tsdf(depth, alpha, color, K, world_to_camera, origin, voxel_size, 
         counted = inside & ~background & ~carved & (d - z >= -truncation)
         total += torch.where(counted, torch.clamp(d - z, max=truncation), torch.zeros_like(z))
         count += counted.float()
-        rgb += torch.where(counted[:, None], color[view, row, column] / a.clamp(min=1e-6)[:, None], torch.zeros_like(rgb))
+        unpremultiplied = color[view, row, column] / a.clamp(min=1e-6)[:, None]
+        rgb += torch.where(counted[:, None], unpremultiplied, torch.zeros_like(rgb))
         carved |= inside & background
         seen |= inside
     empty = carved | ~seen

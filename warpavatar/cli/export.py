@@ -164,7 +164,7 @@ def build_parser() -> argparse.ArgumentParser:
                                "the colours baked from [views] (default: %(default)s)")
     research.add_argument("--view-size", type=_view_size, default=DEFAULT_VIEW_SIZE, metavar="PX",
                           help="width and height of each render [px] (default: %(default)s)")
-    add_help_options(main, summary=SUMMARY, examples=EXAMPLES)
+    add_help_options(main, summary=SUMMARY, examples=EXAMPLES, part_groups=False)
     return parser
 
 

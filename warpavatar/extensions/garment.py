@@ -48,6 +48,11 @@ render leaves uncovered) and an optical-flow term (the nodes the render shows, c
 neighbouring frames, which must draw them there). The states are drawn only at their own instants (the training
 frames and novel views of them, through the table); a new motion or pose is simulated from the physics alone.
 
+The sheet (``--garment-surface sheet``; default ``nodes``, all of the above). Detection is the same; the garment is
+then a triangle sheet of its surface pinned at its waistband, its Gaussians bound to the sheet's triangles, every
+training frame's sheet fitted with the physics as a soft prior: :mod:`.garment_sheet_part` (its part and its fit,
+which the hooks below hand over to when a sheet exists).
+
 A training step's window is device work only (:meth:`GarmentExtension.step_input`), so on CUDA it is captured
 with the rest of the step and replayed: the frame comes from the step's buffers as a device index, which
 gathers the cached start displacement and velocity and the window's transforms, and scatters the simulated
@@ -70,6 +75,7 @@ import torch
 from warpavatar import ops
 from warpavatar.extensions.base import Extension, LossTerm, option
 from warpavatar.extensions.garment_detection import detect_garments, related_joints
+from warpavatar.extensions.garment_sheet_part import SheetFit
 from warpavatar.extensions.graph import voxel_downsample
 from warpavatar.geometry import match_pose
 from warpavatar.model.parts import AvatarPart
@@ -573,6 +579,24 @@ class GarmentOptions:
     lambda_garment_rest_collapse: float = option(1.0, "weight of the penalty on rest-shape edges shorter than "
                                                  "half their detected length: mean of max(0, 0.5 - ratio)^2 "
                                                  "(dimensionless)")
+    garment_surface: str = option("nodes", "how the garment is simulated: 'nodes' (a mass-spring graph of "
+                                  "voxel-downsampled nodes the Gaussians ride on) or 'sheet' (a triangle sheet of "
+                                  "the garment's surface, pinned at its waistband, the Gaussians bound to its "
+                                  "triangles; every training frame's sheet is fitted, the physics a soft prior: "
+                                  "docs/extensions/garment_sheet.md)", choices=("nodes", "sheet"))
+    garment_sheet_rings: int = option(16, "sheet: rings of vertices from the waistband to the hem (>= 2)")
+    garment_sheet_segments: int = option(32, "sheet: vertices a ring around the axis (>= 3)")
+    garment_sheet_substep: float = option(1.0 / 600.0, "sheet: longest simulation substep [s]; the stiffness "
+                                          "bound scales with its inverse square")
+    garment_settle_substeps: int = option(600, "sheet: substeps of settling (the ring held at the first pose, the "
+                                          "velocities damped hard) before a new motion or a lone pose (>= 1)")
+    garment_sheet_frames: int = option(4, "sheet: frames whose physics residual each step trains (cycling over "
+                                       "the sequence, >= 1)")
+    lambda_garment_sheet_dynamics: float = option(0.1, "sheet: weight of the physics residual: mean over free "
+                                                  "vertices of |x_t - step(x_{t-1}, (x_{t-1} - x_{t-2}) / dt)|^2 "
+                                                  "over the mean edge length squared, over the step's frames")
+    lr_garment_sheet_states: float = option(0.02, "sheet: Adam learning rate of the training frames' sheet states, "
+                                            "as a fraction of the mean edge length per step")
 
 
 class GarmentExtension(Extension):
@@ -598,6 +622,18 @@ class GarmentExtension(Extension):
         for name in ("garment_threshold", "garment_min_fraction"):
             if not 0.0 < getattr(options, name) < 1.0:
                 raise ValueError(f"--{name.replace('_', '-')} must be in (0, 1), got {getattr(options, name)}")
+        if options.garment_surface not in ("nodes", "sheet"):
+            raise ValueError(f"--garment-surface must be 'nodes' or 'sheet', got {options.garment_surface!r}")
+        for name, least in (("garment_sheet_rings", 2), ("garment_sheet_segments", 3), ("garment_settle_substeps", 1),
+                            ("garment_sheet_frames", 1)):
+            if getattr(options, name) < least:
+                raise ValueError(f"--{name.replace('_', '-')} must be >= {least}, got {getattr(options, name)}")
+        for name in ("garment_sheet_substep", "lr_garment_sheet_states"):
+            if not 0.0 < getattr(options, name) < math.inf:
+                raise ValueError(f"--{name.replace('_', '-')} must be > 0, got {getattr(options, name)}")
+        if not 0.0 <= options.lambda_garment_sheet_dynamics < math.inf:
+            raise ValueError("--lambda-garment-sheet-dynamics must be a number >= 0, got "
+                             f"{options.lambda_garment_sheet_dynamics}")
         if options.garment_frame_states not in ("on", "off"):
             raise ValueError(f"--garment-frame-states must be 'on' or 'off', got {options.garment_frame_states!r}")
         if not (options.garment_strain_limit == 0.0 or 1.0 < options.garment_strain_limit < math.inf):
@@ -619,6 +655,8 @@ class GarmentExtension(Extension):
             raise ValueError(f"--garment-attach {self.options.garment_attach!r}: no such joint; the skeleton's "
                              f"joints are {', '.join(names)}")
         self.part: GarmentPart | None = None
+        #: the sheet's fit (``--garment-surface sheet``, a garment found), or None
+        self.sheet: SheetFit | None = None
         self.decided = False  # detection is over (a garment found, or no attempt left)
         self.next_attempt = self.options.garment_from  # step of the next detection attempt
         self.report: dict = {}
@@ -739,6 +777,10 @@ class GarmentExtension(Extension):
 
     def _build(self, means, weights, grid, ids: torch.Tensor, joint: int) -> GarmentPart:
         fit, options = self.fit, self.options
+        if options.garment_surface == "sheet":
+            self.sheet = SheetFit.build(self, means, weights, grid, ids, joint)
+            self.part = self.sheet.part
+            return self.part
         skeleton = fit.frames.skeleton
         field = fit.skinning.field
         voxel = options.garment_voxel * float((field.bbox_max - field.bbox_min).max())
@@ -889,6 +931,9 @@ class GarmentExtension(Extension):
         """The host side of the step's window (the window itself is :meth:`step_input`'s): a refresh of the cached
         rollout when due, and the lengths of the window's frames. No explicit input: None."""
         self.training = self.part is not None
+        if self.sheet is not None:
+            self.training = False  # (no node window: the sheet's state is this step's explicit input)
+            return self.sheet.frame_input(step)
         if not self.training:
             return None
         if self.cache is None or self.bones is None or \
@@ -1084,6 +1129,8 @@ class GarmentExtension(Extension):
         (the dynamics residual, stretch, optical flow, silhouette): device work, captured with the step."""
         if self.part is None:
             return {}
+        if self.sheet is not None:
+            return self.sheet.losses(step)
         cloth, options = self.part.cloth, self.options
         terms = {}
         if cloth.rest_offset_logit is not None:
@@ -1106,6 +1153,8 @@ class GarmentExtension(Extension):
         return terms
 
     def optimizers(self, step) -> list[Optimizer | torch.optim.Optimizer]:
+        if self.sheet is not None:
+            return self.sheet.optimizers()
         if not self.training:
             return []
         optimizers = [self.optimizer] if self.rest_optimizer is None else [self.optimizer, self.rest_optimizer]
@@ -1115,7 +1164,7 @@ class GarmentExtension(Extension):
         """Without a garment (none found, or detection not reached) this extension has no device work in a step;
         with one, the window is device work from the step's buffers, captured when every window has the same
         frame length (evenly timed training frames)."""
-        return self.part is None or self.uniform_seconds is not None
+        return self.part is None or (self.sheet is None and self.uniform_seconds is not None)
 
     def graph_key(self, step) -> tuple:
         """The window's frame lengths and the storage and shape of what it reads and writes in place: the cache,
@@ -1134,12 +1183,14 @@ class GarmentExtension(Extension):
         return self.window_seconds, tuple((tensor.data_ptr(), tuple(tensor.shape)) for tensor in tensors)
 
     def on_gaussians_renumbered(self, source_index: torch.Tensor) -> None:
-        if self.part is not None:
+        if self.part is not None:  # (either surface)
             self.part.renumber(source_index, self.fit.avatar.gaussians.means)
 
     def log_values(self) -> dict[str, float]:
         if self.part is None:
             return {}
+        if self.sheet is not None:
+            return self.sheet.log_values()
         cloth = self.part.cloth
         return {"garment_stiffness": float(torch.sigmoid(cloth.stiffness_logit.detach()).mean()),
                 "garment_damping": float(torch.sigmoid(cloth.damping_logit.detach())),
@@ -1149,8 +1200,14 @@ class GarmentExtension(Extension):
                                              .norm(dim=1).mean())}
 
     def finish(self) -> None:
-        if self.part is not None:
+        if self.sheet is not None:
+            self.sheet.finish(self.step)
+        elif self.part is not None:
             self.refresh()
+
+    def write_outputs(self, folder) -> None:
+        if self.sheet is not None:
+            self.sheet.write_outputs(folder)
 
     def summary_lines(self) -> list[str]:
         if not self.report:
@@ -1160,8 +1217,11 @@ class GarmentExtension(Extension):
             return [f"garment: none detected among {report['gaussians']} Gaussians"]
         lines = [f"garment: {report['garment_gaussians']} of {report['gaussians']} Gaussians (heights "
                  f"{report['height_range'][0]:.2f}-{report['height_range'][1]:.2f} of the body), split between "
-                 f"{' and '.join(report['split'])}, hung from {report['joint']}: {report['nodes']} cloth nodes, "
-                 f"{report['attached']} attached, {report['capsules']} body capsules"]
+                 f"{' and '.join(report['split'])}, hung from {report['joint']}: {report['nodes']} "
+                 f"{'sheet vertices' if self.sheet is not None else 'cloth nodes'}, {report['attached']} attached, "
+                 f"{report['capsules']} body capsules"]
+        if self.sheet is not None:
+            return lines + self.sheet.summary_lines()
         cloth = self.part.cloth
         if cloth.rest_offset_logit is not None:
             moved = (cloth.rest_positions() - cloth.initial_rest_positions).detach().norm(dim=1)
@@ -1172,7 +1232,9 @@ class GarmentExtension(Extension):
     def state_dict(self) -> dict:
         state = {"decided": self.decided, "next_attempt": self.next_attempt, "report": dict(self.report),
                  "refreshed": self.refreshed}
-        if self.part is not None:
+        if self.sheet is not None:
+            state.update(sheet=self.sheet.state_dict())
+        elif self.part is not None:
             state.update(part=self.part.state_for_file(), optimizer=self.optimizer.state_dict(),
                          rest_optimizer=None if self.rest_optimizer is None else self.rest_optimizer.state_dict(),
                          states_optimizer=(None if self.states_optimizer is None else
@@ -1188,6 +1250,9 @@ class GarmentExtension(Extension):
         self.next_attempt = int(state.get("next_attempt", self.options.garment_from))
         self.report = dict(state["report"])
         self.refreshed = int(state["refreshed"])
+        if "sheet" in state:
+            self.sheet = SheetFit.from_state(self, state["sheet"])
+            self.part = self.sheet.part
         if "part" in state:
             self._use(GarmentPart.from_file_state(state["part"], device=self.fit.device))
             saved, saved_rest = state["optimizer"], state.get("rest_optimizer")

@@ -182,9 +182,9 @@ class _HelpAction(argparse.Action):
     (``every`` True): the parser's whole help. Either prints and exits."""
 
     def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None, *,
-                 every: bool, summary: str = "", examples: tuple = ()):
+                 every: bool, summary: str = "", examples: tuple = (), part_groups: bool = True):
         super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
-        self.every, self.summary, self.examples = every, summary, examples
+        self.every, self.summary, self.examples, self.part_groups = every, summary, examples, part_groups
 
     def __call__(self, parser, namespace, values, option_string=None):
         parser._print_message(parser.format_help() if self.every else self.short_help(parser), sys.stdout)
@@ -202,8 +202,8 @@ class _HelpAction(argparse.Action):
         formatter.end_section()
         formatter.add_text("examples:\n" + "\n".join(f"  # {comment}\n  {command}"
                                                      for command, comment in self.examples))
-        formatter.add_text(f"--help-all shows all {count} options by group; the groups of experimental\n"
-                           "parts say so.")
+        formatter.add_text(f"--help-all shows all {count} options by group" + (
+            "; the groups of experimental\nparts say so." if self.part_groups else "."))
         full = [action.help for action in shown]
         try:  # (the formatter reads the texts when it formats)
             for action in shown:
@@ -214,7 +214,8 @@ class _HelpAction(argparse.Action):
                 action.help = text
 
 
-def add_help_options(group, *, summary: str, examples: tuple[tuple[str, str], ...]) -> None:
+def add_help_options(group, *, summary: str, examples: tuple[tuple[str, str], ...], part_groups: bool = True
+                     ) -> None:
     """Add ``-h``/``--help`` and ``--help-all`` to ``group`` (of a parser made with ``add_help=False`` and a
     raw-description formatter), both main options.
 
@@ -223,9 +224,11 @@ def add_help_options(group, *, summary: str, examples: tuple[tuple[str, str], ..
         summary: what ``--help`` prints above the main options (wrapped by the caller; the parser's description
             is ``--help-all``'s).
         examples: ``(command, comment)`` pairs that ``--help`` prints below them.
+        part_groups: the command has a group of options per optional part (``--help`` says the experimental ones
+            are marked).
     """
     main_option(group.add_argument("-h", "--help", action=_HelpAction, every=False, summary=summary,
-                                   examples=examples, help="show the main options and examples, and exit"))
+                                   examples=examples, part_groups=part_groups, help="show the main options and examples, and exit"))
     main_option(group.add_argument("--help-all", action=_HelpAction, every=True,
                                    help="show every option, by group, with its unit and default, and exit"))
 

@@ -13,8 +13,8 @@ from warpavatar.data import write_poses
 from warpavatar.io.images import write_image
 from warpavatar.io.ply import write_gaussian_ply
 
-__all__ = ["TRAINING_MOTION_NAME", "FLOATER_MARGIN", "FLOATER_OPACITY", "write_fitted_avatar",
-           "canonical_floaters", "write_canonical_ply", "write_training_motion",
+__all__ = ["TRAINING_MOTION_NAME", "FLOATER_MARGIN", "FLOATER_LINK", "FLOATER_NEIGHBOURS", "FLOATER_OPACITY",
+           "write_fitted_avatar", "canonical_floaters", "write_canonical_ply", "write_training_motion",
            "write_previews"]
 
 TRAINING_MOTION_NAME = "training_poses.npz"
@@ -46,19 +46,31 @@ FLOATER_MARGIN = 0.25
 """A Gaussian whose centre lies farther than this fraction of the skeleton's height from every bone segment is a
 floater (:func:`canonical_floaters`)."""
 
+FLOATER_LINK = 0.03
+"""A Gaussian beyond :data:`FLOATER_MARGIN` is kept when a chain of Gaussians, each closer than this fraction of the
+skeleton's height to the next, joins it to one within the margin: a big head, a hat or a long coat reaches farther
+from its bones than the margin, and stays; a cloud apart from the body does not."""
+
+FLOATER_NEIGHBOURS = 16
+"""Nearest Gaussians each one is linked to when chains are followed (:data:`FLOATER_LINK`)."""
+
 FLOATER_OPACITY = 1.0 / 255.0
 """A Gaussian less opaque than this (it changes no 8-bit pixel on its own) is a floater."""
 
 
-def canonical_floaters(means: torch.Tensor, opacities: torch.Tensor, skeleton) -> torch.Tensor:
+def canonical_floaters(means: torch.Tensor, opacities: torch.Tensor, skeleton, *,
+                       scales: torch.Tensor | None = None) -> torch.Tensor:
     """Which canonical Gaussians are floaters, left out of ``canonical.ply``: those whose centre lies farther than
     :data:`FLOATER_MARGIN` times the skeleton's height (its bones' extent along ``skeleton.up``) from every bone
-    segment head -> tail, and those with an opacity below :data:`FLOATER_OPACITY`.
+    segment head -> tail unless a chain of close Gaussians joins them to the body (:data:`FLOATER_LINK`), and those
+    with an opacity below :data:`FLOATER_OPACITY`.
 
     Args:
         means: [N,3] canonical centres [m].
         opacities: [N] opacities in 0..1.
         skeleton: the :class:`~warpavatar.data.Skeleton` (rest pose ``heads``, ``tails`` [J,3], ``up`` [3]).
+        scales: [N,3] standard deviations [m]; with them two Gaussians are also linked when their centres are
+            closer than three times the sum of their largest scales (their bodies touch).
 
     Returns:
         [N] bool, True for a floater.
@@ -76,7 +88,28 @@ def canonical_floaters(means: torch.Tensor, opacities: torch.Tensor, skeleton) -
     for start in range(0, means.shape[0], 16384):  # [chunk, J, 3] at a time
         chunk = means[start:start + 16384]
         nearest[start:start + 16384] = (chunk[:, None] - closest_on_segments(chunk, heads, tails)).norm(dim=-1).amin(1)
-    return (nearest > margin) | (opacities.detach().cpu() < FLOATER_OPACITY)
+    visible = opacities.detach().cpu() >= FLOATER_OPACITY
+    reached = (nearest <= margin) & visible
+    beyond = visible & ~reached
+    if beyond.any() and reached.any():  # join what a chain of close Gaussians links to the body
+        from warpavatar.ops import knn_graph
+
+        points = means[visible].float()
+        index, distance = knn_graph(points, min(FLOATER_NEIGHBOURS, points.shape[0] - 1))
+        reach = torch.full_like(distance, FLOATER_LINK * float(heights.max() - heights.min()))
+        index = index.clamp_min(0)
+        if scales is not None:  # Gaussians whose 3-sigma bodies touch
+            extent = 3.0 * scales.detach().to("cpu", torch.float32)[visible].amax(dim=1)
+            reach = torch.maximum(reach, extent[:, None] + extent[index])
+        linked = distance <= reach
+        joined = reached[visible]
+        while True:  # one link further each pass; ends when a pass joins nothing more
+            grown = joined | (joined[index] & linked).any(dim=1)
+            if torch.equal(grown, joined):
+                break
+            joined = grown
+        reached[visible] = joined
+    return ~reached
 
 
 def write_canonical_ply(gaussians, path: str | Path, *, skeleton=None, keep_floaters: bool = False) -> int:
@@ -94,7 +127,7 @@ def write_canonical_ply(gaussians, path: str | Path, *, skeleton=None, keep_floa
     """
     keep = slice(None)
     if skeleton is not None and not keep_floaters:
-        keep = ~canonical_floaters(gaussians.means, gaussians.opacities, skeleton)
+        keep = ~canonical_floaters(gaussians.means, gaussians.opacities, skeleton, scales=gaussians.scales)
     means = gaussians.means.detach().cpu()[keep].numpy()
     write_gaussian_ply(path, means=means,
                        quats=gaussians.normalized_quats.detach().cpu()[keep].numpy(),

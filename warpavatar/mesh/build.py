@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import torch
 
 from warpavatar.mesh.mesh_data import AvatarMesh
 
@@ -91,6 +92,7 @@ def build_avatar_mesh(avatar, *, triangles: int = DEFAULT_TRIANGLES, texture_siz
         clock[0] = now
         bar.update(1)
 
+    device = avatar.gaussians.means.device if device is None else torch.device(device)
     try:
         begin("views")
         views = render_canonical_views(avatar, count=view_count, size=view_size, device=device)

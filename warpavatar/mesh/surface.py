@@ -8,8 +8,14 @@ Volumetric Method for Building Complex Models from Range Images", with the carvi
 Carving"). The grid is fused twice: coarsely over the region every camera frames, to find the visual hull's box,
 then finely over that box. Marching cubes (scikit-image's) on the fine grid, padded with empty voxels, gives a
 closed surface; components that are floaters (:data:`FLOATER_AREA_FRACTION`, :data:`FLOATER_BONE_REACH`) or
-cavities are dropped, the rest is decimated to the triangle budget by quadric edge collapse (fast-simplification)
-and its faces are wound outwards. Colours fused with the depths become vertex colours.
+cavities are dropped, the rest is decimated to the triangle budget by quadric edge collapse (fast-simplification),
+and where a collapse pinched two sheets together the sheets are given their own vertices again, so every edge is
+between two faces (watertight). Colours fused with the depths become vertex colours.
+
+The voxel is half the renders' pixel footprint at the hull's centre (:data:`VOXELS_PER_PIXEL`: finer would add
+voxels, not detail), enlarged where the hull's box would need more than :data:`MAX_VOXELS` (for the demo avatar's
+48 renders of 256 px: 7.9 mm, enlarged to 8.6 mm, about 1/185 of its height), and the truncation
+:data:`TRUNCATION_VOXELS` voxels.
 """
 
 from __future__ import annotations
@@ -23,9 +29,9 @@ import trimesh
 from warpavatar.mesh.mesh_data import CanonicalView
 
 __all__ = ["DEFAULT_TRIANGLES", "VOXELS_PER_PIXEL", "MAX_VOXELS", "TRUNCATION_VOXELS", "ALPHA_THRESHOLD",
-           "RIM_DEPTH_VOXELS", "COARSE_VOXELS",
-           "SPECK_VOXELS", "FLOATER_AREA_FRACTION", "FLOATER_BONE_REACH", "default_voxel_size", "fuse_views", "depth_offset",
-           "extract_surface"]
+           "RIM_DEPTH_VOXELS", "SMOOTHING_PASSES", "COARSE_VOXELS", "SPECK_VOXELS", "FLOATER_AREA_FRACTION",
+           "FLOATER_BONE_REACH",
+           "default_voxel_size", "fuse_views", "depth_offset", "extract_surface"]
 
 DEFAULT_TRIANGLES = 50_000
 """Triangles of the decimated surface."""
@@ -47,6 +53,11 @@ RIM_DEPTH_VOXELS = 1.0
 """How deep [voxels] inside the silhouettes' surface the carved hull's rim voxels lie, for :func:`depth_offset`:
 the surface is between a rim voxel and its carved neighbour, and the hull of many views lies a little inside
 each one's silhouette (1.0 matched the silhouettes of the demo avatar's renders best: 0.5 to 2.5 were tried)."""
+
+SMOOTHING_PASSES = 1
+"""Passes of a [1, 2, 1] / 4 filter along each axis over the fused distances before marching cubes (a Gaussian of
+about 0.7 voxels: the depths of soft Gaussians are noisy from view to view; on the demo avatar one pass costs 0.005
+of silhouette IoU and takes off most of the voxel-sized bumps)."""
 
 COARSE_VOXELS = 64
 """Voxels along each axis of the coarse pass (the cube every camera frames)."""
@@ -78,7 +89,8 @@ def _stack_views(views: list[CanonicalView], device: torch.device) -> dict[str, 
             raise ValueError(f"extract_surface: view {index} holds images of the wrong shape for {width}x{height}")
 
     def stack(name, dtype=np.float32):
-        return torch.from_numpy(np.ascontiguousarray(np.stack([getattr(v, name) for v in views]), dtype=dtype)).to(device)
+        stacked = np.ascontiguousarray(np.stack([getattr(view, name) for view in views]), dtype=dtype)
+        return torch.from_numpy(stacked).to(device)
 
     return {"depth": stack("depth"), "alpha": stack("alpha"), "color": stack("color"), "K": stack("K"),
             "world_to_camera": stack("world_to_camera")}
@@ -134,12 +146,13 @@ def default_voxel_size(views: list[CanonicalView], low: np.ndarray, high: np.nda
     return max(size, (volume / MAX_VOXELS) ** (1.0 / 3.0))
 
 
-def fuse_views(views: list[CanonicalView], low, high, voxel_size: float, *, truncation: float | None = None,
+def fuse_views(views, low, high, voxel_size: float, *, truncation: float | None = None,
                device=None) -> dict[str, np.ndarray]:
     """Fuse views into a TSDF on a grid of voxel centres covering the box ``low``..``high`` [m].
 
     Args:
-        views: renders with colour, alpha and depth, all of one size.
+        views: renders with colour, alpha and depth, all of one size (or the dict ``_stack_views`` makes of
+            them, on the device).
         low, high: [3] corners of the box [m]; the first voxel centre is ``low``.
         voxel_size: spacing of the voxel centres [m].
         truncation: [m]; default :data:`TRUNCATION_VOXELS` voxels.
@@ -155,7 +168,7 @@ def fuse_views(views: list[CanonicalView], low, high, voxel_size: float, *, trun
     low, high = np.asarray(low, np.float64), np.asarray(high, np.float64)
     truncation = TRUNCATION_VOXELS * voxel_size if truncation is None else float(truncation)
     shape = tuple(int(n) for n in np.floor((high - low) / voxel_size + 1e-6).astype(np.int64) + 1)
-    stacked = _stack_views(views, device)
+    stacked = views if isinstance(views, dict) else _stack_views(views, device)
     with torch.no_grad():
         tsdf, weight, color = ops.integrate_tsdf(
             stacked["depth"], stacked["alpha"], stacked["color"], stacked["K"], stacked["world_to_camera"],
@@ -164,11 +177,11 @@ def fuse_views(views: list[CanonicalView], low, high, voxel_size: float, *, trun
             "origin": low.astype(np.float32), "voxel_size": float(voxel_size), "truncation": truncation}
 
 
-def _hull_box(views: list[CanonicalView], device) -> tuple[np.ndarray, np.ndarray]:
+def _hull_box(views: list[CanonicalView], device, stacked: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The box [m] of the views' visual hull (voxels of the coarse pass left inside), two coarse voxels wider."""
     centre, radius = _framed_cube(views)
     coarse = 2.0 * radius / (COARSE_VOXELS - 1)
-    grid = fuse_views(views, centre - radius, centre + radius, coarse, device=device)
+    grid = fuse_views(views if stacked is None else stacked, centre - radius, centre + radius, coarse, device=device)
     inside = np.argwhere(grid["tsdf"] < 0.0)
     if inside.shape[0] == 0:
         raise ValueError("extract_surface: the views show nothing to make a surface of (every voxel is carved)")
@@ -207,9 +220,24 @@ def depth_offset(grid: dict) -> float:
     return min(max(offset, 0.0), max(truncation - voxel, 0.0))
 
 
+def _smoothed(values: np.ndarray, passes: int) -> np.ndarray:
+    """``values`` [X,Y,Z] filtered ``passes`` times by [1, 2, 1] / 4 along each axis (edges repeated)."""
+    for _ in range(passes):
+        for axis in range(3):
+            padded = np.pad(values, [(1, 1) if a == axis else (0, 0) for a in range(3)], mode="edge")
+            part = [slice(None)] * 3
+            shifted = []
+            for start in range(3):
+                part[axis] = slice(start, start + values.shape[axis])
+                shifted.append(padded[tuple(part)])
+            values = 0.25 * shifted[0] + 0.5 * shifted[1] + 0.25 * shifted[2]
+    return values
+
+
 def _marching_cubes(grid: dict, *, offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Vertices [m] and outward-wound faces of the TSDF's level ``offset`` (the fused distances are moved by it:
-    :func:`depth_offset`), the grid padded with empty voxels so the surface closes at its border."""
+    :func:`depth_offset`), smoothed (:data:`SMOOTHING_PASSES`), the grid padded with empty voxels so the surface
+    closes at its border."""
     from skimage.measure import marching_cubes
 
     tsdf = grid["tsdf"]
@@ -219,6 +247,7 @@ def _marching_cubes(grid: dict, *, offset: float = 0.0) -> tuple[np.ndarray, np.
     # the truncation's share. A carved voxel's centre is just outside a silhouette: half a voxel is its distance.
     values = np.where(fused, tsdf - np.float32(offset), tsdf)
     values = np.where(~fused & (tsdf > 0.0), np.float32(min(0.5 * voxel, grid["truncation"])), values)
+    values = _smoothed(values, SMOOTHING_PASSES).astype(np.float32)
     values = np.pad(values, 1, mode="constant", constant_values=np.float32(grid["truncation"]))
     values[values == 0.0] = np.float32(1e-7 * voxel)  # no vertex exactly on a voxel centre (degenerate faces)
     if not (values.min() < 0.0 < values.max()):
@@ -426,10 +455,12 @@ def _manifold(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.n
 def _decimated(vertices: np.ndarray, faces: np.ndarray, triangles: int) -> tuple[np.ndarray, np.ndarray]:
     import fast_simplification
 
-    if faces.shape[0] <= triangles:
-        return vertices, faces
-    vertices, faces = fast_simplification.simplify(vertices, faces, target_count=triangles)
-    return np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+    for _ in range(3):  # a pass may stop short of its target: the next goes on from where it stopped
+        if faces.shape[0] <= triangles:
+            break
+        vertices, faces = fast_simplification.simplify(vertices, faces, target_count=triangles)
+        vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+    return vertices, faces
 
 
 def _sample_colors(grid: dict, points: np.ndarray) -> np.ndarray:
@@ -460,8 +491,10 @@ def extract_surface(views: list[CanonicalView], *, triangles: int = DEFAULT_TRIA
     Steps: fuse the views into a TSDF with space carving (:func:`warpavatar.ops.integrate_tsdf`), over ``box`` or
     else over the visual hull's box (a coarse pass of :data:`COARSE_VOXELS` per axis over the region every camera
     frames); marching cubes on the fine grid padded with empty voxels (so the surface is closed, watertight);
-    drop components that are cavities (wound inwards: the inner wall of a hollow) or floaters; decimate the rest
-    to ``triangles`` (quadric edge collapse, fast-simplification); wind the faces outwards (trimesh).
+    drop components that are cavities (wound inwards: the inner wall of a hollow), specks (enclosing less than
+    :data:`SPECK_VOXELS` voxels) or floaters; decimate the rest to ``triangles`` (quadric edge collapse,
+    fast-simplification); drop the folds decimation leaves (a triangle wound both ways) and give sheets that it
+    pinched together their own vertices (every edge between two faces again); drop what decimation flattened.
 
     The floater rule: a component whose area is below :data:`FLOATER_AREA_FRACTION` of the largest kept
     component's, and none of whose vertices is within :data:`FLOATER_BONE_REACH` times the skeleton's height of
@@ -480,9 +513,10 @@ def extract_surface(views: list[CanonicalView], *, triangles: int = DEFAULT_TRIA
         device: where to run the fusion kernel (default CPU).
 
     Returns:
-        a ``trimesh.Trimesh`` in the views' world frame [m]: watertight (each kept component is closed), faces
-        counter-clockwise seen from outside, vertex colours (RGBA uint8) from the fused renders (un-premultiplied
-        by alpha), at most ``triangles`` faces.
+        a ``trimesh.Trimesh`` in the views' world frame [m], not processed (no vertices merged: sheets that
+        touch keep their own): watertight (every edge between two faces), faces counter-clockwise seen from
+        outside, vertex colours (RGBA uint8) from the fused renders (un-premultiplied by alpha), at most
+        ``triangles`` faces.
 
     Raises:
         ValueError: no views, views of different sizes, ``triangles`` < 4, or nothing left to make a surface of.
@@ -490,9 +524,10 @@ def extract_surface(views: list[CanonicalView], *, triangles: int = DEFAULT_TRIA
     if int(triangles) < 4:
         raise ValueError(f"extract_surface: triangles must be at least 4, got {triangles}")
     triangles = int(triangles)
-    _stack_views(views, torch.device("cpu"))  # checks the views before any work
+    device = torch.device("cpu" if device is None else device)
+    stacked = _stack_views(views, device)  # checks the views before any work
     if box is None:
-        low, high = _hull_box(views, device)
+        low, high = _hull_box(views, device, stacked)
     else:
         low, high = (np.asarray(corner, np.float64).reshape(3) for corner in box)
         if not np.all(high > low):
@@ -500,7 +535,7 @@ def extract_surface(views: list[CanonicalView], *, triangles: int = DEFAULT_TRIA
     voxel_size = default_voxel_size(views, low, high) if voxel_size is None else float(voxel_size)
     if not voxel_size > 0.0:
         raise ValueError(f"extract_surface: voxel_size must be positive, got {voxel_size}")
-    grid = fuse_views(views, low, high, voxel_size, device=device)
+    grid = fuse_views(stacked, low, high, voxel_size, device=device)
     vertices, faces = _marching_cubes(grid, offset=depth_offset(grid))
     if faces.shape[0] == 0:
         raise ValueError("extract_surface: the views show nothing to make a surface of")
@@ -512,6 +547,8 @@ def extract_surface(views: list[CanonicalView], *, triangles: int = DEFAULT_TRIA
     vertices, faces = _manifold(*_compacted(vertices, _without_folds(faces)))
     # decimation may flatten a small component into a sliver: the rule again drops what no longer encloses much
     vertices, faces = _compacted(vertices, faces[_kept_components(vertices, faces, skeleton, voxel_size)])
+    if faces.shape[0] == 0:
+        raise ValueError("extract_surface: nothing of the fused surface is left after decimation")
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     colors = _sample_colors(grid, vertices)
     mesh.visual = trimesh.visual.ColorVisuals(

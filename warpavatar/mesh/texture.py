@@ -43,9 +43,10 @@ CHART_COUNT = 300
 so a surface cut into a few hundred charts unwraps in a second or two where a handful of large ones take tens."""
 
 CHART_SMOOTHING = 10
-"""Taubin smoothing iterations of the copy of the surface xatlas cuts into charts and flattens: a fused surface's
-small bumps otherwise split it into thousands of charts of a few triangles (slow to make, and each costs a
-gutter). The UVs are valid for the surface itself (they are a planar layout of its triangles)."""
+"""Laplacian smoothing iterations of the copy of the surface xatlas cuts into charts and flattens: a fused
+surface's small bumps otherwise split it into thousands of charts of a few triangles (slow to make, and each costs
+a gutter). The UVs are valid for the surface itself: they are a planar layout of its triangles, whatever their
+positions."""
 
 _CHART_FILL = 0.38
 """Share of xatlas's atlas its charts fill, gutters not counted (about what it reaches with a gutter of four
@@ -106,7 +107,7 @@ def unwrap(vertices, faces, *, size: int = 1024, gutter: int = GUTTER_TEXELS, ch
         gutter: about the least number of texels between two charts at ``size`` (even; half of it also
             separates the charts from the atlas's border).
         chart_count: the largest chart's area is the surface's area over this (see :data:`CHART_COUNT`).
-        chart_smoothing: Taubin smoothing iterations of the copy of the surface that xatlas charts (see
+        chart_smoothing: Laplacian smoothing iterations of the copy of the surface that xatlas charts (see
             :data:`CHART_SMOOTHING`); 0 charts the surface itself.
 
     Returns:
@@ -133,16 +134,18 @@ def unwrap(vertices, faces, *, size: int = 1024, gutter: int = GUTTER_TEXELS, ch
     if indices.shape[0] == 0:
         return positions, indices, np.zeros((positions.shape[0], 2), np.float32), \
             np.arange(positions.shape[0], dtype=np.int32)
-    corners = positions[indices].astype(np.float64)
+    charted = positions
+    if chart_smoothing:
+        smooth = trimesh.Trimesh(positions, indices, process=False)
+        trimesh.smoothing.filter_laplacian(smooth, lamb=0.5, iterations=chart_smoothing)
+        charted = np.ascontiguousarray(smooth.vertices, dtype=np.float32)
+        if not np.all(np.isfinite(charted)):
+            charted = positions
+    corners = charted[indices].astype(np.float64)
     area = 0.5 * float(np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]),
                                       axis=1).sum())
     if not area > 0.0:
         raise ValueError("the surface has no area to unwrap")
-    charted = positions
-    if chart_smoothing:
-        smooth = trimesh.Trimesh(positions, indices, process=False)
-        trimesh.smoothing.filter_taubin(smooth, iterations=chart_smoothing)
-        charted = np.ascontiguousarray(smooth.vertices, dtype=np.float32)
     atlas = xatlas.Atlas()
     atlas.add_mesh(charted, indices.astype(np.uint32))
     chart_options = xatlas.ChartOptions()

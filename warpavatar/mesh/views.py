@@ -17,7 +17,10 @@ import torch
 
 from warpavatar.mesh.mesh_data import CanonicalView
 
-__all__ = ["body_gaussians", "canonical_box", "view_cameras", "render_canonical_views"]
+DEPTH_ALPHA = 0.5
+"""Least alpha of a pixel whose expected depth a view keeps (``inf`` below it)."""
+
+__all__ = ["DEPTH_ALPHA", "body_gaussians", "canonical_box", "view_cameras", "render_canonical_views"]
 
 
 def body_gaussians(avatar) -> torch.Tensor:
@@ -29,7 +32,8 @@ def body_gaussians(avatar) -> torch.Tensor:
 
     gaussians = avatar.gaussians
     with torch.no_grad():
-        floaters = canonical_floaters(gaussians.means.detach(), gaussians.opacities.detach(), avatar.skeleton)
+        floaters = canonical_floaters(gaussians.means.detach(), gaussians.opacities.detach(), avatar.skeleton,
+                                      scales=gaussians.scales.detach())
     return ~floaters.to(gaussians.means.device)
 
 
@@ -127,7 +131,7 @@ def render_canonical_views(avatar, *, count: int = 64, size: int = 256, device=N
             alpha = alpha.float().cpu().numpy()
             depth = depth.float().cpu().numpy()
             expected = np.full_like(depth, np.inf)
-            covered = alpha >= 0.5
+            covered = alpha >= DEPTH_ALPHA
             expected[covered] = depth[covered] / alpha[covered]
             camera.color = image.float().clamp(0.0, 1.0).cpu().numpy()
             camera.alpha = alpha
