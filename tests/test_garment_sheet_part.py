@@ -1,17 +1,19 @@
 """The garment as a simulated sheet (``--garment-surface sheet``): detection and the sheet in a tiny fit, the fitted
-per-frame states and their physics residual, the avatar file, novel poses and new motions; the node model stays the
-default."""
+per-frame states, their tracking to the masks and their physics residual, the avatar file, novel poses and new
+motions; the node model stays the default."""
 
 from __future__ import annotations
 
+import io
 import json
+import math
 
 import pytest
 import torch
 
 from warpavatar import data, ops
 from warpavatar.extensions.garment import GarmentExtension, GarmentOptions
-from warpavatar.extensions.garment_sheet_part import GarmentSheetPart
+from warpavatar.extensions.garment_sheet_part import GarmentSheetPart, SheetFit
 from warpavatar.fit import Trainer, preset
 from warpavatar.model import Avatar
 
@@ -20,7 +22,8 @@ from tests.test_garment_capture import TINY
 # a forced garment on the robot (every slightly split Gaussian, hung from the root) as a coarse sheet
 SHEET = {**TINY, "iterations": 20, "garment_surface": "sheet", "garment_sheet_rings": 5, "garment_sheet_segments": 10,
          "garment_sheet_substep": 1.0 / 120.0, "garment_settle_substeps": 60, "garment_sheet_frames": 3,
-         "checkpoint_every": 12}
+         "checkpoint_every": 12, "garment_sheet_track_iterations": 8, "garment_sheet_track_every": 10,
+         "garment_sheet_track_frames": 2}
 
 
 @pytest.fixture(scope="module")
@@ -56,8 +59,20 @@ def test_the_fit_builds_a_sheet_and_fits_every_frames_state(fitted):
     assert (folder / "garment_sheet.ply").stat().st_size > 0
     assert any('"garment_sheet"' in line and "final_residual" in line
                for line in trainer.log_path.read_text().splitlines())
-    assert any(line.startswith("garment sheet:") for line in trainer.extension("garment").summary_lines())
+    lines = trainer.extension("garment").summary_lines()
+    assert any(line.startswith("garment sheet:") for line in lines)
     sheet = trainer.extension("garment").sheet
+    # tracked to the masks right after the rollout (step 4) and once more (--garment-sheet-track-every 10)
+    assert [record["step"] for record in report["tracking"]] == [4, 14] == [r["step"] for r in sheet.tracking]
+    for record in report["tracking"]:
+        assert record["iterations"] == 8 and record["frames"] == count
+        assert len(record["coverage_iou"]["after"]["per_frame"]) == count
+        for name in ("outside", "uncovered", "dynamics", "edges"):
+            assert record[name]["before"] >= 0 and record[name]["after"] >= 0
+    assert 0.0 <= report["final_silhouette"]["coverage_iou"]["mean"] <= 1.0
+    assert any(line.startswith("garment sheet tracking: 2 run(s)") for line in lines)
+    assert any(line.startswith("garment sheet at the end:") for line in lines)
+    assert any('"garment_sheet_tracking"' in line for line in trainer.log_path.read_text().splitlines())
     assert sheet.states_optimizer.state[part.frame_states]["exp_avg"].abs().sum() > 0  # the images moved them
     # the table of the training instants holds the fitted states
     bones = sheet.bones
@@ -148,11 +163,39 @@ def test_resume_gives_the_same_states_bit_for_bit(fitted, video, tmp_path):
     resumed.fit(resume=True, progress=False)
     assert torch.equal(whole.avatar.part("garment").frame_states, resumed.avatar.part("garment").frame_states)
     assert torch.equal(whole.gaussians.means, resumed.gaussians.means)
+    # the tracking runs (one before the checkpoint, one after) came at the same steps to the same values
+    runs = [[{k: v for k, v in record.items() if k != "seconds"} for record in trainer.extension("garment").sheet
+             .tracking] for trainer in (whole, resumed)]
+    assert runs[0] == runs[1] and len(runs[0]) == 2
+
+
+def test_the_sheet_fit_state_round_trips(fitted):
+    trainer, _ = fitted
+    extension = trainer.extension("garment")
+    sheet, part = extension.sheet, extension.sheet.part
+    state = torch.load(io.BytesIO(_saved(sheet.state_dict())), weights_only=True)
+    try:
+        loaded = SheetFit.from_state(extension, state)
+        assert loaded.tracking == sheet.tracking and loaded.tracked == sheet.tracked == 14
+        assert loaded.refreshed == sheet.refreshed and loaded.image_steps == sheet.image_steps
+        assert torch.equal(loaded.part.frame_states, part.frame_states)
+    finally:
+        trainer.avatar.add_part(part)  # (the fixture's part back in the avatar)
+
+
+def _saved(state: dict) -> bytes:
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    return buffer.getvalue()
 
 
 def test_nodes_stay_the_default_and_the_sheet_options_are_checked():
     assert GarmentOptions().garment_surface == "nodes"
     for name, value in (("garment_surface", "mesh"), ("garment_sheet_rings", 1), ("garment_sheet_substep", 0.0),
-                        ("lambda_garment_sheet_dynamics", -1.0), ("garment_settle_substeps", 0)):
+                        ("lambda_garment_sheet_dynamics", -1.0), ("garment_settle_substeps", 0),
+                        ("garment_sheet_track_iterations", -1), ("garment_sheet_track_every", -1),
+                        ("garment_sheet_track_frames", -1), ("lr_garment_sheet_track", 0.0),
+                        ("lambda_garment_sheet_track_dynamics", -0.1), ("lambda_garment_sheet_track_edges", math.inf),
+                        ("garment_sheet_track_region", "mask")):
         with pytest.raises(ValueError, match=name.replace("_", "-")):
             GarmentExtension.check(GarmentOptions(**{name: value}), None)

@@ -18,7 +18,9 @@ its rest pose, in the format the suffix of -o names (the list below).
 USD layouts: 'particlefield' (default) writes one UsdVol.ParticleField3DGaussianSplat prim (the standard schema
 for Gaussian splats, read by Omniverse and recent USD tools); 'points' writes a UsdGeom.Points prim with
 widths, colours, opacities and primvars for orientations, scales and SH (read by Blender and older tools).
-Every part of the avatar runs as in a fit (learned secondary dynamics roll the motion out first).
+Every part of the avatar runs as in a fit (learned secondary dynamics roll the motion out first). A garment
+fitted as a sheet (--garment-surface sheet) is also written to USD as an animated mesh, /Avatar/Garment: each
+frame, the sheet its Gaussians sit on.
 See docs/export.md for every attribute written.
 
 The file is written under a temporary name of its own beside -o and renamed once complete: an existing file at

@@ -597,6 +597,31 @@ class GarmentOptions:
                                                   "over the mean edge length squared, over the step's frames")
     lr_garment_sheet_states: float = option(0.02, "sheet: Adam learning rate of the training frames' sheet states, "
                                             "as a fraction of the mean edge length per step")
+    garment_sheet_track_iterations: int = option(300, "sheet tracking: Adam iterations of the batched fit of "
+                                                 "every training frame's sheet state to its mask, without rendering "
+                                                 "(free vertices and triangle centres inside the mask, the garment's "
+                                                 "cells covered by the projected sheet, the physics residual, edge "
+                                                 "lengths near rest), run right after the sheet's rollout and every "
+                                                 "--garment-sheet-track-every steps after (>= 0; 0: off; needs masks)")
+    garment_sheet_track_every: int = option(2000, "sheet tracking: steps between later runs, each at the first "
+                                            "refresh (--garment-refresh-every) that many steps after the last "
+                                            "(>= 0; 0: only when the sheet is built)")
+    lr_garment_sheet_track: float = option(0.1, "sheet tracking: Adam learning rate of the states, as a fraction of "
+                                           "the mean edge length per iteration, decaying to a tenth of it along a "
+                                           "cosine over a run")
+    lambda_garment_sheet_track_dynamics: float = option(0.1, "sheet tracking: weight of the physics residual "
+                                                        "(edge lengths squared, as --lambda-garment-sheet-dynamics "
+                                                        "measures it) against the silhouette terms (weight 1, "
+                                                        "their misses in projected edge lengths, squared)")
+    lambda_garment_sheet_track_edges: float = option(1.0, "sheet tracking: weight of the edges' strain, mean of "
+                                                     "(length / rest length - 1)^2 (dimensionless)")
+    garment_sheet_track_frames: int = option(16, "sheet tracking: frames whose physics residual an iteration fits "
+                                             "(cycling over the sequence; >= 0; 0: every frame)")
+    garment_sheet_track_region: str = option("body", "sheet tracking: the garment's cells each frame's sheet must "
+                                             "cover: 'body' (the mask where a render of the avatar without the "
+                                             "garment has alpha under one half) or 'share' (the mask where the "
+                                             "garment Gaussians, on the sheet as it is, make over half of the "
+                                             "render's alpha)", choices=("body", "share"))
 
 
 class GarmentExtension(Extension):
@@ -625,15 +650,20 @@ class GarmentExtension(Extension):
         if options.garment_surface not in ("nodes", "sheet"):
             raise ValueError(f"--garment-surface must be 'nodes' or 'sheet', got {options.garment_surface!r}")
         for name, least in (("garment_sheet_rings", 2), ("garment_sheet_segments", 3), ("garment_settle_substeps", 1),
-                            ("garment_sheet_frames", 1)):
+                            ("garment_sheet_frames", 1), ("garment_sheet_track_iterations", 0),
+                            ("garment_sheet_track_every", 0), ("garment_sheet_track_frames", 0)):
             if getattr(options, name) < least:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= {least}, got {getattr(options, name)}")
-        for name in ("garment_sheet_substep", "lr_garment_sheet_states"):
+        for name in ("garment_sheet_substep", "lr_garment_sheet_states", "lr_garment_sheet_track"):
             if not 0.0 < getattr(options, name) < math.inf:
                 raise ValueError(f"--{name.replace('_', '-')} must be > 0, got {getattr(options, name)}")
-        if not 0.0 <= options.lambda_garment_sheet_dynamics < math.inf:
-            raise ValueError("--lambda-garment-sheet-dynamics must be a number >= 0, got "
-                             f"{options.lambda_garment_sheet_dynamics}")
+        for name in ("lambda_garment_sheet_dynamics", "lambda_garment_sheet_track_dynamics",
+                     "lambda_garment_sheet_track_edges"):
+            if not 0.0 <= getattr(options, name) < math.inf:
+                raise ValueError(f"--{name.replace('_', '-')} must be a number >= 0, got {getattr(options, name)}")
+        if options.garment_sheet_track_region not in ("body", "share"):
+            raise ValueError("--garment-sheet-track-region must be 'body' or 'share', got "
+                             f"{options.garment_sheet_track_region!r}")
         if options.garment_frame_states not in ("on", "off"):
             raise ValueError(f"--garment-frame-states must be 'on' or 'off', got {options.garment_frame_states!r}")
         if not (options.garment_strain_limit == 0.0 or 1.0 < options.garment_strain_limit < math.inf):

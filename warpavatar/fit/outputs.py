@@ -77,6 +77,7 @@ def canonical_floaters(means: torch.Tensor, opacities: torch.Tensor, skeleton, *
     """
     from warpavatar.model.skinning_field import closest_on_segments
 
+    device = means.device  # (the k-NN graph below runs where the Gaussians live: a CUDA-only Warp has no CPU)
     means = means.detach().to("cpu", torch.float64)
     heads = torch.as_tensor(np.asarray(skeleton.heads), dtype=torch.float64)
     tails = torch.as_tensor(np.asarray(skeleton.tails), dtype=torch.float64)
@@ -95,7 +96,8 @@ def canonical_floaters(means: torch.Tensor, opacities: torch.Tensor, skeleton, *
         from warpavatar.ops import knn_graph
 
         points = means[visible].float()
-        index, distance = knn_graph(points, min(FLOATER_NEIGHBOURS, points.shape[0] - 1))
+        index, distance = knn_graph(points.to(device), min(FLOATER_NEIGHBOURS, points.shape[0] - 1))
+        index, distance = index.cpu(), distance.cpu()
         reach = torch.full_like(distance, FLOATER_LINK * float(heights.max() - heights.min()))
         index = index.clamp_min(0)
         if scales is not None:  # Gaussians whose 3-sigma bodies touch

@@ -7,7 +7,8 @@ pose, and writes the file. :func:`exporter_for` picks the exporter of a path. Th
 
 * :class:`UsdGaussiansExporter` (``.usdc``, ``.usd``, ``.usda``): the animated Gaussians as OpenUSD, layout
   ``particlefield`` (``UsdVol.ParticleField3DGaussianSplat``, the default) or ``points`` (``UsdGeom.Points``),
-  optionally with the UsdSkel rig (:class:`~warpavatar.io.usd.GaussianUsdWriter`);
+  optionally with the UsdSkel rig, and a garment sheet as an animated ``UsdGeom.Mesh``
+  (:class:`~warpavatar.io.usd.GaussianUsdWriter`);
 * :class:`RestPosePlyExporter` (``.ply``): the canonical Gaussians as a 3DGS ``.ply``, the file a fit writes as
   ``canonical.ply``.
 
@@ -288,7 +289,9 @@ def load_entry_points() -> list[str]:
 
 class UsdGaussiansExporter(Exporter):
     """The animated Gaussians as OpenUSD in one ``layout`` (docs/export.md lists every attribute), optionally
-    with the UsdSkel rig of :meth:`~warpavatar.model.Avatar.rig` (``--skeleton``: the grown joints included).
+    with the UsdSkel rig of :meth:`~warpavatar.model.Avatar.rig` (``--skeleton``: the grown joints included). A
+    part that poses Gaussians on a triangle sheet (the garment of ``--garment-surface sheet``) adds that sheet as a
+    ``UsdGeom.Mesh`` beside the Gaussians (``/Avatar/Garment``), its points those the Gaussians sit on each frame.
 
     ``.usdc`` and ``.usd`` are the binary crate format, written frame by frame with bounded memory. ``.usda`` is
     the text format: the crate is written first in a temporary folder of its own beside the output, then
@@ -325,10 +328,12 @@ class UsdGaussiansExporter(Exporter):
         skeleton = avatar.skeleton
         up_axis = "XYZ"[int(abs(skeleton.up).argmax())]
         g = avatar.gaussians
+        sheets = _sheet_meshes(avatar)
         with GaussianUsdWriter(path, layout=self.layout, gaussian_count=g.count, sh_degree=g.sh_degree,
                                opacities=g.opacities.detach().cpu().numpy(),
                                sh_coeffs=g.sh_coefficients().detach().cpu().numpy(), fps=motion.fps, up_axis=up_axis,
-                               meters_per_unit=1.0, skeleton=avatar.rig() if options.skeleton else None) as writer:
+                               meters_per_unit=1.0, skeleton=avatar.rig() if options.skeleton else None,
+                               meshes=[mesh for mesh, _ in sheets]) as writer:
             time_codes = motion.time_codes()  # frames of the motion's clock, played at fps
             frames = tqdm.tqdm(motion.posed_frames(avatar), total=motion.frame_count, disable=not options.progress,
                                desc="animate")
@@ -338,7 +343,10 @@ class UsdGaussiansExporter(Exporter):
                                    scales=posed["scales"].detach().cpu().numpy(),
                                    # the skeleton's transforms, then any grown joints' (ToMiE), as posed
                                    joint_transforms=posed["bone_transforms"].cpu().numpy() if options.skeleton
-                                   else None)
+                                   else None,
+                                   # the sheets the parts placed their Gaussians on this frame
+                                   mesh_points={mesh.name: part.posed_sheet(posed)[0].cpu().numpy()
+                                                for mesh, part in sheets})
 
     def _write_text(self, avatar, path: Path, *, motion: ExportMotion, options: ExportOptions) -> None:
         from pxr import Sdf, Tf
@@ -368,6 +376,39 @@ class UsdGaussiansExporter(Exporter):
                     del layer  # the last reference: the layer leaves Sdf's registry and unmaps the crate
         finally:
             shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _sheet_meshes(avatar) -> list:
+    """The avatar's parts that pose Gaussians on a triangle sheet (a method ``posed_sheet(posed)`` returning the
+    frame's vertices [V,3] and faces [F,3], with ``faces``, ``node_count`` and ``gaussian_ids``, as
+    :class:`~warpavatar.extensions.garment_sheet_part.GarmentSheetPart`), each as ``(AnimatedMesh, part)``.
+
+    The mesh is named after the part (``garment`` -> ``Garment``); its display colour is the opacity-weighted mean
+    colour (SH DC term, as sRGB, made linear) of the part's Gaussians.
+    """
+    import torch
+
+    from warpavatar.geometry import SH_C0
+    from warpavatar.io.usd import AnimatedMesh
+    from warpavatar.io.usd_mesh import srgb_to_linear
+
+    g = avatar.gaussians
+    sheets = []
+    for part in avatar.parts.values():
+        if not callable(getattr(part, "posed_sheet", None)):
+            continue
+        with torch.no_grad():
+            ids = part.gaussian_ids
+            colors = (g.sh_coefficients()[ids, 0, :] * SH_C0 + 0.5).clamp(0, 1).double().cpu().numpy()
+            weights = g.opacities[ids].double().cpu().numpy()
+        color = (0.5, 0.5, 0.5)
+        if ids.numel():
+            weights = weights if weights.sum() > 0 else np.ones_like(weights)
+            linear = srgb_to_linear(colors * 255.0).astype(np.float64)
+            color = tuple(np.clip(weights @ linear / weights.sum(), 0.0, 1.0).tolist())
+        name = "".join(word.capitalize() for word in part.name.split("_")) or "Sheet"
+        sheets.append((AnimatedMesh(name, part.faces.detach().cpu().numpy(), int(part.node_count), color), part))
+    return sheets
 
 
 class RestPosePlyExporter(Exporter):

@@ -22,6 +22,11 @@ has no extent plug-in, so it is computed here). With a ``skeleton``, a ``UsdSkel
 Gaussians: ``<root>/Rig`` (SkelRoot) with ``Skeleton`` and ``Animation`` (SkelAnimation) whose skinning
 transforms are exactly the bone transforms passed to :meth:`GaussianUsdWriter.write_frame`.
 
+Triangle meshes that move with the Gaussians (a simulated garment sheet, :class:`AnimatedMesh`) are written
+beside the Gaussians prim, as its siblings (``/Avatar/Garment``): a ``UsdGeom.Mesh`` with its faces (no
+subdivision, double-sided), time-sampled ``points`` and ``extent`` at every frame the Gaussians have, and a
+constant ``primvars:displayColor``; in the same stage units and up axis as the Gaussians.
+
 Memory stays bounded for long animations: the stage is a ``.usdc`` layer on disk that is saved every few
 frames; usd-core's crate writer appends the new samples to the file and drops them from memory, so the
 resident size does not grow with the number of frames (see ``docs/export.md`` for measurements).
@@ -32,10 +37,12 @@ matrices are their transposes).
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import numbers
 import os
 import re
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom, UsdSkel, UsdVol, Vt
@@ -44,7 +51,8 @@ from warpavatar.geometry import SH_C0, quat_from_matrix
 from warpavatar.io.output_files import disk_full_error, temporary_path
 from warpavatar.io.ply import _check_array
 
-__all__ = ["GaussianUsdWriter", "read_gaussian_usd", "gaussian_extent", "local_joint_transforms", "LAYOUTS"]
+__all__ = ["GaussianUsdWriter", "AnimatedMesh", "read_gaussian_usd", "gaussian_extent", "local_joint_transforms",
+           "LAYOUTS"]
 
 LAYOUTS = ("particlefield", "points")
 """Names of the Gaussians prim layouts :class:`GaussianUsdWriter` can write."""
@@ -96,6 +104,62 @@ def gaussian_extent(positions: np.ndarray, orientations: np.ndarray, scales: np.
         half[axis] = np.sqrt(a * a * radii_squared[0] + b * b * radii_squared[1] + c * c * radii_squared[2])
     columns = positions.T
     return np.stack([(columns - half).min(axis=1), (columns + half).max(axis=1)]).astype(np.float32)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class AnimatedMesh:
+    """A triangle mesh that :class:`GaussianUsdWriter` animates beside the Gaussians (its points every frame).
+
+    Attributes:
+        name: the prim's name, a USD identifier (``"Garment"``); the prim is a sibling of the Gaussians prim.
+        faces: [F,3] int vertex ids of the triangles (counter-clockwise seen from the front: right-handed).
+        vertex_count: V, the number of points every frame.
+        display_color: [3] linear RGB in 0..1, the mesh's one ``displayColor``.
+    """
+
+    name: str
+    faces: np.ndarray
+    vertex_count: int
+    display_color: tuple[float, float, float] = (0.5, 0.5, 0.5)
+
+
+def _check_meshes(meshes, gaussians_path: Sdf.Path, with_rig: bool) -> list[tuple[AnimatedMesh, np.ndarray,
+                                                                                     np.ndarray]]:
+    """Each mesh with its faces [F,3] int32 and display colour [3] float32, checked."""
+    if isinstance(meshes, (AnimatedMesh, str)) or not isinstance(meshes, Sequence):
+        raise TypeError(f"meshes must be a sequence of AnimatedMesh, got {type(meshes).__name__}")
+    taken = {gaussians_path.name} | ({"Rig"} if with_rig and gaussians_path.GetParentPath().IsRootPrimPath() else set())
+    checked = []
+    for mesh in meshes:
+        if not isinstance(mesh, AnimatedMesh):
+            raise TypeError(f"meshes must hold AnimatedMesh, got {type(mesh).__name__}")
+        if not (isinstance(mesh.name, str) and Tf.IsValidIdentifier(mesh.name)):
+            raise ValueError(f"mesh name must be a USD identifier (letters, digits, _), got {mesh.name!r}")
+        if mesh.name in taken:
+            raise ValueError(f"mesh name {mesh.name!r} is taken by another prim beside the Gaussians")
+        taken.add(mesh.name)
+        count = mesh.vertex_count
+        if not isinstance(count, numbers.Integral) or count < 3:
+            raise ValueError(f"mesh {mesh.name!r}: vertex_count must be an int >= 3, got {count!r}")
+        faces = _to_int_faces(mesh.name, mesh.faces)
+        if faces.shape[0] == 0 or faces.min() < 0 or faces.max() >= count:
+            raise ValueError(f"mesh {mesh.name!r}: faces must be a non-empty [F,3] array of vertex ids in "
+                             f"0..{count - 1}")
+        color = _check_array(f"mesh {mesh.name!r} display_color", mesh.display_color, (3,))
+        if not ((color >= 0) & (color <= 1)).all():
+            raise ValueError(f"mesh {mesh.name!r}: display_color must be RGB in 0..1, got {color.tolist()}")
+        checked.append((mesh, faces, color))
+    return checked
+
+
+def _to_int_faces(name: str, faces) -> np.ndarray:
+    if hasattr(faces, "detach"):
+        faces = faces.detach().cpu().numpy()
+    faces = np.asarray(faces)
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu":
+        raise ValueError(f"mesh {name!r}: faces must be an int array of shape [F, 3], got {list(faces.shape)} "
+                         f"{faces.dtype}")
+    return np.ascontiguousarray(faces, dtype=np.int32)
 
 
 def _skeleton_fields(skeleton) -> tuple[list[str], np.ndarray, np.ndarray]:
@@ -226,11 +290,13 @@ class GaussianUsdWriter:
             for roots, parents before children) and ``heads`` ([J,3] rest joint positions), such as
             ``warpavatar.data.Skeleton``, or a dict with those keys. Rest joint frames are unrotated, at
             the heads.
+        meshes: triangle meshes to animate beside the Gaussians (:class:`AnimatedMesh`, each a ``UsdGeom.Mesh``
+            sibling of the Gaussians prim): :meth:`write_frame` then takes their points every frame.
         flush_every: save the file every this many frames (default: as many frames as fit in ~64 MiB).
 
     Raises:
-        ValueError: bad path extension, layout, shapes, values or prim path.
-        TypeError: non-numeric arrays or a malformed skeleton.
+        ValueError: bad path extension, layout, shapes, values, prim path or mesh.
+        TypeError: non-numeric arrays, a malformed skeleton or meshes that are not :class:`AnimatedMesh`.
         OSError: the file cannot be created or saved (:class:`~warpavatar.io.output_files.DiskFullError` for a
             full disk), here or in :meth:`write_frame` and :meth:`close`; the temporary file is then removed.
     """
@@ -238,7 +304,7 @@ class GaussianUsdWriter:
     def __init__(self, path: str | os.PathLike, *, layout: str = "particlefield", gaussian_count: int,
                  sh_degree: int, opacities, sh_coeffs, fps: float = 30.0, up_axis: str = "Z",
                  meters_per_unit: float = 1.0, prim_path: str = "/Avatar/Gaussians", skeleton=None,
-                 flush_every: int | None = None):
+                 meshes: Sequence[AnimatedMesh] = (), flush_every: int | None = None):
         path = os.fspath(path)
         extension = os.path.splitext(path)[1].lower()
         if extension not in (".usdc", ".usd"):
@@ -273,6 +339,7 @@ class GaussianUsdWriter:
                              f"[{opacities.min()}, {opacities.max()}]")
         sh_coeffs = _check_array("sh_coeffs", sh_coeffs, (count, coefficient_count, 3))
         skeleton_fields = _skeleton_fields(skeleton) if skeleton is not None else None
+        checked_meshes = _check_meshes(meshes, gaussians_path, skeleton is not None)
 
         self.path = path
         self.layout = layout
@@ -280,7 +347,8 @@ class GaussianUsdWriter:
         self.sh_degree = int(sh_degree)
         self.prim_path = prim_path
         self.temporary_path = os.fspath(temporary_path(path, suffix=".usdc"))
-        frame_bytes = max(1, count * 4 * (3 + 4 + 3 + (1 if layout == "points" else 0)))
+        frame_bytes = max(1, count * 4 * (3 + 4 + 3 + (1 if layout == "points" else 0))
+                          + sum(mesh.vertex_count * 12 for mesh, _, _ in checked_meshes))
         self.flush_every = int(flush_every) if flush_every is not None else max(1, _FLUSH_BYTES // frame_bytes)
         self.time_codes: list[int] = []
         self._closed = False
@@ -301,6 +369,7 @@ class GaussianUsdWriter:
             self._skeleton = None
             if skeleton_fields is not None:
                 self._author_skeleton(prefixes[0], *skeleton_fields)
+            self._author_meshes(gaussians_path.GetParentPath(), checked_meshes)
             self._save()
         except BaseException:
             self._discard()
@@ -384,12 +453,27 @@ class GaussianUsdWriter:
         UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets([animation.GetPath()])
         self._skeleton = (parents, heads, bind)
 
+    def _author_meshes(self, parent: Sdf.Path, meshes) -> None:
+        """One ``UsdGeom.Mesh`` under ``parent`` per checked mesh; keeps its points and extent attributes."""
+        self._mesh_attributes: dict[str, tuple[int, Usd.Attribute, Usd.Attribute]] = {}
+        for mesh, faces, color in meshes:
+            prim = UsdGeom.Mesh.Define(self._stage, parent.AppendChild(mesh.name))
+            prim.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(faces.shape[0], 3, dtype=np.int32)))
+            prim.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.reshape(-1)))
+            prim.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)  # a triangle sheet, not a subdivision cage
+            prim.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+            prim.CreateDoubleSidedAttr(True)  # a cloth sheet is seen from both sides
+            prim.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(Vt.Vec3fArray.FromNumpy(color[None]))
+            self._mesh_attributes[mesh.name] = (int(mesh.vertex_count), prim.CreatePointsAttr(),
+                                                prim.CreateExtentAttr())
+
     def _set(self, attribute: Usd.Attribute, value, time_code: int, first: bool) -> None:
         attribute.Set(value, Usd.TimeCode(time_code))
         if first:
             attribute.Set(value)  # default value = first frame
 
-    def write_frame(self, time_code: int, *, positions, orientations, scales, joint_transforms=None) -> None:
+    def write_frame(self, time_code: int, *, positions, orientations, scales, joint_transforms=None,
+                    mesh_points: Mapping[str, object] | None = None) -> None:
         """Author one frame of the animation.
 
         Args:
@@ -401,11 +485,13 @@ class GaussianUsdWriter:
             joint_transforms: [J,4,4] float rigid bone transforms (rest pose -> posed world, as the
                 ``bone_transforms`` of ``poses.npz``); required when a skeleton was given, and
                 rejected otherwise.
+            mesh_points: the points [V,3] (stage units) of every mesh given to the writer, by mesh name;
+                required when it was given meshes.
             Numpy arrays, torch tensors (any device) or nested sequences are accepted.
 
         Raises:
             ValueError: bad shapes or values, a time code that does not increase, a missing or
-                unexpected ``joint_transforms``, non-rigid bone transforms.
+                unexpected ``joint_transforms`` or mesh, non-rigid bone transforms.
             RuntimeError: the writer is closed.
         """
         if self._closed:
@@ -430,6 +516,7 @@ class GaussianUsdWriter:
             local_joints = self._local_joint_transforms(joint_transforms)
         elif joint_transforms is not None:
             raise ValueError("joint_transforms given but the writer has no skeleton")
+        meshes = self._mesh_values(mesh_points)
 
         extent = gaussian_extent(positions, orientations, scales)
         first = not self.time_codes
@@ -455,10 +542,28 @@ class GaussianUsdWriter:
                           time_code, first)
                 self._set(self._skeleton_attributes["rotations"], Vt.QuatfArray.FromNumpy(rotations),
                           time_code, first)
+            for attribute, value in meshes:
+                self._set(attribute, value, time_code, first)
         self.time_codes.append(time_code)
         self._unsaved_frames += 1
         if self._unsaved_frames >= self.flush_every:
             self._flush()
+
+    def _mesh_values(self, mesh_points) -> list[tuple[Usd.Attribute, object]]:
+        """(attribute, value) of every mesh's points and extent this frame, from ``mesh_points`` (checked)."""
+        given, expected = dict(mesh_points or {}), set(self._mesh_attributes)
+        if set(given) != expected:
+            missing, unknown = sorted(expected - set(given)), sorted(set(given) - expected)
+            wrong = f"missing {', '.join(missing)}" if missing else f"unknown {', '.join(unknown)}"
+            raise ValueError(f"mesh_points must hold the points of every mesh the writer was given "
+                             f"({', '.join(self._mesh_attributes) or 'none'}): {wrong}")
+        values = []
+        for name, (count, points_attribute, extent_attribute) in self._mesh_attributes.items():
+            points = _check_array(f"mesh_points[{name!r}]", given[name], (count, 3))
+            extent = np.stack([points.min(axis=0), points.max(axis=0)])
+            values += [(points_attribute, Vt.Vec3fArray.FromNumpy(points)),
+                       (extent_attribute, Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(extent, dtype=np.float32)))]
+        return values
 
     def _local_joint_transforms(self, joint_transforms) -> tuple[np.ndarray, np.ndarray]:
         """Bone transforms [J,4,4] -> per-joint local (translations [J,3], rotations [J,4] x,y,z,w) float32."""
@@ -518,6 +623,7 @@ class GaussianUsdWriter:
         self._closed = True
         self._attributes = {}
         self._skeleton_attributes = {}
+        self._mesh_attributes = {}
         self._stage = None
         self._layer = None  # the last reference: the layer leaves Sdf's registry and unmaps the file
 
