@@ -75,7 +75,7 @@ import torch
 from warpavatar import ops
 from warpavatar.extensions.base import Extension, LossTerm, option
 from warpavatar.extensions.garment_detection import detect_garments, related_joints
-from warpavatar.extensions.garment_sheet_part import SheetFit
+from warpavatar.extensions.garment_sheet_part import SheetFit, cell_centres, project_points
 from warpavatar.extensions.graph import voxel_downsample
 from warpavatar.geometry import match_pose
 from warpavatar.model.parts import AvatarPart
@@ -432,15 +432,6 @@ def training_flows(images, *, device="cpu") -> tuple[torch.Tensor, torch.Tensor]
     return torch.from_numpy(forward).to(device), torch.from_numpy(backward).to(device)
 
 
-def _project(points: torch.Tensor, K: torch.Tensor, world_to_camera: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pixels [M,2] (OpenCV: pixel centres at integers) and camera-space depths [M] of world points [M,3]; points
-    behind the camera get depth <= 0 and a pixel computed at depth 1 (finite, for the caller to mask)."""
-    camera = points @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
-    depth = camera[:, 2]
-    safe = torch.where(depth > 1e-6, depth, torch.ones_like(depth))
-    return (camera[:, :2] / safe[:, None]) @ K[:2, :2].T + K[:2, 2], depth
-
-
 def _sample_image(image: torch.Tensor, pixels: torch.Tensor, *, mode: str = "bilinear") -> torch.Tensor:
     """Values [M,C] of ``image`` [h,w,C] at points [M,2] given as :func:`_normalized` coordinates of the frame it
     covers (any resolution of it; outside: zeros)."""
@@ -641,7 +632,10 @@ class GarmentExtension(Extension):
     @classmethod
     def check(cls, options, config) -> None:
         for name, least in (("garment_from", 0), ("garment_retry_every", 0), ("garment_until", 0),
-                            ("garment_window", 1), ("garment_refresh_every", 1)):
+                            ("garment_window", 1), ("garment_refresh_every", 1), ("garment_sheet_rings", 2),
+                            ("garment_sheet_segments", 3), ("garment_settle_substeps", 1), ("garment_sheet_frames", 1),
+                            ("garment_sheet_track_iterations", 0), ("garment_sheet_track_every", 0),
+                            ("garment_sheet_track_frames", 0)):
             if getattr(options, name) < least:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= {least}, got {getattr(options, name)}")
         for name in ("garment_threshold", "garment_min_fraction"):
@@ -649,18 +643,9 @@ class GarmentExtension(Extension):
                 raise ValueError(f"--{name.replace('_', '-')} must be in (0, 1), got {getattr(options, name)}")
         if options.garment_surface not in ("nodes", "sheet"):
             raise ValueError(f"--garment-surface must be 'nodes' or 'sheet', got {options.garment_surface!r}")
-        for name, least in (("garment_sheet_rings", 2), ("garment_sheet_segments", 3), ("garment_settle_substeps", 1),
-                            ("garment_sheet_frames", 1), ("garment_sheet_track_iterations", 0),
-                            ("garment_sheet_track_every", 0), ("garment_sheet_track_frames", 0)):
-            if getattr(options, name) < least:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= {least}, got {getattr(options, name)}")
         for name in ("garment_sheet_substep", "lr_garment_sheet_states", "lr_garment_sheet_track"):
             if not 0.0 < getattr(options, name) < math.inf:
                 raise ValueError(f"--{name.replace('_', '-')} must be > 0, got {getattr(options, name)}")
-        for name in ("lambda_garment_sheet_dynamics", "lambda_garment_sheet_track_dynamics",
-                     "lambda_garment_sheet_track_edges"):
-            if not 0.0 <= getattr(options, name) < math.inf:
-                raise ValueError(f"--{name.replace('_', '-')} must be a number >= 0, got {getattr(options, name)}")
         if options.garment_sheet_track_region not in ("body", "share"):
             raise ValueError("--garment-sheet-track-region must be 'body' or 'share', got "
                              f"{options.garment_sheet_track_region!r}")
@@ -675,7 +660,8 @@ class GarmentExtension(Extension):
                 raise ValueError(f"--{name.replace('_', '-')} must be > 0, got {getattr(options, name)}")
         for name in ("garment_rest_bound", "lambda_garment_rest_smooth", "lambda_garment_rest_collapse",
                      "lambda_garment_dynamics", "lambda_garment_stretch", "lambda_garment_silhouette",
-                     "lambda_garment_flow"):
+                     "lambda_garment_flow", "lambda_garment_sheet_dynamics", "lambda_garment_sheet_track_dynamics",
+                     "lambda_garment_sheet_track_edges"):
             if not 0.0 <= getattr(options, name) < math.inf:
                 raise ValueError(f"--{name.replace('_', '-')} must be a number >= 0, got {getattr(options, name)}")
 
@@ -1070,7 +1056,7 @@ class GarmentExtension(Extension):
         """Pixels [M,2] and camera-space depths [M] of the step frame's fitted nodes (differentiable), by that
         frame's camera, gathered by its device index."""
         frame = step.frame.reshape(1)
-        return _project(self.fitted, self.intrinsics.index_select(0, frame)[0],
+        return project_points(self.fitted, self.intrinsics.index_select(0, frame)[0],
                         self.world_to_cameras.index_select(0, frame)[0])
 
     def _silhouette(self, step, pixels: torch.Tensor, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -1093,9 +1079,7 @@ class GarmentExtension(Extension):
         pooled = torch.nn.functional.avg_pool2d(torch.stack([mask, step.alpha.detach()])[None], cell,
                                                 ceil_mode=True)[0]
         rows, columns = pooled.shape[1:]
-        y, x = torch.meshgrid(torch.arange(rows, device=mask.device), torch.arange(columns, device=mask.device),
-                              indexing="ij")
-        centres = (torch.stack([x, y], dim=-1).reshape(-1, 2).float() + 0.5) * cell - 0.5  # [P,2] (OpenCV pixels)
+        centres = cell_centres(rows, columns, cell, device=mask.device)  # [P,2] (OpenCV pixels)
         inside = pooled[0].reshape(-1) > 0.5
         uncovered = inside & (pooled[1].reshape(-1) < 0.5)
         front = (depth > 1e-6) & (part.free_mask[:, 0] > 0)
@@ -1147,7 +1131,7 @@ class GarmentExtension(Extension):
                 target = pixels + _sample_image(flows.index_select(0, frame)[0], grid).float()
             bones = self.bones.index_select(0, neighbour)
             positions = part.state_positions(bones, part.frame_states.index_select(0, neighbour))[0]
-            drawn, _ = _project(positions, self.intrinsics.index_select(0, neighbour)[0],
+            drawn, _ = project_points(positions, self.intrinsics.index_select(0, neighbour)[0],
                                self.world_to_cameras.index_select(0, neighbour)[0])
             miss = ((drawn - target) ** 2).sum(dim=1) * visible.float()
             total = total + valid * miss.sum()

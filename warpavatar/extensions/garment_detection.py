@@ -325,16 +325,6 @@ def _child_towards(parents, joint: int, descendant: int) -> int:
     return chain[chain.index(joint) - 1] if joint in chain and descendant != joint else descendant
 
 
-def _branch_joints(parents, joint: int, split_joints: tuple[int, int]) -> torch.Tensor:
-    """The joints a garment hanging from ``joint`` between ``split_joints`` may be skinned to: ``joint`` itself and
-    the branches below it (the subtrees of its children) that hold a split joint. Ids, int64."""
-    allowed = {joint}
-    for split in split_joints:
-        if joint in _ancestors(parents)[split]:
-            allowed.update(_subtree(parents, _child_towards(parents, joint, split)))
-    return torch.tensor(sorted(allowed), dtype=torch.long)
-
-
 def _flood(region: torch.Tensor, allowed: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
     """``region`` grown through the ``allowed`` points it reaches on the k-NN graph (bool ``[N]``)."""
     while True:

@@ -61,8 +61,8 @@ from warpavatar.sim.capsules import select
 from warpavatar.sim.garment_sheet import build_garment_sheet
 
 __all__ = ["GarmentSheetPart", "SheetFit", "SheetTracker", "TrackingTargets", "tracking_targets", "tracking_cell",
-           "covered_cells", "project_frames", "sheet_residual", "SETTLE_VELOCITY_KEEP", "TRACK_CELLS", "TRACK_REACH",
-           "MIN_AREA_RATIO"]
+           "covered_cells", "cell_centres", "project_frames", "project_points", "sheet_residual",
+           "SETTLE_VELOCITY_KEEP", "TRACK_CELLS", "TRACK_REACH", "MIN_AREA_RATIO"]
 
 SETTLE_VELOCITY_KEEP = 0.7
 """While settling, the velocities are scaled by this after every frame (strong damping: the sheet comes to rest)."""
@@ -305,9 +305,11 @@ class GarmentSheetPart(AvatarPart):
     def posed_sheet(self, posed) -> tuple[torch.Tensor, torch.Tensor]:
         """The sheet :meth:`deform_posed` placed ``posed``'s garment Gaussians on (read-only; for exports):
         vertices [V,3] [world units] and faces int64 [F,3], on the avatar's device."""
-        frame = posed["frame"]
-        explicit = frame.input(self.name)
-        vertices = explicit if explicit is not None else self._lookup(frame, posed["bone_transforms"])
+        vertices = posed.get("sheet_vertices", {}).get(self.name)
+        if vertices is None:  # (a part without Gaussians places none and keeps no sheet in ``posed``)
+            frame = posed["frame"]
+            explicit = frame.input(self.name)
+            vertices = explicit if explicit is not None else self._lookup(frame, posed["bone_transforms"])
         return vertices.detach().float(), self.faces
 
     # ------------------------------------------------------------------------------------------ posing
@@ -331,6 +333,7 @@ class GarmentSheetPart(AvatarPart):
         means, quats, log_scales = ops.pose_triangle_gaussians(vertices.float().contiguous(), self.faces,
                                                                self.rest_area, self.triangle_ids, *local)
         posed = type(posed)(posed)
+        posed["sheet_vertices"] = {**posed.get("sheet_vertices", {}), self.name: vertices.detach()}
         posed["means"] = posed["means"].index_copy(0, ids, means.to(posed["means"].dtype))
         posed["quats"] = posed["quats"].index_copy(0, ids, quats.to(posed["quats"].dtype))
         posed["scales"] = posed["scales"].index_copy(0, ids, log_scales.exp().to(posed["scales"].dtype))
@@ -401,11 +404,16 @@ class TrackingTargets:
     height: int
 
     def centres(self) -> torch.Tensor:
-        """Pixel coordinates [rows*cols, 2] (OpenCV: pixel centres at integers) of the cells' centres, row-major."""
+        """Pixel coordinates [rows*cols, 2] of the cells' centres (:func:`cell_centres`)."""
         rows, columns = self.region.shape[1:]
-        y, x = torch.meshgrid(torch.arange(rows, device=self.region.device),
-                              torch.arange(columns, device=self.region.device), indexing="ij")
-        return (torch.stack([x, y], dim=-1).reshape(-1, 2).float() + 0.5) * self.cell - 0.5
+        return cell_centres(rows, columns, self.cell, device=self.region.device)
+
+
+def cell_centres(rows: int, columns: int, cell: int, *, device=None) -> torch.Tensor:
+    """Pixel coordinates [rows*cols, 2] (OpenCV: pixel centres at integers), row-major, of the centres of a grid of
+    ``cell``-pixel cells laid from the image's corner."""
+    y, x = torch.meshgrid(torch.arange(rows, device=device), torch.arange(columns, device=device), indexing="ij")
+    return (torch.stack([x, y], dim=-1).reshape(-1, 2).float() + 0.5) * cell - 0.5
 
 
 def tracking_cell(width: int, height: int, *, cells: int = TRACK_CELLS) -> int:
@@ -981,7 +989,7 @@ class SheetFit:
             terms["garment_sheet_dynamics"] = LossTerm(options.lambda_garment_sheet_dynamics, self.residual)
         if step.mask is not None and options.lambda_garment_silhouette > 0:
             frame = step.index
-            pixels, depth = _project(self.fitted, self.intrinsics[frame], self.world_to_cameras[frame])
+            pixels, depth = project_points(self.fitted, self.intrinsics[frame], self.world_to_cameras[frame])
             outside, uncovered = extension._silhouette(step, pixels, depth)
             terms.update(garment_outside=LossTerm(options.lambda_garment_silhouette, outside),
                          garment_uncovered=LossTerm(options.lambda_garment_silhouette, uncovered))
@@ -1081,10 +1089,9 @@ class SheetFit:
         return sheet
 
 
-def _project(points: torch.Tensor, K: torch.Tensor, world_to_camera: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pixels [M,2] (OpenCV: pixel centres at integers) and camera-space depths [M] of world points [M,3]; points
-    behind the camera get depth <= 0 and a pixel computed at depth 1 (finite, for the caller to mask)."""
-    camera = points @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
-    depth = camera[:, 2]
-    safe = torch.where(depth > 1e-6, depth, torch.ones_like(depth))
-    return (camera[:, :2] / safe[:, None]) @ K[:2, :2].T + K[:2, 2], depth
+def project_points(points: torch.Tensor, K: torch.Tensor, world_to_camera: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`project_frames` for one frame: pixels [M,2] and camera depths [M] of world points [M,3] seen by a
+    camera ``K`` [3,3], ``world_to_camera`` [4,4]."""
+    pixels, depth = project_frames(points[None], K[None], world_to_camera[None])
+    return pixels[0], depth[0]

@@ -388,9 +388,9 @@ def _sheet_meshes(avatar) -> list:
     """
     import torch
 
-    from warpavatar.geometry import SH_C0
     from warpavatar.io.usd import AnimatedMesh
     from warpavatar.io.usd_mesh import srgb_to_linear
+    from warpavatar.model.gaussians import sh_dc_to_rgb
 
     g = avatar.gaussians
     sheets = []
@@ -399,7 +399,7 @@ def _sheet_meshes(avatar) -> list:
             continue
         with torch.no_grad():
             ids = part.gaussian_ids
-            colors = (g.sh_coefficients()[ids, 0, :] * SH_C0 + 0.5).clamp(0, 1).double().cpu().numpy()
+            colors = sh_dc_to_rgb(g.sh_coefficients()[ids, 0, :]).clamp(0, 1).double().cpu().numpy()
             weights = g.opacities[ids].double().cpu().numpy()
         color = (0.5, 0.5, 0.5)
         if ids.numel():

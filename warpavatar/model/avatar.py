@@ -59,7 +59,8 @@ class PosedGaussians(dict):
     parts reshaped them, before any displacement; ``canonical_offsets`` [N,3] or None: the displacement the parts
     added to those centres before skinning (secondary motion); ``bone_transforms`` [J+E,4,4]: the skinning
     transforms used (the skeleton's, then those the parts appended, :meth:`Avatar.pose_bones`); ``frame``: the
-    :class:`~warpavatar.model.parts.PoseFrame` they were posed for.
+    :class:`~warpavatar.model.parts.PoseFrame` they were posed for; ``sheet_vertices`` (only where a part places
+    Gaussians on a triangle sheet): the frame's sheet vertices [V,3] by part name, detached.
     """
 
 
