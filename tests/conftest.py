@@ -26,6 +26,38 @@ def _deterministic_seed():
     yield
 
 
+TORCH_DEFAULT_THREADS = torch.get_num_threads()
+"""Torch's own thread count in this process (one per core), before the tests' one-thread rule."""
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _one_torch_thread():
+    """Torch on one thread for the whole session (module fixtures included), as ``warpavatar-fit`` runs on a CPU
+    (``warpavatar.cli.common.cpu_torch_settings``), unless ``OMP_NUM_THREADS`` says otherwise. With ``-n auto``
+    every core runs a worker, and torch's default thread pool, waiting for a core the other worker holds, made the
+    in-process fits many times slower (tests/test_fit.py: 1229 s beside one busy core; 58 s on one thread, with
+    its smaller fits)."""
+    if "OMP_NUM_THREADS" in os.environ:
+        yield
+        return
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(TORCH_DEFAULT_THREADS)
+
+
+@pytest.fixture(autouse=True)
+def _default_torch_threads_where_they_are_tested(request):
+    """Torch's default thread count for the tests marked ``torch_threads`` (one thread elsewhere)."""
+    if request.node.get_closest_marker("torch_threads") is None or "OMP_NUM_THREADS" in os.environ:
+        yield
+        return
+    torch.set_num_threads(TORCH_DEFAULT_THREADS)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(1)
+
+
 def small_avatar(skeleton, *, seed: int, per_bone: int, cells: int, distill_steps: int, random_frames: bool = False):
     """An avatar with Gaussians scattered around a skeleton's bone midpoints and a briefly distilled field.
 

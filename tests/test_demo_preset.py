@@ -2,11 +2,14 @@
 
 import json
 
+import pytest
 import torch
 
 from warpavatar.cli.common import cpu_torch_settings
 from warpavatar.fit import Trainer, preset, preset_values
 from warpavatar.fit.presets import CORE_PRESETS, PRESET_BASES
+
+pytestmark = pytest.mark.torch_threads  # (these check the commands' own thread settings: torch's defaults here)
 
 
 def test_demo_preset_is_quick_with_its_own_changes():

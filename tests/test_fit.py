@@ -17,10 +17,10 @@ from warpavatar.fit import Trainer, load_training_video
 
 def _tiny_config(**overrides):
     values = dict(iterations=160, image_scale=0.5, max_train_frames=12, init_points_per_bone=30,
-                  init_carve_candidates=20000, init_carve_points=1500, sh_degree=1, sh_increase_every=100,
+                  init_carve_candidates=20000, init_carve_points=800, sh_degree=1, sh_increase_every=100,
                   grid_cells=16, grid_min_cells=6, field_hidden=32, field_layers=2, field_warmup_steps=40,
                   gaussian_only_steps=80, densify_from=40, densify_until=120, densify_every=40,
-                  max_gaussians=6000, checkpoint_every=1000, log_every=20, preview_frames=1,
+                  max_gaussians=3000, checkpoint_every=1000, log_every=20, preview_frames=1,
                   pose_correction=True, pose_correction_hidden=16, secondary_motion=True,
                   secondary_from=100)
     values.update(overrides)

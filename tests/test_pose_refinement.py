@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from research.perturb_poses import perturb_folder
 from warpavatar import data
+from warpavatar.data.writer import write_video_folder
 from warpavatar.extensions.pose_refinement import PoseRefinement
 from warpavatar.geometry import skeleton_levels
 from warpavatar.model.kinematics import ancestor_jumps, axis_angle_to_matrix, corrected_transforms, rigid_poses
@@ -273,10 +274,10 @@ def test_meta_json_poses_value_is_checked(tmp_path):
 
 def _fit_config(**overrides):
     values = dict(iterations=600, image_scale=0.5, max_train_frames=25, init_points_per_bone=30,
-                  init_carve_candidates=20000, init_carve_points=1500, sh_degree=1, sh_increase_every=100,
+                  init_carve_candidates=20000, init_carve_points=800, sh_degree=1, sh_increase_every=100,
                   grid_cells=16, grid_min_cells=6, field_hidden=32, field_layers=2, field_warmup_steps=40,
                   gaussian_only_steps=80, densify_from=40, densify_until=400, densify_every=50,
-                  max_gaussians=6000, checkpoint_every=10000, log_every=100, preview_frames=1,
+                  max_gaussians=3000, checkpoint_every=10000, log_every=100, preview_frames=1,
                   refine_poses_from=200)
     values.update(overrides)
     return preset("quick", **values)
@@ -549,10 +550,20 @@ def test_vector_adam_takes_a_learning_rate_tensor_and_an_older_state():
     assert isinstance(again.state[halfway]["step"], torch.Tensor) and float(again.state[halfway]["step"]) == 6
 
 
+def _short_subject(folder, *, frame_count: int):
+    """The demo subject with the first ``frame_count`` frames of each of its folders (train/, novel_view/cam_090,
+    novel_pose/dance_cam000), written to ``folder``: the same subject, shorter to evaluate."""
+    source = data.demo_subject_path()
+    for name in ("train", "novel_view/cam_090", "novel_pose/dance_cam000"):
+        write_video_folder(data.load_video_folder(source / name, max_frames=frame_count), folder / name)
+    return folder
+
+
 def test_fit_benchmark_reports_the_held_out_folders_after_test_time_refinement(tmp_path, capsys):
     tool = load_tool("fit_benchmark")
     out = tmp_path / "fit"
-    assert tool.main([str(data.demo_subject_path()), "-o", str(out), "--preset", "quick", "--device", "cpu",
+    subject = _short_subject(tmp_path / "subject", frame_count=6)
+    assert tool.main([str(subject), "-o", str(out), "--preset", "quick", "--device", "cpu",
                       "--iterations", "20", "--max-train-frames", "3", "--image-scale", "0.25",
                       "--field-warmup-steps", "5", "--gaussian-only-steps", "5", "--eval-refine-poses", "2"]) == 0
     rows = json.loads((out / "benchmark.json").read_text())["rows"]
@@ -563,6 +574,6 @@ def test_fit_benchmark_reports_the_held_out_folders_after_test_time_refinement(t
         assert row["refined_psnr_masked"] != row["psnr_masked"]  # the poses moved
     assert all(line.count("|") == 12 for line in capsys.readouterr().out.splitlines() if line.startswith("|"))
     with pytest.raises(SystemExit) as stop:
-        tool.main([str(data.demo_subject_path()), "-o", str(out), "--eval-refine-poses", "-1"])
+        tool.main([str(subject), "-o", str(out), "--eval-refine-poses", "-1"])
     assert stop.value.code == 2
     assert "--eval-refine-poses must be >= 0, got -1" in capsys.readouterr().err

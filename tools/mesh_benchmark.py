@@ -3,20 +3,24 @@ and the mesh's silhouette against the Gaussians'.
 
     python tools/mesh_benchmark.py AVATAR_DIR VIDEO_FOLDER [-o FILE.json] [--frames N] [--device cuda]
         [--triangles N] [--texture-size S] [--view-count N] [--view-size S] [--shading texture|vertex-colors]
-        [--supersample N] [--scale S] [--stand-in]
+        [--supersample N] [--scale S] [--pixel-size M] [--stand-in]
 
 AVATAR_DIR is a fit's output folder (or its avatar.pt); VIDEO_FOLDER a subject folder (train/, novel_view/*,
 novel_pose/*: every folder is measured) or one video folder with masks. The mesh is built as ``warpavatar-export``
 builds it (:func:`warpavatar.mesh.build.build_avatar_mesh`), posed per frame as an engine plays it (the rig's
 skinning transforms plus per-frame offsets, :func:`warpavatar.mesh.skin.mesh_animation` and
 :func:`~warpavatar.mesh.skin.lbs_vertices`) and ray cast with its texture (:func:`warpavatar.ops.render_mesh`);
-the Gaussians are rendered as ``warpavatar-eval`` renders them. Frames are read at the fit's image scale
+the Gaussians are rendered as ``warpavatar-eval`` renders them. The fit's recorded training pixel width
+(:func:`warpavatar.mesh.build.recorded_pixel_size`) blurs the mesh's renders as the export's, unless
+``--pixel-size`` overrides it (0: no blur). Frames are read at the fit's image scale
 (``--scale`` overrides it), ``--frames`` evenly spaced frames a folder. Per folder it prints one row:
 
 * ``mesh PSNR`` / ``mesh SSIM`` and ``GS PSNR`` / ``GS SSIM``: masked PSNR [dB] and SSIM of the mesh's and the
   Gaussians' renders against the ground truth (inside its mask, :func:`warpavatar.metrics.image_scores`);
 * ``IoU`` (mean over frames) and ``IoU min``: the mesh's silhouette (its 0/1 alpha; with ``--supersample``, its
   covered fraction >= 0.5) against the Gaussians' (alpha >= 0.5), intersection over union;
+* ``IoU mask`` and ``GS IoU mask``: the mesh's and the Gaussians' silhouettes against the ground-truth mask
+  (>= 0.5), what the masked PSNR's edges depend on;
 * ``mesh ms`` and ``GS ms``: render time per frame (the mesh's includes building its BVH).
 
 ``--stand-in`` measures a stand-in mesh instead of the export's (the convex hull of the canonical Gaussians'
@@ -170,7 +174,9 @@ def measure_folder(avatar, mesh, video, *, frames: int, shading: str = "texture"
                         "mesh_psnr_masked": mesh_scores["psnr_masked"], "mesh_ssim_masked": mesh_scores["ssim_masked"],
                         "gaussians_psnr_masked": gaussian_scores["psnr_masked"],
                         "gaussians_ssim_masked": gaussian_scores["ssim_masked"],
-                        "iou": silhouette_iou(mesh_alpha, gaussian_alpha)})
+                        "iou": silhouette_iou(mesh_alpha, gaussian_alpha),
+                        "iou_mask": silhouette_iou(mesh_alpha, mask),
+                        "gaussians_iou_mask": silhouette_iou(gaussian_alpha, mask)})
     count = max(1, len(records))
     means = {key: float(np.mean([record[key] for record in records])) for key in records[0] if key != "frame_id"}
     return {"folder": str(video.root), "resolution": f"{video.width}x{video.height}", "frame_count": len(records),
@@ -220,18 +226,23 @@ def _build_parser() -> argparse.ArgumentParser:
                              "down (antialiased edges and texture; default %(default)s: one ray a pixel)")
     parser.add_argument("--scale", type=float, default=None,
                         help="image scale of the frames (default: the fit's image_scale from its config.json)")
+    parser.add_argument("--pixel-size", type=float, default=None,
+                        help="training pixel width at the subject [m] the mesh's renders are blurred by (default: what "
+                             "the fit recorded, none where it recorded none; 0: no blur)")
     parser.add_argument("--stand-in", action="store_true",
                         help="measure a stand-in mesh (the convex hull of the Gaussians) instead of the export's")
     return parser
 
 
 def _table(rows: dict[str, dict]) -> str:
-    header = ["folder", "frames", "mesh PSNR", "mesh SSIM", "GS PSNR", "GS SSIM", "IoU", "IoU min", "mesh ms", "GS ms"]
+    header = ["folder", "frames", "mesh PSNR", "mesh SSIM", "GS PSNR", "GS SSIM", "IoU", "IoU min", "IoU mask",
+              "GS IoU mask", "mesh ms", "GS ms"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for label, row in rows.items():
         cells = [label, str(row["frame_count"]), f"{row['mesh_psnr_masked']:.2f}", f"{row['mesh_ssim_masked']:.4f}",
                  f"{row['gaussians_psnr_masked']:.2f}", f"{row['gaussians_ssim_masked']:.4f}", f"{row['iou']:.4f}",
-                 f"{row['iou_min']:.4f}", f"{row['mesh_render_ms']:.1f}", f"{row['gaussians_render_ms']:.1f}"]
+                 f"{row['iou_min']:.4f}", f"{row['iou_mask']:.4f}", f"{row['gaussians_iou_mask']:.4f}",
+                 f"{row['mesh_render_ms']:.1f}", f"{row['gaussians_render_ms']:.1f}"]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -248,6 +259,9 @@ def _run(args) -> int:
         raise ValueError(f"{args.video_folder}: is not a folder")
     device = resolve_device(args.device)
     scale = args.scale if args.scale is not None else fit_image_scale(args.avatar)
+    from warpavatar.mesh.build import recorded_pixel_size
+
+    pixel_size = args.pixel_size if args.pixel_size is not None else recorded_pixel_size(args.avatar)
     with cpu_torch_settings(device):
         avatar = Avatar.load(args.avatar, device=device)
         start = time.perf_counter()
@@ -258,8 +272,8 @@ def _run(args) -> int:
             from warpavatar.mesh.build import build_avatar_mesh
 
             mesh = build_avatar_mesh(avatar, triangles=args.triangles, texture_size=args.texture_size,
-                                     view_count=args.view_count, view_size=args.view_size, progress=False,
-                                     timings=timings)
+                                     view_count=args.view_count, view_size=args.view_size,
+                                     training_pixel_size=pixel_size or None, progress=False, timings=timings)
         build_seconds = time.perf_counter() - start
         shading = "texture" if args.shading == "texture" else "vertex_colors"
         rows = {label: measure_folder(avatar, mesh, video, frames=args.frames, shading=shading,
@@ -270,7 +284,7 @@ def _run(args) -> int:
                "scale": scale, "frames_per_folder": args.frames, "stand_in": bool(args.stand_in),
                "settings": {"triangles": args.triangles, "texture_size": args.texture_size,
                             "view_count": args.view_count, "view_size": args.view_size, "shading": args.shading,
-                            "supersample": args.supersample},
+                            "supersample": args.supersample, "pixel_size": pixel_size},
                "mesh": {"vertices": mesh.vertex_count, "faces": mesh.face_count,
                         "texture_size": None if mesh.texture is None else list(mesh.texture.shape[:2]),
                         "shading": "texture" if textured else "vertex_colors", "build_seconds": build_seconds,
@@ -278,7 +292,8 @@ def _run(args) -> int:
                "iou_target": IOU_TARGET, "rows": rows}
     print(f"mesh: {mesh.vertex_count} vertices, {mesh.face_count} triangles, "
           f"{'textured' if textured else 'vertex colours'}, built in {build_seconds:.1f} s"
-          f"{' (stand-in)' if args.stand_in else ''}; frames at scale {scale:g} on {device}")
+          f"{' (stand-in)' if args.stand_in else ''}; frames at scale {scale:g} on {device}; renders blurred for a "
+          f"training pixel of {'none' if not pixel_size else f'{1000 * pixel_size:.1f} mm'}")
     print(_table(rows))
     train = rows.get("train")
     if train is not None:
@@ -299,6 +314,9 @@ def main(argv=None) -> int:
         if value < low:
             print(f"error: {flag} must be at least {low}, got {value}", file=sys.stderr)
             return 2
+    if args.pixel_size is not None and not (math.isfinite(args.pixel_size) and args.pixel_size >= 0):
+        print(f"error: --pixel-size must be a number of metres >= 0, got {args.pixel_size}", file=sys.stderr)
+        return 2
     if args.scale is not None and not (math.isfinite(args.scale) and args.scale > 0):
         print(f"error: --scale must be a positive number, got {args.scale}", file=sys.stderr)
         return 2

@@ -4,6 +4,7 @@ extension's own files and preview images; each file through a temporary name of 
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -13,12 +14,16 @@ from warpavatar.data import write_poses
 from warpavatar.io.images import write_image
 from warpavatar.io.ply import write_gaussian_ply
 
-__all__ = ["TRAINING_MOTION_NAME", "FLOATER_MARGIN", "FLOATER_LINK", "FLOATER_NEIGHBOURS", "FLOATER_OPACITY",
-           "write_fitted_avatar", "canonical_floaters", "write_canonical_ply", "write_training_motion",
-           "write_previews"]
+__all__ = ["TRAINING_MOTION_NAME", "PIXEL_SIZE_KEY", "FLOATER_MARGIN", "FLOATER_LINK", "FLOATER_NEIGHBOURS",
+           "FLOATER_OPACITY", "write_fitted_avatar", "canonical_floaters", "write_canonical_ply", "training_pixel_size",
+           "write_training_motion", "write_previews"]
 
 TRAINING_MOTION_NAME = "training_poses.npz"
 """The file in a fit's output folder that holds the poses it was fitted on (``warpavatar-view`` plays it)."""
+
+PIXEL_SIZE_KEY = "pixel_size"
+"""The array of :data:`TRAINING_MOTION_NAME` that holds the training frames' pixel width at the subject [m]
+(:func:`training_pixel_size`; the mesh export blurs its renders by it, :func:`warpavatar.mesh.views.training_blur`)."""
 
 
 def write_fitted_avatar(avatar, frames, extensions, folder: str | Path, *, config) -> None:
@@ -37,7 +42,10 @@ def write_fitted_avatar(avatar, frames, extensions, folder: str | Path, *, confi
         extension.finish()
     avatar.save(folder / "avatar.pt", config=config.to_dict())
     write_canonical_ply(avatar.gaussians, folder / "canonical.ply", skeleton=avatar.skeleton)
-    write_training_motion(frames, folder / TRAINING_MOTION_NAME)
+    cameras = [frames.video.cameras[int(index)] for index in frames.indices]  # (the host copies)
+    write_training_motion(frames, folder / TRAINING_MOTION_NAME,
+                          pixel_size=training_pixel_size(cameras, frames.bone_transforms.detach().cpu().numpy(),
+                                                         frames.video.skeleton))
     for extension in extensions:
         extension.write_outputs(folder)
 
@@ -139,11 +147,43 @@ def write_canonical_ply(gaussians, path: str | Path, *, skeleton=None, keep_floa
     return int(means.shape[0])
 
 
-def write_training_motion(frames, path: str | Path) -> None:
-    """The training frames' poses as a ``poses.npz`` (docs/FORMAT.md, plus ``fps``); any ``--motion`` option reads
-    it, and replaying it gives each training instant what the fit learned for it."""
+def training_pixel_size(cameras, bone_transforms, skeleton) -> float:
+    """The width [m] one pixel of a fit's frames covers at the subject: over the frames, the median of the posed
+    joints' median camera depth over the focal length, ``z / sqrt(fx fy)``.
+
+    Args:
+        cameras: the frames' cameras (``K`` [3,3], ``world_to_camera`` [4,4]), one a frame.
+        bone_transforms: [T,J,4,4] the frames' rest-to-posed bone transforms.
+        skeleton: the :class:`~warpavatar.data.Skeleton` (its ``heads`` [J,3] are posed).
+
+    Raises:
+        ValueError: no frames, cameras and poses of different counts, or the subject behind every camera.
+    """
+    bones = np.asarray(bone_transforms, dtype=np.float64)
+    if bones.ndim != 4 or bones.shape[2:] != (4, 4) or bones.shape[0] == 0 or len(cameras) != bones.shape[0]:
+        raise ValueError(f"training_pixel_size: needs one camera a pose, got {len(cameras)} cameras and bone "
+                         f"transforms of shape {list(bones.shape)}")
+    heads = np.asarray(skeleton.heads, dtype=np.float64)
+    widths = []
+    for camera, pose in zip(cameras, bones):
+        posed = np.einsum("jab,jb->ja", pose[:, :3, :3], heads) + pose[:, :3, 3]
+        matrix = np.asarray(camera.world_to_camera, dtype=np.float64)
+        depth = float(np.median(posed @ matrix[2, :3] + matrix[2, 3]))
+        K = np.asarray(camera.K, dtype=np.float64)
+        if depth > 0.0:
+            widths.append(depth / math.sqrt(K[0, 0] * K[1, 1]))
+    if not widths:
+        raise ValueError("training_pixel_size: the subject is behind every camera")
+    return float(np.median(widths))
+
+
+def write_training_motion(frames, path: str | Path, *, pixel_size: float | None = None) -> None:
+    """The training frames' poses as a ``poses.npz`` (docs/FORMAT.md, plus ``fps`` and, when given, ``pixel_size``
+    [m] as :data:`PIXEL_SIZE_KEY`: the frames' pixel width at the subject, :func:`training_pixel_size`); any
+    ``--motion`` option reads it, and replaying it gives each training instant what the fit learned for it."""
+    extra = {} if pixel_size is None else {PIXEL_SIZE_KEY: np.float64(pixel_size)}
     write_poses(path, frames.bone_transforms.detach().cpu().numpy(), frames.frame_ids,
-                fps=np.float64(frames.video.fps))
+                fps=np.float64(frames.video.fps), **extra)
 
 
 @torch.no_grad()

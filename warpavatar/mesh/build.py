@@ -1,10 +1,12 @@
 """The mesh export's stages in order: a fitted avatar in, a textured, skinned :class:`AvatarMesh` out.
 
-renders of the canonical avatar (:func:`~warpavatar.mesh.views.render_canonical_views`) -> a closed surface fused
+renders of the canonical avatar (:func:`~warpavatar.mesh.views.render_canonical_views`, the Gaussians blurred as
+at the fit's resolution where the fit recorded it: :func:`recorded_pixel_size`) -> a closed surface fused
 from them (:func:`~warpavatar.mesh.surface.extract_surface`) -> UVs (:func:`~warpavatar.mesh.texture.unwrap`) ->
 normals -> texture atlas and vertex colours baked from the renders (:mod:`warpavatar.mesh.texture`) -> skin weights
-(:func:`~warpavatar.mesh.skin.skin_mesh`). A static format skips what it cannot hold (``texture``,
-``vertex_colors``, ``skin`` off). The motion is applied afterwards, by :func:`~warpavatar.mesh.skin.mesh_animation`.
+(:func:`~warpavatar.mesh.skin.skin_mesh`, blended from the Gaussians around each vertex). A static format skips
+what it cannot hold (``texture``, ``vertex_colors``, ``skin`` off). The motion is applied afterwards, by
+:func:`~warpavatar.mesh.skin.mesh_animation`.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import torch
 from warpavatar.mesh.mesh_data import AvatarMesh
 
 __all__ = ["DEFAULT_TRIANGLES", "DEFAULT_TEXTURE_SIZE", "DEFAULT_VIEW_COUNT", "DEFAULT_VIEW_SIZE",
-           "build_avatar_mesh"]
+           "recorded_pixel_size", "build_avatar_mesh"]
 
 DEFAULT_TRIANGLES = 50_000
 """Triangles of the exported mesh, after decimation."""
@@ -30,6 +32,27 @@ DEFAULT_VIEW_COUNT = 48
 
 DEFAULT_VIEW_SIZE = 256
 """Width and height of each render [px]."""
+
+
+def recorded_pixel_size(avatar_path) -> float | None:
+    """The training frames' pixel width at the subject [m] that the fit at ``avatar_path`` (its output folder or
+    its ``avatar.pt``) recorded in its ``training_poses.npz`` (:func:`warpavatar.fit.outputs.training_pixel_size`),
+    or None where it has none (no such file, or a fit that predates the record)."""
+    from pathlib import Path
+
+    from warpavatar.fit.outputs import PIXEL_SIZE_KEY, TRAINING_MOTION_NAME
+
+    path = Path(avatar_path)
+    path = (path if path.is_dir() else path.parent) / TRAINING_MOTION_NAME
+    if not path.is_file():
+        return None
+    with np.load(path) as arrays:
+        if PIXEL_SIZE_KEY not in arrays.files:
+            return None
+        value = float(np.asarray(arrays[PIXEL_SIZE_KEY]).reshape(-1)[0])
+    if not (np.isfinite(value) and value > 0.0):
+        raise ValueError(f"{path}: {PIXEL_SIZE_KEY} must be a positive number of metres, got {value}")
+    return value
 
 
 def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -46,7 +69,8 @@ def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def build_avatar_mesh(avatar, *, triangles: int = DEFAULT_TRIANGLES, texture_size: int = DEFAULT_TEXTURE_SIZE,
-                      view_count: int = DEFAULT_VIEW_COUNT, view_size: int = DEFAULT_VIEW_SIZE, device=None,
+                      view_count: int = DEFAULT_VIEW_COUNT, view_size: int = DEFAULT_VIEW_SIZE,
+                      training_pixel_size: float | None = None, device=None,
                       texture: bool = True, vertex_colors: bool = True, skin: bool = True, progress: bool = False,
                       timings: dict[str, float] | None = None) -> AvatarMesh:
     """The avatar's surface in its canonical pose, as a mesh an engine can texture and skin.
@@ -57,6 +81,10 @@ def build_avatar_mesh(avatar, *, triangles: int = DEFAULT_TRIANGLES, texture_siz
         texture_size: width and height of the texture atlas [px].
         view_count: renders of the canonical avatar the surface and colours come from.
         view_size: width and height of each render [px].
+        training_pixel_size: the width [m] a pixel of the fit's training frames covers at the subject
+            (:func:`recorded_pixel_size`): the renders then blur the Gaussians as the fit's renders did
+            (:func:`~warpavatar.mesh.views.training_blur`), so the surface has the silhouette the fit matched to its
+            masks; None: no blur (the Gaussians' own silhouette, thinner than the fit's at its resolution).
         device: where to render (default: the avatar's device).
         texture: unwrap UVs and bake the texture atlas (``uvs``, ``texture``); off: the surface's vertices
             unsplit, ``uvs`` and ``texture`` None.
@@ -95,7 +123,8 @@ def build_avatar_mesh(avatar, *, triangles: int = DEFAULT_TRIANGLES, texture_siz
     device = avatar.gaussians.means.device if device is None else torch.device(device)
     try:
         begin("views")
-        views = render_canonical_views(avatar, count=view_count, size=view_size, device=device)
+        views = render_canonical_views(avatar, count=view_count, size=view_size,
+                                       training_pixel_size=training_pixel_size, device=device)
         end("views")
 
         begin("surface")
@@ -138,7 +167,7 @@ def build_avatar_mesh(avatar, *, triangles: int = DEFAULT_TRIANGLES, texture_siz
                           vertex_colors=colours, up=np.asarray(avatar.skeleton.up, dtype=np.float32))
         if skin:
             begin("skin")
-            mesh = skinning.skin_mesh(avatar, mesh)
+            mesh = skinning.skin_mesh(avatar, mesh, weights_from="gaussians")
             end("skin")
         return mesh
     finally:

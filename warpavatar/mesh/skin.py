@@ -4,8 +4,13 @@ offsets of the rest vertices where the avatar's parts move it beyond skinning.
 Weights: each vertex reads the voxel skinning field
 (:meth:`~warpavatar.model.skinning_field.VoxelSkinningField.weights`, trilinear interpolation of the weight grid
 by :func:`warpavatar.ops.sample_grid`) at its canonical position and keeps its :data:`INFLUENCES` largest weights,
-renormalised. The joints are the rig's (:meth:`Avatar.rig`: the skeleton's, then the joints its parts grow), in
-the order of :meth:`Avatar.pose_bones`' transforms.
+renormalised. With ``weights_from="gaussians"`` (what the export uses) a vertex instead blends the field's weights
+at the centres of its :data:`WEIGHT_NEIGHBOURS` nearest Gaussians, each by its density there (opacity times the
+Gaussian's falloff at the vertex): the field is fitted only where Gaussians are, and a fused surface lies outside
+their centres (on the demo avatar, field weights read at the surface moved vertices a median 2 cm away from the
+Gaussians around them), so the mesh then moves as the Gaussians it was made from. The joints are the rig's
+(:meth:`Avatar.rig`: the skeleton's, then the joints its parts grow), in the order of :meth:`Avatar.pose_bones`'
+transforms.
 
 Offsets: parts such as secondary motion, dynamics, a simulated garment or the pose correction move Gaussians
 away from where linear blend skinning (LBS) of their canonical centres puts them. Per frame, each Gaussian's
@@ -29,8 +34,8 @@ from warpavatar import ops
 from warpavatar.mesh.mesh_data import AvatarMesh, MeshAnimation
 from warpavatar.model.parts import AvatarPart
 
-__all__ = ["INFLUENCES", "OFFSET_TOLERANCE", "OFFSET_NEIGHBOURS", "top_influences", "skin_mesh", "mesh_animation",
-           "lbs_vertices", "deforming_parts"]
+__all__ = ["INFLUENCES", "OFFSET_TOLERANCE", "OFFSET_NEIGHBOURS", "WEIGHT_NEIGHBOURS", "top_influences", "skin_mesh",
+           "gaussian_blended_weights", "mesh_animation", "lbs_vertices", "deforming_parts"]
 
 INFLUENCES = 4
 """Joints per vertex (glTF's one JOINTS_0 / WEIGHTS_0 pair, most engines' default)."""
@@ -41,6 +46,9 @@ carried to a vertex), over every vertex and frame, is below this: skinning alone
 
 OFFSET_NEIGHBOURS = 8
 """Nearest Gaussians (canonical pose) whose residuals a vertex's offset is blended from."""
+
+WEIGHT_NEIGHBOURS = 16
+"""Nearest Gaussians (canonical pose) whose skin weights a vertex blends with ``weights_from="gaussians"``."""
 
 _OPACITY_FLOOR = 0.05  # Gaussians fainter than this (floaters, half-pruned ones) carry no residual to the mesh
 _SINGULAR_FLOOR = 0.2  # singular values of a blended skinning 3x3 below this are damped when inverted
@@ -78,24 +86,67 @@ def top_influences(weights: torch.Tensor | np.ndarray, *, count: int = INFLUENCE
     return index, values
 
 
-def skin_mesh(avatar, mesh: AvatarMesh) -> AvatarMesh:
+def gaussian_blended_weights(avatar, points: torch.Tensor, grid: torch.Tensor | None = None) -> torch.Tensor:
+    """[P,J+E] skin weights of canonical ``points`` [P,3] [m]: the field's weights at the centres of each point's
+    :data:`WEIGHT_NEIGHBOURS` nearest Gaussians (those at least ``_OPACITY_FLOOR`` opaque), blended by each one's
+    density at the point, ``opacity * exp(-d^2 / 2)`` with ``d`` the point's Mahalanobis distance from it in units
+    of its scales; a point that no neighbour reaches (every density below 1e-6) blends them by inverse squared
+    distance instead. Rows sum to 1."""
+    from warpavatar.geometry import quat_to_matrix
+
+    gaussians = avatar.gaussians
+    grid = avatar.field.grid_weights() if grid is None else grid
+    opacities = gaussians.opacities.detach().reshape(-1)
+    solid = opacities >= _OPACITY_FLOOR
+    if not bool(solid.any()):
+        solid = torch.ones_like(solid)
+    means = gaussians.means.detach()[solid].contiguous()
+    inverse_scales = 1.0 / gaussians.scales.detach()[solid].clamp_min(1e-8)
+    rotations = quat_to_matrix(gaussians.normalized_quats.detach()[solid])  # [N,3,3], local -> canonical
+    weights = avatar.field.weights(means, grid)  # [N,J+E]
+    opacity = opacities[solid]
+    count = min(WEIGHT_NEIGHBOURS, means.shape[0])
+    blended = []
+    for start in range(0, points.shape[0], _CHUNK):
+        chunk = points[start:start + _CHUNK]
+        distance, index = torch.topk(torch.cdist(chunk, means), count, dim=1, largest=False)
+        offset = chunk[:, None, :] - means[index]  # [C,k,3]
+        local = torch.einsum("ckji,ckj->cki", rotations[index], offset) * inverse_scales[index]
+        density = opacity[index] * torch.exp(-0.5 * local.square().sum(-1))
+        reached = density.max(1, keepdim=True).values > 1e-6
+        share = torch.where(reached, density, 1.0 / (distance.square() + 1e-12))
+        share = share / share.sum(1, keepdim=True)
+        blended.append((share[:, :, None] * weights[index]).sum(1))
+    return torch.cat(blended) if blended else weights.new_zeros((0, weights.shape[1]))
+
+
+def skin_mesh(avatar, mesh: AvatarMesh, *, weights_from: str = "field") -> AvatarMesh:
     """The mesh with its skin weights and the avatar's rig (:attr:`AvatarMesh.joint_indices` and the rest).
 
     Args:
         avatar: the :class:`~warpavatar.model.Avatar`.
         mesh: the canonical mesh (its ``vertices`` in the avatar's canonical pose).
+        weights_from: ``"field"``: the skinning field at each vertex; ``"gaussians"``: the field at the nearest
+            Gaussians' centres, blended by their density at the vertex (:func:`gaussian_blended_weights`; for a
+            surface made from the Gaussians).
 
     Returns:
         a copy of ``mesh`` with ``joint_indices`` / ``joint_weights`` (top :data:`INFLUENCES` of the skinning
         field at each vertex), ``joint_names`` / ``joint_parents`` / ``joint_heads`` (the skeleton with its grown
         joints) and ``up`` (the skeleton's).
     """
+    if weights_from not in ("field", "gaussians"):
+        raise ValueError(f"skin_mesh: weights_from must be 'field' or 'gaussians', got {weights_from!r}")
     device = avatar.gaussians.means.device
     rig = avatar.rig()
     with torch.no_grad():
         grid = avatar.field.grid_weights()
         points = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float32, device=device).contiguous()
-        weights = avatar.field.weights(points, grid)
+        if weights_from == "gaussians":  # once a position: vertices split along UV seams share one
+            unique, inverse = torch.unique(points, dim=0, return_inverse=True)
+            weights = gaussian_blended_weights(avatar, unique.contiguous(), grid)[inverse]
+        else:
+            weights = avatar.field.weights(points, grid)
     if weights.shape[1] != len(rig.names):
         raise ValueError(f"the skinning field has {weights.shape[1]} outputs but the rig {len(rig.names)} joints")
     joint_indices, joint_weights = top_influences(weights)
