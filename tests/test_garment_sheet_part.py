@@ -155,6 +155,45 @@ def test_the_image_loss_reaches_the_states_and_the_garment_gaussians(fitted):
     assert float(means[part.gaussian_ids].abs().sum()) > 0
 
 
+def test_a_step_that_breaks_a_frames_sheet_is_undone(fitted):
+    trainer, _ = fitted
+    sheet = trainer.extension("garment").sheet
+    part, states = sheet.part, sheet.part.frame_states
+    saved = states.detach().clone()
+    with torch.no_grad():
+        states[1:3] = 0.0  # the skinned rest sheet: a valid sheet
+    before = states.detach().clone()
+    moments = sheet.states_optimizer.state[states]
+    saved_moments = {name: moments[name].clone() for name in ("exp_avg", "exp_avg_sq")}
+    counts = int(sheet.reverted_states), int(sheet.non_finite_steps)
+    assert bool(sheet.tracker().valid_frames(before)[1:3].all())
+    try:
+        states.grad = torch.zeros_like(states)
+        states.grad[0, 0, 0] = math.nan
+        sheet.after_backward(None)
+        assert bool(torch.isfinite(states.grad).all()) and int(sheet.non_finite_steps) == counts[1] + 1
+        with torch.no_grad():  # "the step": frame 1's free vertices squashed to one point, frame 2 nudged
+            skinned = sheet.skinned[1]
+            states[1] = (skinned[part.attached].mean(dim=0) - skinned) * part.free_mask
+            states[2] += 1e-4 * part.free_mask
+        sheet.after_step(None)
+        assert torch.equal(states[1], before[1]) and not torch.equal(states[2], before[2])
+        assert float(moments["exp_avg"][1].abs().max()) == 0.0 and torch.equal(moments["exp_avg"][2],
+                                                                                saved_moments["exp_avg"][2])
+        assert int(sheet.reverted_states) == counts[0] + 1
+        sheet.after_backward(None)  # no gradient of the states: nothing non-finite, nothing reverted
+        sheet.after_step(None)
+        assert (int(sheet.reverted_states), int(sheet.non_finite_steps)) == (counts[0] + 1, counts[1] + 1)
+    finally:
+        with torch.no_grad():
+            states.copy_(saved)
+            for name, value in saved_moments.items():
+                moments[name].copy_(value)
+        states.grad = None
+        sheet.reverted_states.fill_(counts[0])
+        sheet.non_finite_steps.fill_(counts[1])
+
+
 def test_resume_gives_the_same_states_bit_for_bit(fitted, video, tmp_path):
     whole, _ = fitted
     config = preset("quick", **{**SHEET, "garment_attach": video.skeleton.names[0]})

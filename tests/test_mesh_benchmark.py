@@ -48,9 +48,11 @@ def test_measures_the_exported_mesh(avatar_dir, tmp_path):
     output = tmp_path / "mesh.json"
     assert tool.main([str(avatar_dir), str(data.demo_subject_path()), *TINY, "--triangles", "2000",
                       "--texture-size", "64", "--view-count", "12", "--view-size", "64", "--supersample", "2",
-                      "-o", str(output)]) == 0
+                      "--max-voxels", "200000", "-o", str(output)]) == 0
     results = _check_results(output, stand_in=False)
     assert results["mesh"]["shading"] == "texture" and results["mesh"]["texture_size"] == [64, 64]
+    assert results["mesh"]["view_size"] == 64 and results["mesh"]["max_voxels"] == 200000
+    assert results["mesh"]["voxel_size"] > 0
 
 
 def test_the_iou_and_the_frame_subset():

@@ -132,6 +132,11 @@ def test_without_a_skeleton_small_components_are_dropped(sphere_scene):
     _, views = sphere_scene
     mesh = surface.extract_surface(views, triangles=2000)
     assert mesh.is_watertight and len(mesh.split(only_watertight=False)) == 1
+    # a voxel budget below the default's count coarsens the grid to fit it
+    coarse = surface.extract_surface(views, triangles=2000, max_voxels=20_000)
+    assert coarse.metadata["voxel_size"] > 1.2 * mesh.metadata["voxel_size"] and coarse.is_watertight
+    with pytest.raises(ValueError, match="max_voxels"):
+        surface.extract_surface(views, max_voxels=0)
 
 
 def test_extract_surface_rejects_bad_views(sphere_scene):

@@ -219,6 +219,9 @@ def _build_parser() -> argparse.ArgumentParser:
                         help="renders of the canonical avatar the mesh is made from (default %(default)s)")
     parser.add_argument("--view-size", type=int, default=DEFAULT_VIEW_SIZE,
                         help="width and height of each of those renders [px] (default %(default)s)")
+    parser.add_argument("--max-voxels", type=int, default=None,
+                        help="most voxels of the fused grid (default: the export's, "
+                             "warpavatar.mesh.surface.MAX_VOXELS)")
     parser.add_argument("--shading", choices=("texture", "vertex-colors"), default="texture",
                         help="colour the mesh from its texture or its vertex colours (default %(default)s)")
     parser.add_argument("--supersample", type=int, default=1,
@@ -266,6 +269,7 @@ def _run(args) -> int:
         avatar = Avatar.load(args.avatar, device=device)
         start = time.perf_counter()
         timings: dict[str, float] = {}
+        chosen: dict = {}
         if args.stand_in:
             mesh = stand_in_mesh(avatar)
         else:
@@ -273,7 +277,8 @@ def _run(args) -> int:
 
             mesh = build_avatar_mesh(avatar, triangles=args.triangles, texture_size=args.texture_size,
                                      view_count=args.view_count, view_size=args.view_size,
-                                     training_pixel_size=pixel_size or None, progress=False, timings=timings)
+                                     training_pixel_size=pixel_size or None, max_voxels=args.max_voxels,
+                                     progress=False, timings=timings, settings=chosen)
         build_seconds = time.perf_counter() - start
         shading = "texture" if args.shading == "texture" else "vertex_colors"
         rows = {label: measure_folder(avatar, mesh, video, frames=args.frames, shading=shading,
@@ -288,12 +293,13 @@ def _run(args) -> int:
                "mesh": {"vertices": mesh.vertex_count, "faces": mesh.face_count,
                         "texture_size": None if mesh.texture is None else list(mesh.texture.shape[:2]),
                         "shading": "texture" if textured else "vertex_colors", "build_seconds": build_seconds,
-                        "stage_seconds": timings},
+                        "stage_seconds": timings, **chosen},
                "iou_target": IOU_TARGET, "rows": rows}
     print(f"mesh: {mesh.vertex_count} vertices, {mesh.face_count} triangles, "
           f"{'textured' if textured else 'vertex colours'}, built in {build_seconds:.1f} s"
           f"{' (stand-in)' if args.stand_in else ''}; frames at scale {scale:g} on {device}; renders blurred for a "
-          f"training pixel of {'none' if not pixel_size else f'{1000 * pixel_size:.1f} mm'}")
+          f"training pixel of {'none' if not pixel_size else f'{1000 * pixel_size:.1f} mm'}"
+          + (f"; {chosen['view_size']} px renders, {1000 * chosen['voxel_size']:.1f} mm voxels" if chosen else ""))
     print(_table(rows))
     train = rows.get("train")
     if train is not None:
@@ -310,8 +316,9 @@ def main(argv=None) -> int:
     args = _build_parser().parse_args(argv)
     for flag, value, low in (("--frames", args.frames, 0), ("--triangles", args.triangles, 4),
                              ("--texture-size", args.texture_size, 8), ("--view-count", args.view_count, 1),
-                             ("--view-size", args.view_size, 8), ("--supersample", args.supersample, 1)):
-        if value < low:
+                             ("--view-size", args.view_size, 8), ("--supersample", args.supersample, 1),
+                             ("--max-voxels", args.max_voxels, 1)):
+        if value is not None and value < low:
             print(f"error: {flag} must be at least {low}, got {value}", file=sys.stderr)
             return 2
     if args.pixel_size is not None and not (math.isfinite(args.pixel_size) and args.pixel_size >= 0):

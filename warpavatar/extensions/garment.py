@@ -912,6 +912,14 @@ class GarmentExtension(Extension):
         if not self.decided and step.step >= self.next_attempt:
             self.detect(step.grid)
 
+    def after_backward(self, step) -> None:
+        if self.sheet is not None:
+            self.sheet.after_backward(step)
+
+    def after_step(self, step) -> None:
+        if self.sheet is not None:
+            self.sheet.after_step(step)
+
     def _training_bones(self) -> torch.Tensor:
         frames = self.fit.frames
         return torch.stack([self.fit.avatar.pose_bones(b) for b in frames.bone_transforms])

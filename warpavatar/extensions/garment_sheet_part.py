@@ -62,7 +62,7 @@ from warpavatar.sim.garment_sheet import build_garment_sheet
 
 __all__ = ["GarmentSheetPart", "SheetFit", "SheetTracker", "TrackingTargets", "tracking_targets", "tracking_cell",
            "covered_cells", "cell_centres", "project_frames", "project_points", "sheet_residual",
-           "SETTLE_VELOCITY_KEEP", "TRACK_CELLS", "TRACK_REACH", "MIN_AREA_RATIO"]
+           "SETTLE_VELOCITY_KEEP", "TRACK_CELLS", "TRACK_REACH", "MIN_AREA_RATIO", "valid_sheet_frames"]
 
 SETTLE_VELOCITY_KEEP = 0.7
 """While settling, the velocities are scaled by this after every frame (strong damping: the sheet comes to rest)."""
@@ -551,6 +551,26 @@ MIN_AREA_RATIO = 0.1
 (:meth:`SheetTracker.valid_frames`)."""
 
 
+@torch.no_grad()
+def valid_sheet_frames(part: "GarmentSheetPart", reference: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
+    """[T] bool: the frames whose sheet ``vertices`` [T,V,3] is still a sheet against a ``reference`` sheet
+    [T,V,3] of the same frames: finite, every triangle at least :data:`MIN_AREA_RATIO` of the smaller of its rest
+    area and its area in the reference (a skinned rest sheet can be squashed itself), and facing the way it faces
+    in the reference (the Gaussians bound to a squashed or turned-over triangle have no frame to follow)."""
+    faces = part.faces
+
+    def normals(points):
+        a, b, c = points[:, faces[:, 0]], points[:, faces[:, 1]], points[:, faces[:, 2]]
+        return torch.cross(b - a, c - a, dim=2)  # [T,F,3], length twice the area
+
+    posed, before = normals(vertices), normals(reference)
+    area = 0.5 * posed.norm(dim=2)
+    least = torch.minimum(part.rest_area.to(area)[None], 0.5 * before.norm(dim=2))
+    facing = (posed * before).sum(dim=2) > 0.0
+    finite = torch.isfinite(vertices).flatten(1).all(dim=1)
+    return finite & ((area >= MIN_AREA_RATIO * least) & facing).all(dim=1)
+
+
 class SheetTracker:
     """The sheet tracking stage: every training frame's state fitted to its mask at once, without rendering.
 
@@ -599,21 +619,10 @@ class SheetTracker:
         """The frames' sheets [T,V,3] of states [T,V,3]."""
         return self.skinned + states * self.part.free_mask
 
-    @torch.no_grad()
     def valid_frames(self, states: torch.Tensor) -> torch.Tensor:
-        """[T] bool: the frames whose sheet at states [T,V,3] is finite and keeps every triangle at least
-        :data:`MIN_AREA_RATIO` of its rest area, facing the way it faces in the frame's skinned rest sheet."""
-        vertices = self.vertices(states)
-        faces = self.part.faces
-        def normals(points):
-            a, b, c = points[:, faces[:, 0]], points[:, faces[:, 1]], points[:, faces[:, 2]]
-            return torch.cross(b - a, c - a, dim=2)  # [T,F,3], length twice the area
-        posed, rest = normals(vertices), normals(self.skinned)
-        area = 0.5 * posed.norm(dim=2)
-        rest_area = self.part.rest_area.to(area)[None]
-        facing = (posed * rest).sum(dim=2) > 0.0
-        finite = torch.isfinite(vertices).flatten(1).all(dim=1)
-        return finite & ((area >= MIN_AREA_RATIO * rest_area) & facing).all(dim=1)
+        """[T] bool: :func:`valid_sheet_frames` of the frames' sheets at states [T,V,3], against their skinned rest
+        sheets."""
+        return valid_sheet_frames(self.part, self.skinned, self.vertices(states))
 
     def _projected(self, vertices: torch.Tensor):
         pixels, depth = project_frames(vertices, self.intrinsics, self.world_to_cameras)
@@ -791,6 +800,12 @@ class SheetFit:
         self.final_residual: float | None = None
         self.residual: torch.Tensor | None = None  # this step's (batch) residual
         self.fitted: torch.Tensor | None = None  # this step's frame's vertices [V,3]
+        self.skinned: torch.Tensor | None = None  # the frames' skinned rest sheets [T,V,3] (at the last refresh)
+        self._states_before: torch.Tensor | None = None  # the states before this step's optimizer step
+        #: steps whose sheet gradients held a non-finite value (zeroed), and frame states put back because a step
+        #: left their sheet invalid (:func:`valid_sheet_frames`): 0-dim counters on the device
+        self.non_finite_steps = torch.zeros((), dtype=torch.int64, device=self.fit.device)
+        self.reverted_states = torch.zeros((), dtype=torch.int64, device=self.fit.device)
         #: the tracking stage's runs (:meth:`track`): one record each, in order
         self.tracking: list[dict] = []
         self.tracked = -1  # step of the last tracking run
@@ -850,6 +865,7 @@ class SheetFit:
         field = self.fit.skinning.field
         part.set_vertex_weights(field.weights(part.rest_vertices, field.grid_weights()))
         self.bones = self._training_bones()
+        self.skinned = torch.stack([part.skinned_rest(b) for b in self.bones])
         started = part.frame_states.shape[0] != frames.count
         if started:
             positions, _ = part.rollout(self.bones, frames.seconds)
@@ -998,6 +1014,48 @@ class SheetFit:
     def optimizers(self) -> list:
         return [self.optimizer] + ([self.states_optimizer] if self.states_optimizer is not None else [])
 
+    @torch.no_grad()
+    def after_backward(self, step) -> None:
+        """Zero any non-finite gradient of the sheet's states and material (a near-degenerate triangle's frame has
+        unbounded derivatives; one inf would make Adam's moments NaN for good), counting such steps, and keep the
+        states as they are before the optimizer steps them (:meth:`after_step`)."""
+        grads = [p.grad for p in self.part.cloth.parameters() if p.grad is not None]
+        states = self.part.frame_states
+        if states.grad is not None:
+            grads.append(states.grad)
+        if grads:
+            bad = torch.stack([(~torch.isfinite(g)).any() for g in grads]).any()
+            self.non_finite_steps += bad.to(torch.int64)
+            for g in grads:
+                torch.nan_to_num_(g, nan=0.0, posinf=0.0, neginf=0.0)
+        if self.states_optimizer is not None and states.shape[0]:
+            if self._states_before is None or self._states_before.shape != states.shape:
+                self._states_before = states.detach().clone()
+            else:
+                self._states_before.copy_(states.detach())
+
+    @torch.no_grad()
+    def after_step(self, step) -> None:
+        """Put back the state of every frame whose sheet the step left invalid (:func:`valid_sheet_frames` against
+        the sheet before the step: non-finite, a triangle squashed or turned over) and clear its Adam moments, so
+        one bad step cannot end the fit in non-finite Gaussians (no host synchronization: the rows are selected on
+        the device)."""
+        states = self.part.frame_states
+        if self._states_before is None or self.skinned is None or self._states_before.shape != states.shape \
+                or self.skinned.shape != states.shape:
+            return
+        free = self.part.free_mask
+        before = self._states_before
+        changed = (states != before).flatten(1).any(dim=1)
+        keep = (valid_sheet_frames(self.part, self.skinned + before * free, self.skinned + states * free)
+                | ~changed)[:, None, None]
+        states.copy_(torch.where(keep, states, before))
+        moments = self.states_optimizer.state.get(states, {})
+        for name in ("exp_avg", "exp_avg_sq"):
+            if name in moments:
+                moments[name].mul_(keep)
+        self.reverted_states += (~keep).sum()
+
     def log_values(self) -> dict[str, float]:
         cloth = self.part.cloth
         values = {"garment_sheet_stretch": float(cloth.stretch_stiffness().detach()),
@@ -1006,6 +1064,8 @@ class SheetFit:
                   "garment_sheet_drag": float(cloth.drag().detach())}
         if self.image_steps:
             values["garment_sheet_steps_per_frame"] = sum(self.image_steps) / len(self.image_steps)
+        values["garment_sheet_reverted_states"] = int(self.reverted_states)
+        values["garment_sheet_non_finite_steps"] = int(self.non_finite_steps)
         return values
 
     # ------------------------------------------------------------------------------------------ the end
@@ -1024,6 +1084,7 @@ class SheetFit:
                 "edge_length": part.edge_length, "training_frames": len(self.image_steps),
                 "image_steps_per_frame": {"mean": sum(steps) / len(steps), "min": min(steps), "max": max(steps)},
                 "residual_steps": self.residual_steps, "residual_frames_per_step": self.options.garment_sheet_frames,
+                "reverted_states": int(self.reverted_states), "non_finite_steps": int(self.non_finite_steps),
                 "initial_residual": self.initial_residual, "final_residual": self.final_residual,
                 "tracking": list(self.tracking), "final_silhouette": self.final_silhouette,
                 "material": {"stretch_stiffness": float(cloth.stretch_stiffness().detach()),
@@ -1067,7 +1128,8 @@ class SheetFit:
                 "states_optimizer": None if self.states_optimizer is None else self.states_optimizer.state_dict(),
                 "image_steps": list(self.image_steps), "residual_steps": self.residual_steps,
                 "initial_residual": self.initial_residual, "refreshed": self.refreshed,
-                "tracking": [dict(record) for record in self.tracking], "tracked": self.tracked}
+                "tracking": [dict(record) for record in self.tracking], "tracked": self.tracked,
+                "reverted_states": int(self.reverted_states), "non_finite_steps": int(self.non_finite_steps)}
 
     @classmethod
     def from_state(cls, extension, state: dict) -> "SheetFit":
@@ -1083,6 +1145,8 @@ class SheetFit:
         sheet.initial_residual = state.get("initial_residual")
         sheet.tracking = [dict(record) for record in state.get("tracking", [])]
         sheet.tracked = int(state.get("tracked", -1))
+        sheet.reverted_states.fill_(int(state.get("reverted_states", 0)))
+        sheet.non_finite_steps.fill_(int(state.get("non_finite_steps", 0)))
         if part.frame_states.shape[0]:
             sheet.bones = sheet._training_bones()
             sheet.refreshed = int(state.get("refreshed", -1))

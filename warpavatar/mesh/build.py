@@ -70,9 +70,9 @@ def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def build_avatar_mesh(avatar, *, triangles: int = DEFAULT_TRIANGLES, texture_size: int = DEFAULT_TEXTURE_SIZE,
                       view_count: int = DEFAULT_VIEW_COUNT, view_size: int = DEFAULT_VIEW_SIZE,
-                      training_pixel_size: float | None = None, device=None,
+                      training_pixel_size: float | None = None, max_voxels: int | None = None, device=None,
                       texture: bool = True, vertex_colors: bool = True, skin: bool = True, progress: bool = False,
-                      timings: dict[str, float] | None = None) -> AvatarMesh:
+                      timings: dict[str, float] | None = None, settings: dict | None = None) -> AvatarMesh:
     """The avatar's surface in its canonical pose, as a mesh an engine can texture and skin.
 
     Args:
@@ -85,6 +85,8 @@ def build_avatar_mesh(avatar, *, triangles: int = DEFAULT_TRIANGLES, texture_siz
             (:func:`recorded_pixel_size`): the renders then blur the Gaussians as the fit's renders did
             (:func:`~warpavatar.mesh.views.training_blur`), so the surface has the silhouette the fit matched to its
             masks; None: no blur (the Gaussians' own silhouette, thinner than the fit's at its resolution).
+        max_voxels: most voxels of the fused grid (:func:`~warpavatar.mesh.surface.extract_surface`); None:
+            :data:`~warpavatar.mesh.surface.MAX_VOXELS`.
         device: where to render (default: the avatar's device).
         texture: unwrap UVs and bake the texture atlas (``uvs``, ``texture``); off: the surface's vertices
             unsplit, ``uvs`` and ``texture`` None.
@@ -92,6 +94,8 @@ def build_avatar_mesh(avatar, *, triangles: int = DEFAULT_TRIANGLES, texture_siz
         skin: add skin weights and the rig (``joint_*``).
         progress: show a progress bar over the stages, named as they run.
         timings: a dict to fill with each stage's wall time [s], by stage name, or None.
+        settings: a dict to fill with what was chosen (``view_size`` [px], ``voxel_size`` [m], ``max_voxels``),
+            or None.
 
     Returns:
         the :class:`AvatarMesh`, with the avatar skeleton's ``up``.
@@ -128,7 +132,12 @@ def build_avatar_mesh(avatar, *, triangles: int = DEFAULT_TRIANGLES, texture_siz
         end("views")
 
         begin("surface")
-        fused = surface.extract_surface(views, triangles=triangles, skeleton=avatar.skeleton, device=device)
+        max_voxels = surface.MAX_VOXELS if max_voxels is None else int(max_voxels)
+        fused = surface.extract_surface(views, triangles=triangles, skeleton=avatar.skeleton, device=device,
+                                        max_voxels=max_voxels)
+        if settings is not None:
+            settings.update(view_size=int(views[0].width), voxel_size=float(fused.metadata["voxel_size"]),
+                            max_voxels=max_voxels)
         surface_vertices = np.asarray(fused.vertices, dtype=np.float32)
         surface_faces = np.asarray(fused.faces, dtype=np.int32)
         if surface_faces.shape[0] == 0:

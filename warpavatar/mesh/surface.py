@@ -41,7 +41,8 @@ VOXELS_PER_PIXEL = 2.0
 than pixels place the surface between pixel centres, from the depths' expected values)."""
 
 MAX_VOXELS = 8_000_000
-"""Most voxels of the fine grid: a larger voxel is taken where the default one would need more (memory, time)."""
+"""Most voxels of the fine grid by default: a larger voxel is taken where the default one would need more
+(memory, time; ``max_voxels`` of :func:`extract_surface` changes it)."""
 
 TRUNCATION_VOXELS = 5.0
 """Truncation of the signed distance, in voxels: a view's distance counts up to this far behind its depth. It also
@@ -140,12 +141,15 @@ def _pixel_footprint(views: list[CanonicalView], point: np.ndarray) -> float:
     return float(np.median(footprints))
 
 
-def default_voxel_size(views: list[CanonicalView], low: np.ndarray, high: np.ndarray) -> float:
+def default_voxel_size(views: list[CanonicalView], low: np.ndarray, high: np.ndarray, *,
+                       max_voxels: int = MAX_VOXELS) -> float:
     """The fine grid's voxel size [m] over the box ``low``..``high``: the renders' median pixel footprint at the
-    box's centre over :data:`VOXELS_PER_PIXEL`, enlarged where the box would need more than :data:`MAX_VOXELS`."""
+    box's centre over :data:`VOXELS_PER_PIXEL`, enlarged where the box would need more than ``max_voxels``."""
+    if int(max_voxels) < 1:
+        raise ValueError(f"extract_surface: max_voxels must be at least 1, got {max_voxels}")
     size = _pixel_footprint(views, 0.5 * (low + high)) / VOXELS_PER_PIXEL
     volume = float(np.prod(np.maximum(high - low, 1e-9)))
-    return max(size, (volume / MAX_VOXELS) ** (1.0 / 3.0))
+    return max(size, (volume / int(max_voxels)) ** (1.0 / 3.0))
 
 
 def fuse_views(views, low, high, voxel_size: float, *, truncation: float | None = None,
@@ -487,7 +491,8 @@ def _sample_colors(grid: dict, points: np.ndarray) -> np.ndarray:
 
 
 def extract_surface(views: list[CanonicalView], *, triangles: int = DEFAULT_TRIANGLES, skeleton=None,
-                    box: tuple | None = None, voxel_size: float | None = None, device=None) -> trimesh.Trimesh:
+                    box: tuple | None = None, voxel_size: float | None = None, max_voxels: int = MAX_VOXELS,
+                    device=None) -> trimesh.Trimesh:
     """A closed, decimated surface of the object the views show, floaters dropped, normals outwards.
 
     Steps: fuse the views into a TSDF with space carving (:func:`warpavatar.ops.integrate_tsdf`), over ``box`` or
@@ -511,14 +516,15 @@ def extract_surface(views: list[CanonicalView], *, triangles: int = DEFAULT_TRIA
         box: ``(low [3], high [3])`` [m] to fuse over (e.g. :func:`warpavatar.mesh.views.canonical_box`), or None
             for the visual hull's box.
         voxel_size: voxel size [m] of the fine grid; default :func:`default_voxel_size` (the renders' pixel
-            footprint over :data:`VOXELS_PER_PIXEL`, at most :data:`MAX_VOXELS` voxels).
+            footprint over :data:`VOXELS_PER_PIXEL`, at most ``max_voxels`` voxels).
+        max_voxels: most voxels of the fine grid, for the default voxel size.
         device: where to run the fusion kernel (default CPU).
 
     Returns:
         a ``trimesh.Trimesh`` in the views' world frame [m], not processed (no vertices merged: sheets that
         touch keep their own): watertight (every edge between two faces), faces counter-clockwise seen from
         outside, vertex colours (RGBA uint8) from the fused renders (un-premultiplied by alpha), at most
-        ``triangles`` faces.
+        ``triangles`` faces; ``metadata["voxel_size"]`` the fine grid's voxel size [m].
 
     Raises:
         ValueError: no views, views of different sizes, ``triangles`` < 4, or nothing left to make a surface of.
@@ -534,7 +540,8 @@ def extract_surface(views: list[CanonicalView], *, triangles: int = DEFAULT_TRIA
         low, high = (np.asarray(corner, np.float64).reshape(3) for corner in box)
         if not np.all(high > low):
             raise ValueError(f"extract_surface: box must have high > low on every axis, got {low} and {high}")
-    voxel_size = default_voxel_size(views, low, high) if voxel_size is None else float(voxel_size)
+    voxel_size = default_voxel_size(views, low, high, max_voxels=max_voxels) if voxel_size is None \
+        else float(voxel_size)
     if not voxel_size > 0.0:
         raise ValueError(f"extract_surface: voxel_size must be positive, got {voxel_size}")
     grid = fuse_views(stacked, low, high, voxel_size, device=device)
@@ -555,4 +562,5 @@ def extract_surface(views: list[CanonicalView], *, triangles: int = DEFAULT_TRIA
     colors = _sample_colors(grid, vertices)
     mesh.visual = trimesh.visual.ColorVisuals(
         mesh, vertex_colors=np.concatenate([colors, np.full((colors.shape[0], 1), 255, np.uint8)], axis=1))
+    mesh.metadata["voxel_size"] = float(voxel_size)
     return mesh
