@@ -25,6 +25,7 @@ def _check_results(path, *, stand_in: bool):
                     "iou", "iou_min", "mesh_render_ms", "gaussians_render_ms"):
             assert math.isfinite(row[key]), key
         assert 0.0 <= row["iou_min"] <= row["iou"] <= 1.0
+        assert 0.0 <= row["mesh_only"] and 0.0 <= row["gaussians_only"] <= 1.0
         assert len(row["frames"]) == 2
     return results
 
@@ -63,6 +64,9 @@ def test_the_iou_and_the_frame_subset():
     gaussians[1:3] = 0.5  # alpha 0.5 counts as inside
     assert tool.silhouette_iou(mesh, gaussians) == pytest.approx(4 / 12)
     assert tool.silhouette_iou(torch.zeros(2, 2), torch.full((2, 2), 0.49)) == 1.0
+    # rows 0 (mesh only) and 2 (Gaussians only), each 4 pixels, over the Gaussians' 8
+    assert tool.silhouette_misses(mesh, gaussians) == (pytest.approx(0.5), pytest.approx(0.5))
+    assert tool.silhouette_misses(mesh, torch.zeros(4, 4)) == (0.0, 0.0)
     assert tool.frame_subset(10, 3).tolist() == [0, 4, 9]
     assert np.array_equal(tool.frame_subset(3, 8), np.arange(3)) and len(tool.frame_subset(5, 0)) == 5
 

@@ -182,3 +182,38 @@ def test_small_avatar_renders_give_a_closed_mesh(avatar_dir):
     means = avatar.gaussians.means.detach().numpy()
     low, high = means.min(0) - 0.1, means.max(0) + 0.1
     assert (mesh.bounds[0] >= low).all() and (mesh.bounds[1] <= high).all()
+
+
+def test_fit_silhouettes_brings_a_posed_surface_onto_the_views_silhouettes():
+    import trimesh
+
+    from warpavatar.geometry import quat_to_matrix
+
+    # the views see a sphere of radius 0.3 about a posed centre; the surface is one of 0.33 about the canonical
+    # centre, which a pose (a rotation and a translation, as skinning gives every vertex) carries to the views
+    radius, canonical_centre = 0.3, np.array([0.0, 0.0, 1.0])
+    rotation = quat_to_matrix(torch.nn.functional.normalize(torch.tensor([[0.9, 0.2, -0.3, 0.1]]), dim=1))[0]
+    translation = torch.tensor([0.4, -0.2, 0.1])
+    posed_centre = (rotation.double() @ torch.as_tensor(canonical_centre) + translation.double()).numpy()
+    views = _sphere_views([(posed_centre, radius, (0.5, 0.5, 0.5))], count=16, size=160,
+                          low=posed_centre - 0.45, high=posed_centre + 0.45)
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=radius + 0.03)
+    vertices, faces = np.asarray(sphere.vertices) + canonical_centre, np.asarray(sphere.faces)
+    pose = torch.cat([rotation, translation[:, None]], dim=1).expand(1, vertices.shape[0], 3, 4)
+    voxel = 0.01
+    moved = surface.fit_silhouettes(vertices, faces, views, voxel_size=voxel, rounds=8, poses=pose,
+                                    view_poses=torch.zeros(len(views), dtype=torch.long))
+    before = np.linalg.norm(vertices - canonical_centre, axis=1) - radius
+    after = np.linalg.norm(moved - canonical_centre, axis=1) - radius
+    assert np.median(before) == pytest.approx(0.03)
+    assert abs(np.median(after)) < 0.4 * voxel and np.percentile(np.abs(after), 95) < voxel, \
+        (np.median(after), np.percentile(np.abs(after), 95))
+    # the moves are along the normals: the directions from the centre stay
+    directions = lambda points: (points - canonical_centre) / np.linalg.norm(points - canonical_centre, axis=1,
+                                                                             keepdims=True)
+    assert np.abs(directions(moved) - directions(vertices)).max() < 0.02
+    # without its pose the surface is far from every view's sphere: nothing is trusted, nothing moves far
+    unposed = surface.fit_silhouettes(vertices, faces, views, voxel_size=voxel, rounds=2)
+    assert np.abs(unposed - vertices).max() <= 2 * voxel + 1e-9
+    with pytest.raises(ValueError, match="poses must be"):
+        surface.fit_silhouettes(vertices, faces, views, voxel_size=voxel, poses=pose, view_poses=[0])

@@ -19,6 +19,8 @@ the Gaussians are rendered as ``warpavatar-eval`` renders them. The fit's record
   Gaussians' renders against the ground truth (inside its mask, :func:`warpavatar.metrics.image_scores`);
 * ``IoU`` (mean over frames) and ``IoU min``: the mesh's silhouette (its 0/1 alpha; with ``--supersample``, its
   covered fraction >= 0.5) against the Gaussians' (alpha >= 0.5), intersection over union;
+* ``mesh only`` and ``GS only``: the pixels only the mesh's silhouette covers, and those only the Gaussians'
+  covers, each over the Gaussians' silhouette (:func:`silhouette_misses`: too wide, or too thin);
 * ``IoU mask`` and ``GS IoU mask``: the mesh's and the Gaussians' silhouettes against the ground-truth mask
   (>= 0.5), what the masked PSNR's edges depend on;
 * ``mesh ms`` and ``GS ms``: render time per frame (the mesh's includes building its BVH).
@@ -87,6 +89,18 @@ def silhouette_iou(mesh_alpha: torch.Tensor, gaussian_alpha: torch.Tensor) -> fl
     gaussian_inside = gaussian_alpha >= ALPHA_THRESHOLD
     union = int((mesh_inside | gaussian_inside).sum())
     return 1.0 if union == 0 else int((mesh_inside & gaussian_inside).sum()) / union
+
+
+def silhouette_misses(mesh_alpha: torch.Tensor, gaussian_alpha: torch.Tensor) -> tuple[float, float]:
+    """Where the silhouettes of :func:`silhouette_iou` disagree, as shares of the Gaussians' silhouette: (pixels
+    only the mesh covers, pixels only the Gaussians cover); (0, 0) when the Gaussians cover nothing. The first says
+    the mesh is too wide, the second that it is too thin or has lost a part."""
+    mesh_inside = mesh_alpha >= ALPHA_THRESHOLD
+    gaussian_inside = gaussian_alpha >= ALPHA_THRESHOLD
+    area = int(gaussian_inside.sum())
+    if area == 0:
+        return 0.0, 0.0
+    return int((mesh_inside & ~gaussian_inside).sum()) / area, int((gaussian_inside & ~mesh_inside).sum()) / area
 
 
 def render_mesh_supersampled(vertices: torch.Tensor, faces, camera, *, supersample: int, background: torch.Tensor,
@@ -175,6 +189,7 @@ def measure_folder(avatar, mesh, video, *, frames: int, shading: str = "texture"
                         "gaussians_psnr_masked": gaussian_scores["psnr_masked"],
                         "gaussians_ssim_masked": gaussian_scores["ssim_masked"],
                         "iou": silhouette_iou(mesh_alpha, gaussian_alpha),
+                        **dict(zip(("mesh_only", "gaussians_only"), silhouette_misses(mesh_alpha, gaussian_alpha))),
                         "iou_mask": silhouette_iou(mesh_alpha, mask),
                         "gaussians_iou_mask": silhouette_iou(gaussian_alpha, mask)})
     count = max(1, len(records))
@@ -222,6 +237,9 @@ def _build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max-voxels", type=int, default=None,
                         help="most voxels of the fused grid (default: the export's, "
                              "warpavatar.mesh.surface.MAX_VOXELS)")
+    parser.add_argument("--silhouette-rounds", type=int, default=None,
+                        help="rounds fitting the skinned mesh's silhouettes to the Gaussians' in frames of the training "
+                             "motion (default: the export's, warpavatar.mesh.surface.SILHOUETTE_ROUNDS; 0: none)")
     parser.add_argument("--shading", choices=("texture", "vertex-colors"), default="texture",
                         help="colour the mesh from its texture or its vertex colours (default %(default)s)")
     parser.add_argument("--supersample", type=int, default=1,
@@ -238,13 +256,14 @@ def _build_parser() -> argparse.ArgumentParser:
 
 
 def _table(rows: dict[str, dict]) -> str:
-    header = ["folder", "frames", "mesh PSNR", "mesh SSIM", "GS PSNR", "GS SSIM", "IoU", "IoU min", "IoU mask",
-              "GS IoU mask", "mesh ms", "GS ms"]
+    header = ["folder", "frames", "mesh PSNR", "mesh SSIM", "GS PSNR", "GS SSIM", "IoU", "IoU min", "mesh only",
+              "GS only", "IoU mask", "GS IoU mask", "mesh ms", "GS ms"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for label, row in rows.items():
         cells = [label, str(row["frame_count"]), f"{row['mesh_psnr_masked']:.2f}", f"{row['mesh_ssim_masked']:.4f}",
                  f"{row['gaussians_psnr_masked']:.2f}", f"{row['gaussians_ssim_masked']:.4f}", f"{row['iou']:.4f}",
-                 f"{row['iou_min']:.4f}", f"{row['iou_mask']:.4f}", f"{row['gaussians_iou_mask']:.4f}",
+                 f"{row['iou_min']:.4f}", f"{row['mesh_only']:.4f}", f"{row['gaussians_only']:.4f}",
+                 f"{row['iou_mask']:.4f}", f"{row['gaussians_iou_mask']:.4f}",
                  f"{row['mesh_render_ms']:.1f}", f"{row['gaussians_render_ms']:.1f}"]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -273,12 +292,14 @@ def _run(args) -> int:
         if args.stand_in:
             mesh = stand_in_mesh(avatar)
         else:
-            from warpavatar.mesh.build import build_avatar_mesh
+            from warpavatar.mesh.build import build_avatar_mesh, recorded_training_motion
 
             mesh = build_avatar_mesh(avatar, triangles=args.triangles, texture_size=args.texture_size,
                                      view_count=args.view_count, view_size=args.view_size,
-                                     training_pixel_size=pixel_size or None, max_voxels=args.max_voxels,
-                                     progress=False, timings=timings, settings=chosen)
+                                     training_pixel_size=pixel_size or None,
+                                     training_motion=recorded_training_motion(args.avatar, avatar.skeleton),
+                                     max_voxels=args.max_voxels,
+                                     silhouette_rounds=args.silhouette_rounds, progress=False, timings=timings, settings=chosen)
         build_seconds = time.perf_counter() - start
         shading = "texture" if args.shading == "texture" else "vertex_colors"
         rows = {label: measure_folder(avatar, mesh, video, frames=args.frames, shading=shading,

@@ -223,7 +223,7 @@ def export(args: argparse.Namespace, *, mesh_format: MeshFormat) -> int:
     """Write the output of ``main``'s parsed arguments in ``mesh_format`` (its outputs locked); the exit status."""
     from warpavatar.cli.common import resolve_device
     from warpavatar.io.exporters import ExportMotion
-    from warpavatar.mesh.build import build_avatar_mesh, recorded_pixel_size
+    from warpavatar.mesh.build import build_avatar_mesh, recorded_pixel_size, recorded_training_motion
 
     device = resolve_device(args.device)
     avatar = load_avatar(args)
@@ -235,6 +235,7 @@ def export(args: argparse.Namespace, *, mesh_format: MeshFormat) -> int:
     mesh = build_avatar_mesh(avatar, triangles=args.triangles or DEFAULT_TRIANGLES,
                              texture_size=args.texture_size or DEFAULT_TEXTURE_SIZE, view_count=args.view_count,
                              view_size=args.view_size, training_pixel_size=recorded_pixel_size(args.avatar),
+                             training_motion=recorded_training_motion(args.avatar, avatar.skeleton),
                              device=device, texture=mesh_format.texture,
                              vertex_colors=mesh_format.vertex_colors, skin=mesh_format.animated,
                              progress=not args.no_progress)

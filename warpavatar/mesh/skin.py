@@ -15,8 +15,10 @@ transforms.
 Offsets: parts such as secondary motion, dynamics, a simulated garment or the pose correction move Gaussians
 away from where linear blend skinning (LBS) of their canonical centres puts them. Per frame, each Gaussian's
 residual (its posed centre minus LBS of its stored canonical centre with the field's weights there) is carried to
-the mesh's vertices by inverse-distance weights over the :data:`OFFSET_NEIGHBOURS` nearest Gaussians in the
-canonical pose. Since LBS is linear in the rest position (``LBS(x + o) = LBS(x) + A o``, with ``A`` the vertex's
+the mesh's vertices by the same density shares as the weights (over the :data:`WEIGHT_NEIGHBOURS` nearest
+Gaussians in the canonical pose: the Gaussians that make the surface there, not faint or distant ones that a part
+moved far; on the robot benchmark subject, 1 % of the Gaussians carry residuals above 12 cm, and inverse-distance
+shares over 8 gave the posed mesh spikes). Since LBS is linear in the rest position (``LBS(x + o) = LBS(x) + A o``, with ``A`` the vertex's
 blended 3x3), the world residual ``r`` becomes the pre-skinning offset ``o = A^-1 r``, which is what glTF morph
 targets and UsdSkel's time-sampled points both apply before skinning (damped where ``A`` nearly collapses, in
 LBS's folds: see :func:`_blended_inverse`).
@@ -34,7 +36,7 @@ from warpavatar import ops
 from warpavatar.mesh.mesh_data import AvatarMesh, MeshAnimation
 from warpavatar.model.parts import AvatarPart
 
-__all__ = ["INFLUENCES", "OFFSET_TOLERANCE", "OFFSET_NEIGHBOURS", "WEIGHT_NEIGHBOURS", "top_influences", "skin_mesh",
+__all__ = ["INFLUENCES", "OFFSET_TOLERANCE", "WEIGHT_NEIGHBOURS", "top_influences", "skin_mesh",
            "gaussian_blended_weights", "mesh_animation", "lbs_vertices", "deforming_parts"]
 
 INFLUENCES = 4
@@ -44,11 +46,9 @@ OFFSET_TOLERANCE = 1e-4
 """[m] The vertex offsets are dropped when the largest displacement they make in the posed world (the residual
 carried to a vertex), over every vertex and frame, is below this: skinning alone reproduces the avatar."""
 
-OFFSET_NEIGHBOURS = 8
-"""Nearest Gaussians (canonical pose) whose residuals a vertex's offset is blended from."""
-
 WEIGHT_NEIGHBOURS = 16
-"""Nearest Gaussians (canonical pose) whose skin weights a vertex blends with ``weights_from="gaussians"``."""
+"""Nearest Gaussians (canonical pose) whose skin weights (with ``weights_from="gaussians"``) and residuals a vertex
+blends, each by its density at the vertex."""
 
 _OPACITY_FLOOR = 0.05  # Gaussians fainter than this (floaters, half-pruned ones) carry no residual to the mesh
 _SINGULAR_FLOOR = 0.2  # singular values of a blended skinning 3x3 below this are damped when inverted
@@ -86,27 +86,26 @@ def top_influences(weights: torch.Tensor | np.ndarray, *, count: int = INFLUENCE
     return index, values
 
 
-def gaussian_blended_weights(avatar, points: torch.Tensor, grid: torch.Tensor | None = None) -> torch.Tensor:
-    """[P,J+E] skin weights of canonical ``points`` [P,3] [m]: the field's weights at the centres of each point's
-    :data:`WEIGHT_NEIGHBOURS` nearest Gaussians (those at least ``_OPACITY_FLOOR`` opaque), blended by each one's
-    density at the point, ``opacity * exp(-d^2 / 2)`` with ``d`` the point's Mahalanobis distance from it in units
-    of its scales; a point that no neighbour reaches (every density below 1e-6) blends them by inverse squared
-    distance instead. Rows sum to 1."""
+def _density_neighbours(avatar, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each of ``points`` [P,3]' :data:`WEIGHT_NEIGHBOURS` nearest Gaussians (canonical pose, those at least
+    ``_OPACITY_FLOOR`` opaque): their indices [P,k] into the avatar's Gaussians and their shares [P,k] (rows sum to
+    1), each Gaussian's density at the point, ``opacity * exp(-d^2 / 2)`` with ``d`` the point's Mahalanobis
+    distance from it in units of its scales; a point that no neighbour reaches (every density below 1e-6) shares
+    by inverse squared distance instead."""
     from warpavatar.geometry import quat_to_matrix
 
     gaussians = avatar.gaussians
-    grid = avatar.field.grid_weights() if grid is None else grid
     opacities = gaussians.opacities.detach().reshape(-1)
     solid = opacities >= _OPACITY_FLOOR
     if not bool(solid.any()):
         solid = torch.ones_like(solid)
-    means = gaussians.means.detach()[solid].contiguous()
-    inverse_scales = 1.0 / gaussians.scales.detach()[solid].clamp_min(1e-8)
-    rotations = quat_to_matrix(gaussians.normalized_quats.detach()[solid])  # [N,3,3], local -> canonical
-    weights = avatar.field.weights(means, grid)  # [N,J+E]
-    opacity = opacities[solid]
+    carriers = torch.nonzero(solid).squeeze(1)
+    means = gaussians.means.detach()[carriers].contiguous()
+    inverse_scales = 1.0 / gaussians.scales.detach()[carriers].clamp_min(1e-8)
+    rotations = quat_to_matrix(gaussians.normalized_quats.detach()[carriers])  # [N,3,3], local -> canonical
+    opacity = opacities[carriers]
     count = min(WEIGHT_NEIGHBOURS, means.shape[0])
-    blended = []
+    indices, shares = [], []
     for start in range(0, points.shape[0], _CHUNK):
         chunk = points[start:start + _CHUNK]
         distance, index = torch.topk(torch.cdist(chunk, means), count, dim=1, largest=False)
@@ -115,9 +114,21 @@ def gaussian_blended_weights(avatar, points: torch.Tensor, grid: torch.Tensor | 
         density = opacity[index] * torch.exp(-0.5 * local.square().sum(-1))
         reached = density.max(1, keepdim=True).values > 1e-6
         share = torch.where(reached, density, 1.0 / (distance.square() + 1e-12))
-        share = share / share.sum(1, keepdim=True)
-        blended.append((share[:, :, None] * weights[index]).sum(1))
-    return torch.cat(blended) if blended else weights.new_zeros((0, weights.shape[1]))
+        indices.append(carriers[index])
+        shares.append(share / share.sum(1, keepdim=True))
+    if not indices:
+        empty = points.new_zeros((0, count))
+        return empty.long(), empty
+    return torch.cat(indices), torch.cat(shares)
+
+
+def gaussian_blended_weights(avatar, points: torch.Tensor, grid: torch.Tensor | None = None) -> torch.Tensor:
+    """[P,J+E] skin weights of canonical ``points`` [P,3] [m]: the field's weights at the centres of each point's
+    nearest Gaussians, blended by each one's density at the point (:func:`_density_neighbours`). Rows sum to 1."""
+    grid = avatar.field.grid_weights() if grid is None else grid
+    index, share = _density_neighbours(avatar, points)
+    weights = avatar.field.weights(avatar.gaussians.means.detach().contiguous(), grid)  # [N,J+E]
+    return (share[:, :, None] * weights[index]).sum(1)
 
 
 def skin_mesh(avatar, mesh: AvatarMesh, *, weights_from: str = "field") -> AvatarMesh:
@@ -198,24 +209,6 @@ def lbs_vertices(mesh: AvatarMesh, joint_transforms, offsets=None) -> np.ndarray
     return posed.numpy()
 
 
-def _nearest_gaussians(vertices: torch.Tensor, means: torch.Tensor, count: int
-                       ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Indices [V,k] of each vertex's nearest Gaussians and their inverse-distance weights [V,k] (rows sum to 1)."""
-    count = min(count, means.shape[0])
-    indices, weights = [], []
-    # inverse squared distance, softened at a hundredth of the typical spacing so that a vertex on a Gaussian's
-    # centre does not take that one alone
-    for start in range(0, vertices.shape[0], _CHUNK):
-        distance = torch.cdist(vertices[start:start + _CHUNK], means)
-        nearest, index = torch.topk(distance, count, dim=1, largest=False)
-        indices.append(index)
-        weights.append(nearest)
-    index, distance = torch.cat(indices), torch.cat(weights)
-    soften = 0.01 * distance[:, -1].median().clamp_min(1e-6)
-    inverse = 1.0 / (distance.square() + soften.square())
-    return index, inverse / inverse.sum(1, keepdim=True)
-
-
 def _blended_inverse(mesh: AvatarMesh, transforms: torch.Tensor) -> torch.Tensor:
     """Inverse [V,3,3] (float64) of each vertex's blended skinning 3x3 for one frame's transforms [J+E,4,4].
 
@@ -285,13 +278,8 @@ def mesh_animation(avatar, mesh: AvatarMesh, motion, *, progress: bool = False) 
             grid = avatar.field.grid_weights()
             rest_means = gaussians.means.detach().contiguous()
             rest_weights = avatar.field.weights(rest_means, grid)
-            solid = gaussians.opacities.detach().reshape(-1) >= _OPACITY_FLOOR
-            if not bool(solid.any()):
-                solid = torch.ones_like(solid)
-            carriers = torch.nonzero(solid).squeeze(1)
             vertices = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float32, device=device)
-            neighbour_index, neighbour_weight = _nearest_gaussians(vertices, rest_means[carriers], OFFSET_NEIGHBOURS)
-            neighbour_index = carriers[neighbour_index]
+            neighbour_index, neighbour_weight = _density_neighbours(avatar, vertices)
         for t in frames:
             pose = torch.as_tensor(bones[t], dtype=torch.float32, device=device)
             inputs = {name: torch.as_tensor(values[t], device=device) for name, values in part_inputs.items()}

@@ -30,8 +30,8 @@ from warpavatar.mesh.mesh_data import CanonicalView
 
 __all__ = ["DEFAULT_TRIANGLES", "VOXELS_PER_PIXEL", "MAX_VOXELS", "TRUNCATION_VOXELS", "ALPHA_THRESHOLD",
            "RIM_DEPTH_VOXELS", "SMOOTHING_PASSES", "COARSE_VOXELS", "SPECK_VOXELS", "FLOATER_AREA_FRACTION",
-           "FLOATER_BONE_REACH",
-           "default_voxel_size", "fuse_views", "depth_offset", "extract_surface"]
+           "FLOATER_BONE_REACH", "SILHOUETTE_ROUNDS", "CONTOUR_COSINE", "SMOOTHING_RINGS",
+           "default_voxel_size", "fuse_views", "depth_offset", "fit_silhouettes", "extract_surface"]
 
 DEFAULT_TRIANGLES = 50_000
 """Triangles of the decimated surface."""
@@ -74,6 +74,17 @@ FLOATER_AREA_FRACTION = 0.25
 FLOATER_BONE_REACH = 0.1
 """A floater candidate is dropped when no vertex of it is within this fraction of the skeleton's height (its
 joints' extent along its up axis) of a bone segment; without a skeleton, every candidate is dropped."""
+
+SILHOUETTE_ROUNDS = 8
+"""Rounds of :func:`fit_silhouettes` (each moves a vertex at most one voxel along its normal)."""
+
+CONTOUR_COSINE = 0.5
+"""A vertex is on a view's contour where the cosine between its normal and the view's ray is below this: there the
+view's silhouette edge says where the surface is, across the ray."""
+
+SMOOTHING_RINGS = 2
+"""Rings of neighbours each vertex's move in :func:`fit_silhouettes` is averaged over (a view's edge is known to
+about a pixel, a vertex sees few views on its contour)."""
 
 
 def _stack_views(views: list[CanonicalView], device: torch.device) -> dict[str, torch.Tensor]:
@@ -467,6 +478,179 @@ def _decimated(vertices: np.ndarray, faces: np.ndarray, triangles: int) -> tuple
         vertices, faces = fast_simplification.simplify(vertices, faces, target_count=triangles)
         vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
     return vertices, faces
+
+
+def _silhouette_fields(alpha: torch.Tensor) -> torch.Tensor:
+    """[N,H,W] signed distance [px] from each pixel centre to its view's silhouette edge (alpha at
+    :data:`ALPHA_THRESHOLD`), positive outside: exact distance transforms of the thresholded alpha, so that
+    interpolated between the two pixels either side of the edge it crosses zero half-way."""
+    from scipy import ndimage
+
+    fields = []
+    for image in alpha.detach().cpu().numpy():
+        inside = image >= ALPHA_THRESHOLD
+        far = float(sum(image.shape))
+        if inside.all() or not inside.any():
+            fields.append(np.full(image.shape, -far if inside.all() else far))
+            continue
+        fields.append(np.where(inside, 0.5 - ndimage.distance_transform_edt(inside),
+                               ndimage.distance_transform_edt(~inside) - 0.5))
+    return torch.from_numpy(np.stack(fields).astype(np.float32)).to(alpha.device)
+
+
+def _edge_distances(field: torch.Tensor, alpha: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """[N,V] signed distance [px] from the points ``(u, v)`` [N,V] (pixel coordinates) to each view's silhouette
+    edge: within a pixel and a half of the edge, where the alpha ramps, the distance of the interpolated alpha to
+    :data:`ALPHA_THRESHOLD` over its slope there (a soft edge placed between pixel centres), else the
+    interpolated distance field (:func:`_silhouette_fields`)."""
+    height, width = field.shape[-2:]
+
+    def sample(image: torch.Tensor, du: float = 0.0, dv: float = 0.0) -> torch.Tensor:
+        grid = torch.stack([(u + du) / max(width - 1, 1) * 2.0 - 1.0, (v + dv) / max(height - 1, 1) * 2.0 - 1.0],
+                           dim=-1)[:, None]
+        return torch.nn.functional.grid_sample(image, grid, align_corners=True, padding_mode="border")[:, 0, 0]
+
+    distance = sample(field)
+    value = sample(alpha)
+    slope = torch.hypot(sample(alpha, 0.5) - sample(alpha, -0.5), sample(alpha, 0.0, 0.5) - sample(alpha, 0.0, -0.5))
+    crossing = (ALPHA_THRESHOLD - value) / slope.clamp_min(1e-6)
+    ramp = (distance.abs() <= 2.0) & (slope > 0.05) & (crossing.abs() <= 1.5)
+    return torch.where(ramp, crossing, distance)
+
+
+def _torch_vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    corners = vertices[faces]
+    face_normals = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals = torch.zeros_like(vertices)
+    for corner in range(3):
+        normals.index_add_(0, faces[:, corner], face_normals)
+    return normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-30)
+
+
+def _mesh_silhouettes(points: torch.Tensor, faces: torch.Tensor, K: torch.Tensor, matrices: torch.Tensor,
+                      width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(alpha [N,H,W], depth [N,H,W])`` of the mesh ray cast through each view (:func:`warpavatar.ops.render_mesh`:
+    1 where a face is hit, its camera z there, 0 elsewhere)."""
+    from warpavatar import ops
+
+    alphas, depths = [], []
+    for index in range(K.shape[0]):
+        _, alpha, depth = ops.render_mesh(points, faces, K[index], matrices[index], width, height)
+        alphas.append(alpha)
+        depths.append(depth)
+    return torch.stack(alphas), torch.stack(depths)
+
+
+def fit_silhouettes(vertices: np.ndarray, faces: np.ndarray, views, *, voxel_size: float,
+                    rounds: int = SILHOUETTE_ROUNDS, poses: torch.Tensor | None = None,
+                    view_poses: torch.Tensor | None = None, device=None) -> np.ndarray:
+    """The surface's vertices moved along their normals until its silhouettes match the views'.
+
+    The fused level set is placed by one depth offset for the whole grid (:func:`depth_offset`), so where the
+    Gaussians' soft edges are wider or narrower than the median, the surface is too wide or too thin there. Each
+    round ray casts the surface through every view and compares the two silhouettes where the surface's edge is:
+    at every vertex within two pixels of the surface's own silhouette edge, not hidden behind nearer surface and
+    with its normal across the ray (:data:`CONTOUR_COSINE`), the view's signed distance to its silhouette edge
+    (:func:`_edge_distances`) less the surface's (both in pixels; their difference, in metres at the vertex's
+    depth, is how far the surface's edge lies outside the view's there, whatever bumps of the surface make that
+    edge). The moves are averaged over the views, weighted by how squarely each sees the edge, smoothed over the
+    vertex's neighbours (:data:`SMOOTHING_RINGS`) and capped at one voxel a round, along the fused surface's
+    normals, which stay fixed.
+
+    Args:
+        vertices: [V,3] [m]; faces: [F,3] counter-clockwise seen from outside.
+        views: the renders (:class:`~warpavatar.mesh.mesh_data.CanonicalView`) or the dict ``_stack_views``
+            makes of them.
+        voxel_size: the fused grid's voxel [m]: the largest move a round, and the scale of the band a view's
+            difference is trusted within (six voxels either way).
+        rounds: how many rounds.
+        poses: [P,V,3,4] per-vertex affine maps from the vertices' frame to the views' world (skinning: a vertex
+            ``x`` is seen at ``A x + b``, with ``[A | b]`` its pose), or None: the views see the vertices as given.
+        view_poses: [N] index into ``poses`` of each view's pose (with ``poses``).
+        device: where to compute (default CPU).
+
+    Returns:
+        [V,3] float64 moved vertices (the faces are unchanged: the surface stays closed).
+    """
+    device = torch.device("cpu" if device is None else device)
+    stacked = views if isinstance(views, dict) else _stack_views(views, device)
+    if faces.shape[0] == 0 or rounds < 1:
+        return np.asarray(vertices, np.float64)
+    alpha = stacked["alpha"].to(device, torch.float32)
+    field = _silhouette_fields(alpha)[:, None]
+    alpha = alpha[:, None]
+    K = stacked["K"].to(device, torch.float32)
+    matrices = stacked["world_to_camera"].to(device, torch.float32)
+    rotation, translation = matrices[:, :3, :3], matrices[:, :3, 3]
+    eyes = -torch.einsum("nji,nj->ni", rotation, translation)
+    height, width = field.shape[-2:]
+    focal = torch.sqrt(K[:, 0, 0] * K[:, 1, 1])[:, None]
+    points = torch.as_tensor(np.asarray(vertices), dtype=torch.float32, device=device).clone()
+    face_index = torch.as_tensor(np.asarray(faces), dtype=torch.long, device=device)
+    edges = torch.cat([face_index[:, [0, 1]], face_index[:, [1, 2]], face_index[:, [2, 0]]])
+    edges = torch.cat([edges, edges.flip(1)])
+    voxel = float(voxel_size)
+    band, occlusion = 6.0 * voxel, TRUNCATION_VOXELS * voxel
+
+    def spread(values: torch.Tensor) -> torch.Tensor:  # each vertex's value plus its neighbours'
+        return values.index_add(0, edges[:, 0], values[edges[:, 1]])
+
+    def sample(image: torch.Tensor, grid: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
+        return torch.nn.functional.grid_sample(image, grid, mode=mode, align_corners=True,
+                                               padding_mode="border")[:, 0, 0]
+
+    # the moves are along the surface's normals as fused (smoothed once over the neighbours), which stay fixed: a
+    # move per vertex that the rounds refine, not a surface whose own bumps steer it
+    start = points.clone()
+    normals = spread(_torch_vertex_normals(points, face_index))
+    normals = normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-30)
+    offsets = torch.zeros(points.shape[0], device=device)
+    if poses is not None:
+        poses = poses.to(device, torch.float32)
+        view_poses = torch.as_tensor(view_poses, dtype=torch.long, device=device)
+        if view_poses.shape != (K.shape[0],) or poses.shape[1:] != (points.shape[0], 3, 4):
+            raise ValueError("fit_silhouettes: poses must be [P,V,3,4] and view_poses hold one index a view")
+    for _ in range(int(rounds)):
+        points = start + normals * offsets[:, None]
+        if poses is None:
+            seen_points, seen_normals = points[None].expand(K.shape[0], -1, -1), normals[None]
+        else:  # every view's world: the pose's affine map of the vertices and (near-rigid) of their normals
+            posed = torch.einsum("pvij,vj->pvi", poses[..., :3], points) + poses[..., 3]
+            turned = torch.einsum("pvij,vj->pvi", poses[..., :3], normals)
+            seen_points = posed[view_poses]
+            seen_normals = (turned / turned.norm(dim=-1, keepdim=True).clamp_min(1e-12))[view_poses]
+        alphas, depths = [], []
+        for index in range(K.shape[0]):
+            view_alpha, view_depth = _mesh_silhouettes(seen_points[index].contiguous(), face_index, K[index:index + 1],
+                                                       matrices[index:index + 1], int(width), int(height))
+            alphas.append(view_alpha[0])
+            depths.append(view_depth[0])
+        mesh_alpha, mesh_depth = torch.stack(alphas), torch.stack(depths)
+        mesh_field = _silhouette_fields(mesh_alpha)[:, None]
+        camera = torch.einsum("nij,nvj->nvi", rotation, seen_points) + translation[:, None]
+        z = camera[..., 2]
+        safe_z = z.clamp_min(1e-6)
+        u = K[:, 0, 0, None] * camera[..., 0] / safe_z + K[:, 0, 2, None]
+        v = K[:, 1, 1, None] * camera[..., 1] / safe_z + K[:, 1, 2, None]
+        grid = torch.stack([u / max(width - 1, 1) * 2.0 - 1.0, v / max(height - 1, 1) * 2.0 - 1.0], dim=-1)[:, None]
+        own = sample(mesh_field, grid)
+        seen = sample(mesh_depth[:, None], grid, mode="nearest")
+        metres = (_edge_distances(field, alpha, u, v) - own) * z / focal
+        rays = seen_points - eyes[:, None]
+        rays = rays / rays.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        cosine = (rays * seen_normals).sum(-1)
+        weight = (1.0 - cosine.abs() / CONTOUR_COSINE).clamp_min(0.0)
+        in_frame = (z > 0.0) & (u >= 0.0) & (u <= width - 1) & (v >= 0.0) & (v <= height - 1)
+        visible = (seen <= 0.0) | (seen > z - occlusion)  # nothing hit there, or nothing well in front
+        weight = weight * (in_frame & visible & (own.abs() <= 2.0) & (metres.abs() <= band))
+        sine = (1.0 - cosine.square()).clamp_min(0.25).sqrt()
+        move, confidence = -(weight * metres / sine).sum(0), weight.sum(0)
+        for _ in range(SMOOTHING_RINGS):
+            move, confidence = spread(move), spread(confidence)
+        step = torch.where(confidence > 1e-3, move / confidence.clamp_min(1e-3), torch.zeros_like(move))
+        offsets = offsets + step.clamp(-voxel, voxel)
+    points = start + normals * offsets[:, None]
+    return points.double().cpu().numpy()
 
 
 def _sample_colors(grid: dict, points: np.ndarray) -> np.ndarray:

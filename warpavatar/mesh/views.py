@@ -32,8 +32,18 @@ SCREEN_BLUR_PX2 = float(BLUR_EPS2D)
 """Variance [px^2] the Gaussian rasterizer adds to every projected Gaussian (``BLUR_EPS2D`` of
 :mod:`warpavatar.kernels.splat`)."""
 
-__all__ = ["DEPTH_ALPHA", "SCREEN_BLUR_PX2", "body_gaussians", "canonical_box", "view_cameras", "training_blur",
-           "render_canonical_views"]
+__all__ = ["DEPTH_ALPHA", "SCREEN_BLUR_PX2", "POSED_FRAMES", "POSED_CAMERAS", "MAX_POSED_VIEW_SIZE",
+           "body_gaussians", "canonical_box", "view_cameras", "training_blur", "render_canonical_views",
+           "posed_frames", "render_posed_views"]
+
+POSED_FRAMES = 8
+"""Frames of the fit's training motion the posed views show (evenly spaced over it)."""
+
+POSED_CAMERAS = 6
+"""Cameras around the avatar in each of those frames (all frames' cameras together on one Fibonacci sphere)."""
+
+MAX_POSED_VIEW_SIZE = 1024
+"""Largest width and height [px] of a posed view (its pixel is the training pixel where that fits)."""
 
 
 def body_gaussians(avatar) -> torch.Tensor:
@@ -85,9 +95,10 @@ def _look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
 
 
 def view_cameras(low: np.ndarray, high: np.ndarray, up: np.ndarray, *, count: int, size: int,
-                 field_of_view_degrees: float = 40.0) -> list[tuple[np.ndarray, np.ndarray]]:
+                 field_of_view_degrees: float = 40.0, indices=None) -> list[tuple[np.ndarray, np.ndarray]]:
     """``count`` cameras ``(K [3,3], world_to_camera [4,4])`` on a Fibonacci sphere around the box ``low``..``high``
-    [m], each seeing the whole box in a ``size`` x ``size`` image with the given vertical field of view."""
+    [m], each seeing the whole box in a ``size`` x ``size`` image with the given vertical field of view; with
+    ``indices``, only those of the sphere's ``count`` directions, in that order."""
     if count < 1 or size < 8:
         raise ValueError(f"view_cameras: count must be >= 1 and size >= 8, got {count} and {size}")
     up = np.asarray(up, dtype=np.float64)
@@ -103,7 +114,7 @@ def view_cameras(low: np.ndarray, high: np.ndarray, up: np.ndarray, *, count: in
     other = np.cross(up, side)
     golden = math.pi * (3.0 - math.sqrt(5.0))
     cameras = []
-    for index in range(count):
+    for index in (range(count) if indices is None else indices):
         height = 1.0 - 2.0 * (index + 0.5) / count  # along up, in -1..1
         ring = math.sqrt(max(0.0, 1.0 - height * height))
         angle = golden * index
@@ -175,3 +186,88 @@ def render_canonical_views(avatar, *, count: int = 64, size: int = 256, training
             camera.depth = expected
             views.append(camera)
     return views
+
+
+def posed_frames(frame_count: int, count: int = POSED_FRAMES) -> np.ndarray:
+    """Indices of ``count`` frames evenly spaced over ``frame_count`` (all of them where there are fewer)."""
+    if frame_count < 1:
+        raise ValueError("posed_frames: the motion has no frames")
+    return np.unique(np.linspace(0, frame_count - 1, min(count, frame_count)).round().astype(np.int64))
+
+
+def render_posed_views(avatar, motion, frames, *, pixel_size: float, cameras: int = POSED_CAMERAS,
+                       device=None) -> tuple[list[CanonicalView], np.ndarray]:
+    """Render the avatar in some frames of a motion from cameras all around it, each pixel ``pixel_size`` wide at
+    the avatar (the fit's training pixel: what the fit's renders looked like to it).
+
+    The ``len(frames) * cameras`` cameras take the directions of one Fibonacci sphere in turn (view ``i`` shows
+    frame ``i % len(frames)``), so that over the frames every side is seen; each frames the box of that frame's
+    posed body Gaussians (:func:`body_gaussians`).
+
+    Args:
+        avatar: a :class:`~warpavatar.model.Avatar`.
+        motion: the motion (an :class:`~warpavatar.io.exporters.ExportMotion`); parts with state over time roll
+            it out whole first.
+        frames: indices of the rows of ``motion`` to show.
+        pixel_size: the width [m] of a pixel at the posed box's centre; the views' size follows from it (at most
+            :data:`MAX_POSED_VIEW_SIZE`, at least 64 px).
+        cameras: cameras per frame.
+        device: where to render (default: the avatar's device).
+
+    Returns:
+        ``(views, view_frames)``: the :class:`~warpavatar.mesh.mesh_data.CanonicalView` renders (posed, at SH
+        degree 0; ``depth`` the expected camera z) and [N] the index into ``frames`` each view shows.
+    """
+    if not (math.isfinite(pixel_size) and pixel_size > 0.0):
+        raise ValueError(f"render_posed_views: the pixel size must be a positive number of metres, got {pixel_size}")
+    device = avatar.gaussians.means.device if device is None else torch.device(device)
+    frames = np.asarray(frames, dtype=np.int64).reshape(-1)
+    keep = body_gaussians(avatar)
+    up = np.asarray(avatar.skeleton.up, dtype=np.float64)
+    bones = np.asarray(motion.bone_transforms, dtype=np.float32)
+    count = len(frames) * int(cameras)
+    half = math.radians(40.0) * 0.5
+    with torch.no_grad():
+        avatar.prepare_sequence(bones, frame_ids=np.asarray(motion.frame_ids), fps=float(motion.clock_fps))
+        posed_frames_ = []
+        for t in frames:
+            inputs = {name: torch.as_tensor(np.asarray(values)[t], device=device)
+                      for name, values in dict(getattr(motion, "part_inputs", {}) or {}).items()}
+            posed = avatar.pose(torch.as_tensor(bones[t], device=device), frame_index=int(t), sh_degree=0,
+                                inputs=inputs)
+            posed_frames_.append(posed)
+        boxes = []
+        for posed in posed_frames_:
+            means = posed["means"][keep].float().cpu()
+            if means.shape[0] == 0:
+                raise ValueError("the avatar has no Gaussians near its bones to make a mesh of")
+            pad = 3.0 * float(posed["scales"][keep].max(dim=1).values.median())
+            boxes.append(((torch.quantile(means, 0.002, dim=0) - pad).numpy().astype(np.float64),
+                          (torch.quantile(means, 0.998, dim=0) + pad).numpy().astype(np.float64)))
+        # one image size for all: the largest box's distance over the pixel, through the 40-degree field of view
+        radius = max(0.5 * float(np.linalg.norm(high - low)) for low, high in boxes)
+        distance = radius / math.sin(half) * 1.05
+        size = int(min(MAX_POSED_VIEW_SIZE, max(64, math.ceil(2.0 * math.tan(half) * distance / pixel_size))))
+        views, view_frames = [], []
+        for position, (posed, (low, high)) in enumerate(zip(posed_frames_, boxes)):
+            if not bool(keep.all()):
+                count_all = int(keep.numel())
+                posed = type(posed)({key: value[keep] if torch.is_tensor(value) and value.dim() > 0
+                                     and value.shape[0] == count_all and key != "bone_transforms" else value
+                                     for key, value in posed.items()})
+            indices = range(position, count, len(frames))
+            for K, world_to_camera in view_cameras(low, high, up, count=count, size=size, indices=indices):
+                camera = CanonicalView(K.astype(np.float32), world_to_camera.astype(np.float32), size, size,
+                                       None, None, None)
+                image, alpha, depth = avatar.rasterize(posed, camera)
+                alpha = alpha.float().cpu().numpy()
+                depth = depth.float().cpu().numpy()
+                expected = np.full_like(depth, np.inf)
+                covered = alpha >= DEPTH_ALPHA
+                expected[covered] = depth[covered] / alpha[covered]
+                camera.color = image.float().clamp(0.0, 1.0).cpu().numpy()
+                camera.alpha = alpha
+                camera.depth = expected
+                views.append(camera)
+                view_frames.append(position)
+    return views, np.asarray(view_frames, dtype=np.int64)
