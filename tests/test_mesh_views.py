@@ -103,20 +103,19 @@ def test_posed_views_show_the_motions_frames_at_the_training_pixel(export_avatar
     assert len({view.width for view in views}) == 1
     keep = body_gaussians(export_avatar)
     footprints = []
-    torch.set_grad_enabled(False)
-    for view, position in zip(views, view_frames):
-        t = int(frames[position])
-        bones = torch.as_tensor(export_motion.bone_transforms[t])
-        posed = export_avatar.pose(bones, frame_index=t, sh_degree=0)
-        centre = ((posed["means"][keep].quantile(0.002, dim=0) + posed["means"][keep].quantile(0.998, dim=0)) / 2)
-        z = float(torch.as_tensor(view.world_to_camera)[2, :3] @ centre.double().float()
-                  + float(view.world_to_camera[2, 3]))
-        footprints.append(z / float(view.K[0, 0]))
-        assert view.alpha.max() > 0.9 and view.alpha[0].max() < 0.5  # the figure whole inside the frame
-        if bool(keep.all()):  # the same image as rendering that frame's pose through the view's camera
-            _, alpha, _ = export_avatar.render(view, bones, background=torch.zeros(3))
-            np.testing.assert_allclose(view.alpha, alpha.numpy(), atol=1e-5)
-    torch.set_grad_enabled(True)
+    with torch.no_grad():
+        for view, position in zip(views, view_frames):
+            t = int(frames[position])
+            bones = torch.as_tensor(export_motion.bone_transforms[t])
+            posed = export_avatar.pose(bones, frame_index=t, sh_degree=0)
+            centre = ((posed["means"][keep].quantile(0.002, dim=0) + posed["means"][keep].quantile(0.998, dim=0)) / 2)
+            z = float(torch.as_tensor(view.world_to_camera)[2, :3] @ centre.double().float()
+                      + float(view.world_to_camera[2, 3]))
+            footprints.append(z / float(view.K[0, 0]))
+            assert view.alpha.max() > 0.9 and view.alpha[0].max() < 0.5  # the figure whole inside the frame
+            if bool(keep.all()):  # the same image as rendering that frame's pose through the view's camera
+                _, alpha, _ = export_avatar.render(view, bones, background=torch.zeros(3))
+                np.testing.assert_allclose(view.alpha, alpha.numpy(), atol=1e-5)
     # the largest frame's box is seen at the training pixel, the others a little finer
     assert max(footprints) == pytest.approx(0.02, rel=0.02) and min(footprints) > 0.015
     with pytest.raises(ValueError, match="pixel size must be a positive"):

@@ -136,6 +136,22 @@ def training_blur(training_pixel_size: float | None, view_pixel_size: float = 0.
     return math.sqrt(SCREEN_BLUR_PX2 * max(float(training_pixel_size) ** 2 - float(view_pixel_size) ** 2, 0.0))
 
 
+def _render_view(avatar, posed, K: np.ndarray, world_to_camera: np.ndarray, size: int) -> CanonicalView:
+    """One ``size`` x ``size`` render of the posed Gaussians: colour, alpha and expected depth (``inf`` where alpha
+    is below :data:`DEPTH_ALPHA`)."""
+    view = CanonicalView(K.astype(np.float32), world_to_camera.astype(np.float32), size, size, None, None, None)
+    image, alpha, depth = avatar.rasterize(posed, view)
+    alpha = alpha.float().cpu().numpy()
+    depth = depth.float().cpu().numpy()
+    expected = np.full_like(depth, np.inf)
+    covered = alpha >= DEPTH_ALPHA
+    expected[covered] = depth[covered] / alpha[covered]
+    view.color = image.float().clamp(0.0, 1.0).cpu().numpy()
+    view.alpha = alpha
+    view.depth = expected
+    return view
+
+
 def render_canonical_views(avatar, *, count: int = 64, size: int = 256, training_pixel_size: float | None = None,
                            device=None) -> list[CanonicalView]:
     """Render the avatar at rest from ``count`` cameras around it (:func:`view_cameras`).
@@ -173,18 +189,7 @@ def render_canonical_views(avatar, *, count: int = 64, size: int = 256, training
         if blur > 0.0:
             posed["scales"] = torch.sqrt(posed["scales"].square() + blur ** 2)
         for K, world_to_camera in cameras:
-            camera = CanonicalView(K.astype(np.float32), world_to_camera.astype(np.float32), size, size,
-                                   None, None, None)
-            image, alpha, depth = avatar.rasterize(posed, camera)
-            alpha = alpha.float().cpu().numpy()
-            depth = depth.float().cpu().numpy()
-            expected = np.full_like(depth, np.inf)
-            covered = alpha >= DEPTH_ALPHA
-            expected[covered] = depth[covered] / alpha[covered]
-            camera.color = image.float().clamp(0.0, 1.0).cpu().numpy()
-            camera.alpha = alpha
-            camera.depth = expected
-            views.append(camera)
+            views.append(_render_view(avatar, posed, K, world_to_camera, size))
     return views
 
 
@@ -210,7 +215,8 @@ def render_posed_views(avatar, motion, frames, *, pixel_size: float, cameras: in
             it out whole first.
         frames: indices of the rows of ``motion`` to show.
         pixel_size: the width [m] of a pixel at the posed box's centre; the views' size follows from it (at most
-            :data:`MAX_POSED_VIEW_SIZE`, at least 64 px).
+            :data:`MAX_POSED_VIEW_SIZE`, at least 64 px; where 64 px gives finer pixels, the Gaussians are blurred
+            in 3D by :func:`training_blur`, as in :func:`render_canonical_views`).
         cameras: cameras per frame.
         device: where to render (default: the avatar's device).
 
@@ -247,7 +253,11 @@ def render_posed_views(avatar, motion, frames, *, pixel_size: float, cameras: in
         # one image size for all: the largest box's distance over the pixel, through the 40-degree field of view
         radius = max(0.5 * float(np.linalg.norm(high - low)) for low, high in boxes)
         distance = radius / math.sin(half) * 1.05
-        size = int(min(MAX_POSED_VIEW_SIZE, max(64, math.ceil(2.0 * math.tan(half) * distance / pixel_size))))
+        natural = math.ceil(2.0 * math.tan(half) * distance / pixel_size)
+        size = int(min(MAX_POSED_VIEW_SIZE, max(64, natural)))
+        # where the size is raised to its least, the views' pixels are finer than the training pixel: blur as the
+        # canonical views do, so the silhouettes are still the ones the fit saw
+        blur = training_blur(pixel_size, distance * 2.0 * math.tan(half) / size) if size > natural else 0.0
         views, view_frames = [], []
         for position, (posed, (low, high)) in enumerate(zip(posed_frames_, boxes)):
             if not bool(keep.all()):
@@ -255,19 +265,10 @@ def render_posed_views(avatar, motion, frames, *, pixel_size: float, cameras: in
                 posed = type(posed)({key: value[keep] if torch.is_tensor(value) and value.dim() > 0
                                      and value.shape[0] == count_all and key != "bone_transforms" else value
                                      for key, value in posed.items()})
+            if blur > 0.0:
+                posed["scales"] = torch.sqrt(posed["scales"].square() + blur ** 2)
             indices = range(position, count, len(frames))
             for K, world_to_camera in view_cameras(low, high, up, count=count, size=size, indices=indices):
-                camera = CanonicalView(K.astype(np.float32), world_to_camera.astype(np.float32), size, size,
-                                       None, None, None)
-                image, alpha, depth = avatar.rasterize(posed, camera)
-                alpha = alpha.float().cpu().numpy()
-                depth = depth.float().cpu().numpy()
-                expected = np.full_like(depth, np.inf)
-                covered = alpha >= DEPTH_ALPHA
-                expected[covered] = depth[covered] / alpha[covered]
-                camera.color = image.float().clamp(0.0, 1.0).cpu().numpy()
-                camera.alpha = alpha
-                camera.depth = expected
-                views.append(camera)
+                views.append(_render_view(avatar, posed, K, world_to_camera, size))
                 view_frames.append(position)
     return views, np.asarray(view_frames, dtype=np.int64)
