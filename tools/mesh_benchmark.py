@@ -238,8 +238,9 @@ def _build_parser() -> argparse.ArgumentParser:
                         help="most voxels of the fused grid (default: the export's, "
                              "warpavatar.mesh.surface.MAX_VOXELS)")
     parser.add_argument("--silhouette-rounds", type=int, default=None,
-                        help="rounds fitting the skinned mesh's silhouettes to the Gaussians' in frames of the training "
-                             "motion (default: the export's, warpavatar.mesh.surface.SILHOUETTE_ROUNDS; 0: none)")
+                        help="rounds fitting the skinned mesh's silhouettes to the Gaussians' in frames of the "
+                             "training motion (default: the export's, warpavatar.mesh.surface.SILHOUETTE_ROUNDS; "
+                             "0: none)")
     parser.add_argument("--shading", choices=("texture", "vertex-colors"), default="texture",
                         help="colour the mesh from its texture or its vertex colours (default %(default)s)")
     parser.add_argument("--supersample", type=int, default=1,
@@ -299,7 +300,8 @@ def _run(args) -> int:
                                      training_pixel_size=pixel_size or None,
                                      training_motion=recorded_training_motion(args.avatar, avatar.skeleton),
                                      max_voxels=args.max_voxels,
-                                     silhouette_rounds=args.silhouette_rounds, progress=False, timings=timings, settings=chosen)
+                                     silhouette_rounds=args.silhouette_rounds, progress=False, timings=timings,
+                                     settings=chosen)
         build_seconds = time.perf_counter() - start
         shading = "texture" if args.shading == "texture" else "vertex_colors"
         rows = {label: measure_folder(avatar, mesh, video, frames=args.frames, shading=shading,

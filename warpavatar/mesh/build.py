@@ -1,12 +1,13 @@
 """The mesh export's stages in order: a fitted avatar in, a textured, skinned :class:`AvatarMesh` out.
 
 renders of the canonical avatar (:func:`~warpavatar.mesh.views.render_canonical_views`, the Gaussians blurred as
-at the fit's resolution where the fit recorded it: :func:`recorded_pixel_size`) -> a closed surface fused
-from them (:func:`~warpavatar.mesh.surface.extract_surface`) -> UVs (:func:`~warpavatar.mesh.texture.unwrap`) ->
-normals -> texture atlas and vertex colours baked from the renders (:mod:`warpavatar.mesh.texture`) -> skin weights
-(:func:`~warpavatar.mesh.skin.skin_mesh`, blended from the Gaussians around each vertex). A static format skips
-what it cannot hold (``texture``, ``vertex_colors``, ``skin`` off). The motion is applied afterwards, by
-:func:`~warpavatar.mesh.skin.mesh_animation`.
+at the fit's resolution where the fit recorded it: :func:`recorded_pixel_size`) -> a closed surface fused from them
+(:func:`~warpavatar.mesh.surface.extract_surface`) -> the surface fitted to the Gaussians' silhouettes in frames of
+the training motion, where the fit recorded one (:func:`fit_posed_silhouettes`) -> UVs
+(:func:`~warpavatar.mesh.texture.unwrap`) -> normals -> texture atlas and vertex colours baked from the renders
+(:mod:`warpavatar.mesh.texture`) -> skin weights (:func:`~warpavatar.mesh.skin.skin_mesh`, blended from the Gaussians
+around each vertex). A static format skips what it cannot hold (``texture``, ``vertex_colors``, ``skin`` off). The
+motion is applied afterwards, by :func:`~warpavatar.mesh.skin.mesh_animation`.
 """
 
 from __future__ import annotations
@@ -173,8 +174,7 @@ def build_avatar_mesh(avatar, *, triangles: int = DEFAULT_TRIANGLES, texture_siz
         progress: show a progress bar over the stages, named as they run.
         timings: a dict to fill with each stage's wall time [s], by stage name, or None.
         settings: a dict to fill with what was chosen (``view_size`` [px], ``voxel_size`` [m], ``max_voxels``,
-            ``silhouette_rounds``),
-            or None.
+            ``silhouette_rounds``), or None.
 
     Returns:
         the :class:`AvatarMesh`, with the avatar skeleton's ``up``.
@@ -190,7 +190,7 @@ def build_avatar_mesh(avatar, *, triangles: int = DEFAULT_TRIANGLES, texture_siz
 
     rounds = surface.SILHOUETTE_ROUNDS if silhouette_rounds is None else int(silhouette_rounds)
     posed_fit = training_motion is not None and training_pixel_size is not None and rounds > 0
-    stages = ["views", "surface"] + (["silhouettes"] if posed_fit else []) + (["uvs"] if texture else []) + (["texture"] if texture else []) \
+    stages = ["views", "surface"] + (["silhouettes"] if posed_fit else []) + (["uvs", "texture"] if texture else []) \
         + (["vertex colours"] if vertex_colors else []) + (["skin"] if skin else [])
     timings = {} if timings is None else timings
     bar = tqdm.tqdm(total=len(stages), desc="mesh", unit="stage", disable=not progress)

@@ -18,10 +18,10 @@ residual (its posed centre minus LBS of its stored canonical centre with the fie
 the mesh's vertices by the same density shares as the weights (over the :data:`WEIGHT_NEIGHBOURS` nearest
 Gaussians in the canonical pose: the Gaussians that make the surface there, not faint or distant ones that a part
 moved far; on the robot benchmark subject, 1 % of the Gaussians carry residuals above 12 cm, and inverse-distance
-shares over 8 gave the posed mesh spikes). Since LBS is linear in the rest position (``LBS(x + o) = LBS(x) + A o``, with ``A`` the vertex's
-blended 3x3), the world residual ``r`` becomes the pre-skinning offset ``o = A^-1 r``, which is what glTF morph
-targets and UsdSkel's time-sampled points both apply before skinning (damped where ``A`` nearly collapses, in
-LBS's folds: see :func:`_blended_inverse`).
+shares over 8 gave the posed mesh spikes). Since LBS is linear in the rest position (``LBS(x + o) = LBS(x) + A o``,
+with ``A`` the vertex's blended 3x3), the world residual ``r`` becomes the pre-skinning offset ``o = A^-1 r``, which
+is what glTF morph targets and UsdSkel's time-sampled points both apply before skinning (damped where ``A`` nearly
+collapses, in LBS's folds: see :func:`_blended_inverse`).
 """
 
 from __future__ import annotations

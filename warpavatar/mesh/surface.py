@@ -79,8 +79,9 @@ SILHOUETTE_ROUNDS = 8
 """Rounds of :func:`fit_silhouettes` (each moves a vertex at most one voxel along its normal)."""
 
 CONTOUR_COSINE = 0.5
-"""A vertex is on a view's contour where the cosine between its normal and the view's ray is below this: there the
-view's silhouette edge says where the surface is, across the ray."""
+"""How squarely a view must see a vertex's silhouette edge for :func:`fit_silhouettes`: a view's weight is
+``1 - |cos| / CONTOUR_COSINE`` (none above it), with ``cos`` the cosine between the vertex's normal and the view's
+ray (a normal across the ray moves the edge the most)."""
 
 SMOOTHING_RINGS = 2
 """Rings of neighbours each vertex's move in :func:`fit_silhouettes` is averaged over (a view's edge is known to
