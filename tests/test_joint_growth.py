@@ -444,4 +444,4 @@ def test_history_criterion_needs_the_frame_codes():
         preset(grow_joints=True, grow_criterion="history", grow_at=3000, pose_correction=False)
     with pytest.raises(ValueError, match="grow_criterion must be"):
         preset(grow_joints=True, grow_criterion="curvature")
-    preset(grow_joints=True, grow_criterion="history", grow_at=3000)  # the combination that works
+    preset(grow_joints=True, grow_criterion="history", frame_codes=True, grow_at=3000)  # the combination that works

@@ -426,7 +426,8 @@ class _PlaybackNetwork:
 
 @dataclass
 class PoseCorrectionOptions:
-    frame_codes: bool = option(True, "give each training frame a learned code in the pose correction (cloth "
+    # off by default: default fits with the codes spiked late on an H200 (BENCHMARKS.md, "Avatar quality")
+    frame_codes: bool = option(False, "give each training frame a learned code in the pose correction (cloth "
                                "dynamics of the training instants; other poses use the pose-only correction)")
     pose_correction_hidden: int = option(128, "hidden width of the pose-correction MLP")
     lambda_pose_correction: float = option(0.01, "weight of the pose correction's size regularizer")
