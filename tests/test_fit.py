@@ -211,7 +211,8 @@ def test_joint_growth_fit_grows_replays_and_resumes_exactly(demo_video, tmp_path
 def test_history_criterion_locates_the_joint_with_the_largest_code_offsets(demo_video, tmp_path):
     config = _tiny_config(iterations=45, densify_from=20, densify_every=20, densify_until=40,
                           gaussian_only_steps=25, secondary_motion=False, grow_joints=True, grow_at=40,
-                          grow_criterion="history", grow_threshold=0.5, grow_max_joints=1, grow_kernel_frames=6)
+                          grow_criterion="history", grow_threshold=0.5, grow_max_joints=1, grow_kernel_frames=6,
+                          frame_codes=True)
     trainer = Trainer(demo_video, config, tmp_path / "fit")
     trainer.fit(progress=False, stop_at=41)
     report = trainer.extension("joint_growth").report
