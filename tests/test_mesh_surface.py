@@ -212,8 +212,5 @@ def test_fit_silhouettes_brings_a_posed_surface_onto_the_views_silhouettes():
     directions = lambda points: (points - canonical_centre) / np.linalg.norm(points - canonical_centre, axis=1,
                                                                              keepdims=True)
     assert np.abs(directions(moved) - directions(vertices)).max() < 0.02
-    # without its pose the surface is far from every view's sphere: nothing is trusted, nothing moves far
-    unposed = surface.fit_silhouettes(vertices, faces, views, voxel_size=voxel, rounds=2)
-    assert np.abs(unposed - vertices).max() <= 2 * voxel + 1e-9
     with pytest.raises(ValueError, match="poses must be"):
         surface.fit_silhouettes(vertices, faces, views, voxel_size=voxel, poses=pose, view_poses=[0])

@@ -530,13 +530,14 @@ def _torch_vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.
 
 def _mesh_silhouettes(points: torch.Tensor, faces: torch.Tensor, K: torch.Tensor, matrices: torch.Tensor,
                       width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(alpha [N,H,W], depth [N,H,W])`` of the mesh ray cast through each view (:func:`warpavatar.ops.render_mesh`:
-    1 where a face is hit, its camera z there, 0 elsewhere)."""
+    """``(alpha [N,H,W], depth [N,H,W])`` of the mesh ray cast through each view, with view ``n`` seeing the
+    vertices at ``points[n]`` [N,V,3] (:func:`warpavatar.ops.render_mesh`: 1 where a face is hit, its camera z
+    there, 0 elsewhere)."""
     from warpavatar import ops
 
     alphas, depths = [], []
     for index in range(K.shape[0]):
-        _, alpha, depth = ops.render_mesh(points, faces, K[index], matrices[index], width, height)
+        _, alpha, depth = ops.render_mesh(points[index].contiguous(), faces, K[index], matrices[index], width, height)
         alphas.append(alpha)
         depths.append(depth)
     return torch.stack(alphas), torch.stack(depths)
@@ -620,13 +621,7 @@ def fit_silhouettes(vertices: np.ndarray, faces: np.ndarray, views, *, voxel_siz
             turned = torch.einsum("pvij,vj->pvi", poses[..., :3], normals)
             seen_points = posed[view_poses]
             seen_normals = (turned / turned.norm(dim=-1, keepdim=True).clamp_min(1e-12))[view_poses]
-        alphas, depths = [], []
-        for index in range(K.shape[0]):
-            view_alpha, view_depth = _mesh_silhouettes(seen_points[index].contiguous(), face_index, K[index:index + 1],
-                                                       matrices[index:index + 1], int(width), int(height))
-            alphas.append(view_alpha[0])
-            depths.append(view_depth[0])
-        mesh_alpha, mesh_depth = torch.stack(alphas), torch.stack(depths)
+        mesh_alpha, mesh_depth = _mesh_silhouettes(seen_points, face_index, K, matrices, int(width), int(height))
         mesh_field = _silhouette_fields(mesh_alpha)[:, None]
         camera = torch.einsum("nij,nvj->nvi", rotation, seen_points) + translation[:, None]
         z = camera[..., 2]

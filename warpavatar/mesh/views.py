@@ -136,6 +136,16 @@ def training_blur(training_pixel_size: float | None, view_pixel_size: float = 0.
     return math.sqrt(SCREEN_BLUR_PX2 * max(float(training_pixel_size) ** 2 - float(view_pixel_size) ** 2, 0.0))
 
 
+def _body_only(posed, keep: torch.Tensor):
+    """The posed Gaussians ``keep`` [N] bool selects (:func:`body_gaussians`): every per-Gaussian entry indexed,
+    the rest kept."""
+    if bool(keep.all()):
+        return posed
+    count = int(keep.numel())
+    return type(posed)({key: value[keep] if torch.is_tensor(value) and value.dim() > 0 and value.shape[0] == count
+                        and key != "bone_transforms" else value for key, value in posed.items()})
+
+
 def _render_view(avatar, posed, K: np.ndarray, world_to_camera: np.ndarray, size: int) -> CanonicalView:
     """One ``size`` x ``size`` render of the posed Gaussians: colour, alpha and expected depth (``inf`` where alpha
     is below :data:`DEPTH_ALPHA`)."""
@@ -177,11 +187,7 @@ def render_canonical_views(avatar, *, count: int = 64, size: int = 256, training
     views = []
     with torch.no_grad():
         posed = avatar.pose(rest, sh_degree=0)
-        if not bool(keep.all()):  # the body only: every per-Gaussian entry indexed, the rest kept
-            count_all = int(keep.numel())
-            posed = type(posed)({key: value[keep] if torch.is_tensor(value) and value.dim() > 0
-                                 and value.shape[0] == count_all and key != "bone_transforms" else value
-                                 for key, value in posed.items()})
+        posed = _body_only(posed, keep)
         cameras = view_cameras(low, high, up, count=count, size=size)
         centre = 0.5 * (low + high)  # every camera sees it at one distance, with one focal length
         view_pixel_size = float(cameras[0][1][2, :3] @ centre + cameras[0][1][2, 3]) / float(cameras[0][0][0, 0])
@@ -260,11 +266,7 @@ def render_posed_views(avatar, motion, frames, *, pixel_size: float, cameras: in
         blur = training_blur(pixel_size, distance * 2.0 * math.tan(half) / size) if size > natural else 0.0
         views, view_frames = [], []
         for position, (posed, (low, high)) in enumerate(zip(posed_frames_, boxes)):
-            if not bool(keep.all()):
-                count_all = int(keep.numel())
-                posed = type(posed)({key: value[keep] if torch.is_tensor(value) and value.dim() > 0
-                                     and value.shape[0] == count_all and key != "bone_transforms" else value
-                                     for key, value in posed.items()})
+            posed = _body_only(posed, keep)
             if blur > 0.0:
                 posed["scales"] = torch.sqrt(posed["scales"].square() + blur ** 2)
             indices = range(position, count, len(frames))
